@@ -1,0 +1,165 @@
+"""Classifier models ``P(z^sem | c, viewpoint) = N(h_c(viewpoint), Σ_c(viewpoint))`` (Eq. 2).
+
+One small interface, :class:`ClassifierModel`: a model gives, for a viewpoint, the mean
+score vector of every class (``class_means``, shape ``(M, M)``, row ``c`` is ``h_c``) and the
+square-root information of every class (``class_sqrt_informations``, shape ``(M, M, M)``, with
+``Σ_c = (R_cᵀ R_c)⁻¹``). Everything the estimator needs — whitened residuals for Gauss-Newton,
+log-likelihoods for the weights, samples for simulation — is derived from those two, so a new
+model (e.g. a learned one) implements just them. The viewpoint is passed as the unit vector
+``(cos θ, sin θ)`` of the angle θ of SCENARIO_FORMAT.md (continuous across ±π, no ``atan2``).
+
+Parameters (``alpha``, ``K``) are array leaves: changing them never recompiles.
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float, Int
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+class ClassifierModel(eqx.Module):
+    """Base class. ``num_classes`` is static (it fixes shapes)."""
+
+    num_classes: int = eqx.field(static=True)
+
+    @abc.abstractmethod
+    def class_means(self, viewpoint: Float[Array, "2"]) -> Float[Array, "M M"]:
+        """``h_c(viewpoint)`` for every class ``c`` (row ``c``)."""
+
+    @abc.abstractmethod
+    def class_sqrt_informations(self, viewpoint: Float[Array, "2"]) -> Float[Array, "M M M"]:
+        """Upper-triangular ``R_c`` with ``Σ_c(viewpoint) = (R_cᵀ R_c)⁻¹`` for every class."""
+
+    @property
+    def uses_scores(self) -> bool:
+        """False for the geometry-only model, whose semantic factor is identically 1."""
+        return True
+
+    def residuals(
+        self, scores: Float[Array, " M"], viewpoint: Float[Array, "2"]
+    ) -> tuple[Float[Array, "M M"], Float[Array, " M"]]:
+        """Whitened residuals ``R_c (z − h_c)`` (row ``c``) and log normalizers ``log|R_c| − M/2 log 2π``.
+
+        For every class at once: ``log N(z; h_c, Σ_c) = −½‖r_c‖² + log_norm_c`` (Eq. 2).
+        """
+        h = self.class_means(viewpoint)
+        r = self.class_sqrt_informations(viewpoint)
+        diag = jnp.diagonal(r, axis1=-2, axis2=-1)
+        log_norm = jnp.sum(jnp.log(jnp.abs(diag)), axis=-1) - 0.5 * self.num_classes * _LOG_2PI
+        return jnp.sum(r * (scores[None, :] - h)[:, None, :], axis=-1), log_norm
+
+    def log_likelihood(
+        self, scores: Float[Array, " M"], c: Int[Array, ""], viewpoint: Float[Array, "2"]
+    ) -> Float[Array, ""]:
+        """``log P(scores | c, viewpoint)``."""
+        r, log_norm = self.residuals(scores, viewpoint)
+        return log_norm[c] - 0.5 * jnp.sum(r[c] ** 2)
+
+    def sample(self, key: jax.Array, c: Int[Array, ""], viewpoint: Float[Array, "2"]) -> Float[Array, " M"]:
+        """Draw a score vector from the model (used by the simulator)."""
+        r = self.class_sqrt_informations(viewpoint)[c]
+        eps = jax.random.normal(key, (self.num_classes,), dtype=r.dtype)
+        return self.class_means(viewpoint)[c] + jax.scipy.linalg.solve_triangular(r, eps, lower=False)
+
+
+def _mirror_sqrt_information(k: Float[Array, ""]) -> Float[Array, "2 2"]:
+    """``R = K [[1, -0.5], [0, 1]]`` of Eq. 18's covariance ``Σ_c = (RᵀR)⁻¹``."""
+    return k * jnp.array([[1.0, -0.5], [0.0, 1.0]], dtype=jnp.result_type(k))
+
+
+class Mirror(ClassifierModel):
+    """The paper's viewpoint-dependent model of a mirror-symmetric object (Eq. 18), M = 2.
+
+    With ``s = sin²(θ/2)``: ``h_0 = [α s + (1 − α), α − α s]`` and ``h_1`` its mirror image;
+    ``Σ_c = (RᵀR)⁻¹``, ``R = K [[1, −0.5], [0, 1]]`` for both classes.
+    """
+
+    alpha: Float[Array, ""]
+    K: Float[Array, ""]
+
+    def __init__(self, alpha: float | Array, K: float | Array):
+        self.num_classes = 2
+        self.alpha = jnp.asarray(alpha, dtype=float)
+        self.K = jnp.asarray(K, dtype=float)
+
+    def class_means(self, viewpoint):
+        s = 0.5 * (1.0 - viewpoint[0])  # sin²(θ/2) = (1 − cos θ) / 2
+        h0 = jnp.stack([self.alpha * s + (1.0 - self.alpha), self.alpha - self.alpha * s])
+        return jnp.stack([h0, h0[::-1]])
+
+    def class_sqrt_informations(self, viewpoint):
+        return jnp.broadcast_to(_mirror_sqrt_information(self.K), (2, 2, 2))
+
+
+class Independent(ClassifierModel):
+    """Viewpoint-independent Gaussian per class: the moment-matched average of :class:`Mirror`.
+
+    Averaging Eq. 18 over a uniform viewpoint, ``E[sin²(θ/2)] = 1/2`` and
+    ``Var[sin²(θ/2)] = 1/8``, so ``h̄_0 = [1 − α/2, α/2]`` (``h̄_1`` mirrored) and
+    ``Σ̄ = Σ_c + (α²/8) [[1, −1], [−1, 1]]`` — the paper's "viewpoint-independent model" (Sec. V).
+    """
+
+    alpha: Float[Array, ""]
+    K: Float[Array, ""]
+
+    def __init__(self, alpha: float | Array, K: float | Array):
+        self.num_classes = 2
+        self.alpha = jnp.asarray(alpha, dtype=float)
+        self.K = jnp.asarray(K, dtype=float)
+
+    def class_means(self, viewpoint):
+        h0 = jnp.stack([1.0 - self.alpha / 2.0, self.alpha / 2.0])
+        return jnp.stack([h0, h0[::-1]])
+
+    def covariance(self) -> Float[Array, "2 2"]:
+        r = _mirror_sqrt_information(self.K)
+        spread = jnp.array([[1.0, -1.0], [-1.0, 1.0]], dtype=r.dtype)
+        return jnp.linalg.inv(r.T @ r) + self.alpha**2 / 8.0 * spread
+
+    def class_sqrt_informations(self, viewpoint):
+        # R = L⁻¹ with Σ = L Lᵀ gives Rᵀ R = Σ⁻¹.
+        chol = jnp.linalg.cholesky(self.covariance())
+        r = jax.scipy.linalg.solve_triangular(chol, jnp.eye(2, dtype=chol.dtype), lower=True)
+        return jnp.broadcast_to(r, (2, 2, 2))
+
+
+class NoClassifier(ClassifierModel):
+    """Geometry only: scores are ignored (the paper's passive DA-BSP baseline, Sec. V)."""
+
+    def __init__(self, num_classes: int):
+        self.num_classes = num_classes
+
+    @property
+    def uses_scores(self) -> bool:
+        return False
+
+    def class_means(self, viewpoint):
+        return jnp.zeros((self.num_classes, self.num_classes))
+
+    def class_sqrt_informations(self, viewpoint):
+        return jnp.zeros((self.num_classes,) * 3)
+
+    def residuals(self, scores, viewpoint):
+        m = self.num_classes
+        return jnp.zeros((m, m), scores.dtype), jnp.zeros((m,), scores.dtype)
+
+
+MODELS = ("mirror", "independent", "none")
+
+
+def make_classifier(name: str, num_classes: int, alpha: float | None = None, K: float | None = None) -> ClassifierModel:
+    """Build a classifier model by its scenario-file name (``classifier.model``)."""
+    if name == "mirror":
+        return Mirror(alpha, K)
+    if name == "independent":
+        return Independent(alpha, K)
+    if name == "none":
+        return NoClassifier(num_classes)
+    raise ValueError(f"classifier.model: unknown model {name!r} (known: {', '.join(MODELS)})")

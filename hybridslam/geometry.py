@@ -1,0 +1,55 @@
+"""Range-bearing observation geometry, viewpoint angle and the object observation model.
+
+Conventions from SCENARIO_FORMAT.md. The geometric likelihood is the paper's
+``P(z^geo | x_k, x^o) = N(h^geo(x_k, x^o), Σ_v)`` (Sec. III, Eq. 10); visibility is the object
+observation model ``P(β_k | x_k, X^o)`` of Sec. IV-B (1 if every named object is in view).
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float
+
+from . import se2
+
+
+def _to_frame(pose: se2.Pose, dx: Float[Array, ""], dy: Float[Array, ""]):
+    """``R(θ)ᵀ [dx, dy]``, written out: tiny matmuls batch poorly on CPU, elementwise math fuses."""
+    c, s = jnp.cos(pose[2]), jnp.sin(pose[2])
+    return c * dx + s * dy, c * dy - s * dx
+
+
+def range_bearing(x: se2.Pose, obj: se2.Pose) -> Float[Array, "2"]:
+    """``h^geo``: ``[range, bearing]`` of the object's position seen from robot pose ``x``."""
+    qx, qy = _to_frame(x, obj[0] - x[0], obj[1] - x[1])
+    rng = jnp.sqrt(qx**2 + qy**2 + 1e-300)  # the tiny floor keeps d/dq finite at q = 0
+    return jnp.stack([rng, jnp.arctan2(qy, qx)])
+
+
+def viewpoint(x: se2.Pose, obj: se2.Pose) -> Float[Array, "2"]:
+    """Direction of the camera seen from the object, as the unit vector ``(cos θ, sin θ)``.
+
+    ``θ = atan2(v_y, v_x)`` with ``v = R(θ_o)ᵀ (p_x − p_o)`` (SCENARIO_FORMAT.md). Classifier
+    models take the unit vector: it is continuous across ±π and needs no ``atan2``.
+    """
+    vx, vy = _to_frame(obj, x[0] - obj[0], x[1] - obj[1])
+    norm = jnp.sqrt(vx**2 + vy**2 + 1e-300)
+    return jnp.stack([vx / norm, vy / norm])
+
+
+def viewpoint_angle(x: se2.Pose, obj: se2.Pose) -> Float[Array, ""]:
+    """The viewpoint as an angle in (-pi, pi]."""
+    v = viewpoint(x, obj)
+    return jnp.arctan2(v[1], v[0])
+
+
+def geometric_residual(z: Float[Array, "2"], predicted: Float[Array, "2"]) -> Float[Array, "2"]:
+    """``z - h^geo`` with the bearing difference wrapped (unwhitened)."""
+    return jnp.stack([z[0] - predicted[0], se2.wrap(z[1] - predicted[1])])
+
+
+def visible(
+    range_bearing_: Float[Array, "2"], max_range: Float[Array, ""], fov: Float[Array, ""]
+) -> Bool[Array, ""]:
+    """Sensor footprint: ``range <= max_range`` and ``|bearing| <= fov / 2``."""
+    return (range_bearing_[0] <= max_range) & (jnp.abs(range_bearing_[1]) <= 0.5 * fov)

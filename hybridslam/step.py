@@ -1,0 +1,122 @@
+"""One inference step of the hybrid belief: Algorithm 1 as a single jit-compiled function.
+
+``step(belief, odometry, detections, key)`` is pure; ``jax.vmap`` it over a leading axis of
+beliefs to run many tracks (or many parameter settings: the model lives in the belief) at once.
+Compiles once per (capacity, history length, detection slots, objects, classes, weight method,
+classifier type); model parameters are traced.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+from jax.scipy.special import logsumexp
+from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
+
+from .belief import Belief, Detections
+from .hypotheses import hypothesis_table, children
+from .motion import propagate
+from .prune import PruneStats, prune
+from .update import gauss_newton_update
+from .weights import linearized_log_likelihood, sampled_log_likelihood
+
+
+class StepInfo(eqx.Module):
+    """Diagnostics of one step."""
+
+    log_evidence: Float[Array, ""]  # log Σ of unnormalized child weights ≈ log P(Z_k | H_k⁻)
+    prune: PruneStats
+    num_alive: Int[Array, ""]  # components after pruning
+    parent: Int[Array, " K"]  # slot of each new component's parent in the previous belief
+    solver_result: optx.RESULTS  # Gauss-Newton outcome per component (Eq. 9)
+    visibility_ignored: Bool[Array, ""]  # no hypothesis had every detected object in view
+
+
+def _realize(classes: Int[Array, " N"], assign: Int[Array, " Dmax"], slot_class: Int[Array, " Dmax"], new):
+    """Write the classes of newly associated objects (Sec. IV-D); all others are unchanged."""
+    target = jnp.where(new, assign, classes.shape[0])  # out of bounds -> dropped
+    return classes.at[target].set(slot_class, mode="drop")
+
+
+def _step(
+    belief: Belief, odometry: Float[Array, "3"], detections: Detections, key: PRNGKeyArray
+) -> tuple[Belief, StepInfo]:
+    cfg, model = belief.config, belief.model
+    table = hypothesis_table(belief.num_objects, cfg.max_detections, model.num_classes)
+    k = eqx.error_if(
+        belief.k, belief.k >= cfg.max_steps,
+        "belief history is full: build the belief with Config(max_steps=...) >= the number of steps",
+    )
+
+    # Algorithm 1, line 3: propagate every component with the motion model (Eq. 11).
+    mean, cov = jax.vmap(propagate, (0, 0, None, None))(belief.mean, belief.cov, odometry, model.motion_cov)
+
+    # Line 2 of PROPWEIGHTS: split each parent into (β_k, new class realizations).
+    realize = model.sensor.classifier.uses_scores
+    kids = jax.vmap(children, (None, 0, None, None, None))(
+        table, belief.classes, detections.mask, model.class_prior, realize
+    )
+
+    # Line 5: PropWeights, Eq. 16.
+    if cfg.weights == "sampled":
+        eps = jax.random.normal(key, (cfg.num_samples, mean.shape[-1]), dtype=mean.dtype)
+        log_lik, log_lik_free = jax.vmap(sampled_log_likelihood, (None, 0, 0, None, None, None, 0))(
+            model.sensor, mean, cov, detections, eps, table, kids
+        )
+    else:
+        log_lik, log_lik_free = jax.vmap(linearized_log_likelihood, (None, 0, 0, None, None, 0))(
+            model.sensor, mean, cov, detections, table, kids
+        )
+    possible = kids.valid & belief.alive[:, None, None]
+    # `where`, not `+`: empty slots may carry non-finite likelihoods that must not leak.
+    prior = belief.log_weights[:, None, None] + kids.log_prior
+    log_w = jnp.where(possible, prior + log_lik, -jnp.inf)
+    # No hypothesis puts every detected object in view: the 0/1 visibility model cannot explain
+    # this step, so weigh it by the measurement likelihood alone rather than lose the belief.
+    visibility_ignored = ~jnp.any(log_w > -jnp.inf) & jnp.any(possible)
+    log_w = jnp.where(visibility_ignored, jnp.where(possible, prior + log_lik_free, -jnp.inf), log_w)
+
+    # Line 7: PruneAndNormalize.
+    index, new_log_w, stats = prune(log_w.reshape(-1), cfg.capacity, model.prune_ratio)
+    parent, a, m = jnp.unravel_index(index, log_w.shape)
+    assign = jnp.asarray(table.assign)[a]
+    slot_class = kids.slot_class[parent, a, m]
+
+    # Line 11: update every kept child with its measurement factors (Eq. 9-10).
+    update = jax.vmap(gauss_newton_update, (None, 0, 0, 0, 0, None, None))
+    new_mean, new_cov, result = update(
+        model.sensor, mean[parent], cov[parent], assign, slot_class, detections, cfg.gn_max_steps
+    )
+    alive = new_log_w > -jnp.inf
+    # Empty slots copy the best component so later batched math on them stays finite.
+    new_mean = jnp.where(alive[:, None], new_mean, new_mean[:1])
+    new_cov = jnp.where(alive[:, None, None], new_cov, new_cov[:1])
+
+    new_belief = Belief(
+        log_weights=new_log_w,
+        mean=new_mean,
+        cov=new_cov,
+        classes=jax.vmap(_realize)(belief.classes[parent], assign, slot_class, kids.new[parent, a, m]),
+        history=belief.history[parent].at[:, k, :].set(assign),
+        k=k + 1,
+        model=model,
+        config=cfg,
+    )
+    info = StepInfo(logsumexp(log_w), stats, jnp.sum(alive), parent, result, visibility_ignored)
+    return new_belief, info
+
+
+step = jax.jit(_step)
+step.__doc__ = """Advance a belief by one step (Algorithm 1): propagate, split, weigh (Eq. 16), prune, update.
+
+Args:
+    belief: the belief after step ``k - 1``.
+    odometry: ``u_k``, shape ``(3,)``, a measurement of ``between(x_{k-1}, x_k)``.
+    detections: the step's detections, padded to ``belief.config.max_detections`` slots.
+    key: PRNG key for the Monte-Carlo weights (unused by ``weights="linearized"``).
+
+Returns:
+    ``(belief, info)``: the belief after step ``k`` and a :class:`StepInfo`.
+"""

@@ -1,0 +1,190 @@
+"""PropWeights: the likelihood factor of each child's weight (Eq. 15-17, Algorithm 1 PROPWEIGHTS).
+
+For a parent with propagated Gaussian ``b⁻`` and a child ``(β_k, C)``,
+
+    w_child ∝ w_parent · ∫ P(Z_k | x_k, X^o, C, β_k) · P(β_k | x_k, X^o) · b⁻(x_k, X^o) dx_k dX^o.   (Eq. 16)
+
+Two estimators of the integral, both returning ``log ψ`` for every child of one parent on the
+``(A, Mc)`` grid of :mod:`hypotheses`:
+
+* :func:`sampled_log_likelihood` — the paper's Monte-Carlo mean over ``n_s`` draws from ``b⁻``.
+  All children (and all parents) share the same standard-normal draws (common random numbers).
+  Per draw we build one table of log-likelihoods for every (detection, object, class); a child is
+  then a sum of table entries, so no trigonometry is evaluated per child.
+* :func:`linearized_log_likelihood` — deterministic: the Gaussian marginal likelihood of the
+  linearized measurement model (thesis Eq. 4.14-4.15, ``C = H Σ Hᵀ + Γ``) for all of the child's
+  detections jointly, times the probability that the named objects are in view under the
+  linearized predictive of range and bearing.
+
+Both return a pair ``(log ψ, log ψ ignoring visibility)``. The second is a fallback for a step
+whose detections no hypothesis can explain (every child needs an object out of view: a model
+violation, e.g. a false detection); :func:`~hybridslam.step.step` uses it only then, and says so
+in ``StepInfo.visibility_ignored``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import jax.scipy.linalg as jsl
+from jax.scipy.special import log_ndtr, logsumexp, ndtr
+from jaxtyping import Array, Bool, Float, Int
+
+from .belief import Detections
+from .geometry import range_bearing
+from .hypotheses import Children, HypothesisTable
+from .measurement import SensorModel, detection_residual, detection_residuals, in_view
+
+
+def _split(state: Float[Array, " D"]) -> tuple[Float[Array, "3"], Float[Array, "N 3"]]:
+    return state[:3], state[3:].reshape(-1, 3)
+
+
+def _slot_codes(table: HypothesisTable, kids: Children, num_classes: int) -> Int[Array, "A Mc Dmax"]:
+    """Code ``n·M + c`` of each child slot's (object, class); 0 for an empty slot.
+
+    Empty slots are the step's masked detections, the same for every valid child, so their table
+    rows are set to 0 and any code reads the same value.
+    """
+    assign = jnp.asarray(table.assign)[:, None, :]
+    return jnp.where(assign >= 0, assign * num_classes + kids.slot_class, 0)
+
+
+def _detection_log_likelihoods(sensor, x, obj, z_geo, scores):
+    r_geo, r_sem, log_norm = detection_residuals(sensor, x, obj, z_geo, scores)
+    return log_norm - 0.5 * (jnp.sum(r_geo**2) + jnp.sum(r_sem**2, axis=-1))
+
+
+def log_likelihood_table(
+    sensor: SensorModel, state: Float[Array, " D"], detections: Detections
+) -> tuple[Float[Array, "Dmax N M"], Bool[Array, " N"]]:
+    """``log P(z_j | x, x^o_n, c)`` for every (detection, object, class), and which objects are in view.
+
+    Trigonometry depends on (robot, object) only; ``vmap`` keeps it unbatched over detections,
+    so it is evaluated ``N`` times per state.
+    """
+    x, objs = _split(state)
+    f = jax.vmap(_detection_log_likelihoods, (None, None, 0, None, None))  # objects
+    f = jax.vmap(f, (None, None, None, 0, 0))  # detections
+    table = f(sensor, x, objs, detections.geo, detections.scores)
+    return table, jax.vmap(in_view, (None, None, 0))(sensor, x, objs)
+
+
+def log_mean_exp_outer(tables: Float[Array, "S Dmax B"]) -> Float[Array, "*B"]:
+    """``log (1/S) Σ_s exp(Σ_j tables[s, j, i_j])`` for every index tuple ``(i_1, ..., i_Dmax)``.
+
+    Exact log-domain reduction written as one contraction: each (sample, slot) row is shifted by
+    its max before ``exp`` and the shifts are restored per sample, so only ``S·Dmax·B``
+    exponentials are taken instead of ``S·B^Dmax``. An entry underflows to ``-inf`` only when it is
+    ``e^-700`` below the best entry of the same table — far below any pruning threshold.
+    """
+    s, dmax, _ = tables.shape
+    row_max = jnp.max(tables, axis=-1)  # (S, Dmax)
+    feasible = jnp.all(row_max > -jnp.inf, axis=-1)
+    safe = jnp.where(row_max > -jnp.inf, row_max, 0.0)
+    scaled = jnp.exp(tables - safe[..., None])
+    shift = jnp.where(feasible, jnp.sum(safe, axis=-1), -jnp.inf)
+    top = jnp.max(shift)
+    omega = jnp.exp(shift - jnp.where(top > -jnp.inf, top, 0.0))
+    letters = "abcdefghijklmnopqrtuvwxyz"[:dmax]
+    spec = "s," + ",".join(f"s{c}" for c in letters) + "->" + letters
+    total = jnp.einsum(spec, omega, *(scaled[:, j] for j in range(dmax)))
+    return top + jnp.log(total) - math.log(s)
+
+
+def sampled_log_likelihood(
+    sensor: SensorModel,
+    mean: Float[Array, " D"],
+    cov: Float[Array, "D D"],
+    detections: Detections,
+    eps: Float[Array, "S D"],
+    table: HypothesisTable,
+    kids: Children,
+) -> tuple[Float[Array, "A Mc"], Float[Array, "A Mc"]]:
+    """``log ψ`` of Eq. 16 as the mean over samples ``mean + L eps`` (``cov = L Lᵀ``), per child.
+
+    A child's per-sample log-likelihood is a sum over its slots of table entries, so the mean
+    over samples of every combination of (object, class) per slot is one
+    :func:`log_mean_exp_outer`; each child then reads its entry.
+    """
+    samples = mean[None, :] + eps @ jnp.linalg.cholesky(cov).T
+    lik, seen = jax.vmap(log_likelihood_table, (None, 0, None))(sensor, samples, detections)
+    s, dmax = lik.shape[:2]
+    m = sensor.classifier.num_classes
+    occupied = detections.mask[None, :, None, None]
+    with_view = jnp.where(occupied, jnp.where(seen[:, None, :, None], lik, -jnp.inf), 0.0)
+    without_view = jnp.where(occupied, lik, 0.0)
+    codes = _slot_codes(table, kids, m)
+    index = tuple(codes[..., j] for j in range(dmax))
+    return tuple(log_mean_exp_outer(t.reshape(s, dmax, -1))[index] for t in (with_view, without_view))
+
+
+def _residual_rows(sensor, state, n, c, z_geo, scores):
+    x, objs = _split(state)
+    return detection_residual(sensor, x, objs[n], z_geo, scores, c)
+
+
+def _log_visibility_probability(sensor: SensorModel, mean, cov, n):
+    """``log P(object n in view)`` under the linearized Gaussian predictive of its range/bearing."""
+    h = lambda s: range_bearing(s[:3], s[3:].reshape(-1, 3)[n])  # noqa: E731
+    jac = jax.jacfwd(h)(mean)
+    rb = h(mean)
+    std = jnp.sqrt(jnp.diagonal(jac @ cov @ jac.T) + 1e-12)
+    log_in_range = log_ndtr((sensor.max_range - rb[0]) / std[0])
+    half = 0.5 * sensor.fov
+    p_bearing = ndtr((half - rb[1]) / std[1]) - ndtr((-half - rb[1]) / std[1])
+    return log_in_range + jnp.log(jnp.maximum(p_bearing, 0.0))
+
+
+def linearized_log_likelihood(
+    sensor: SensorModel,
+    mean: Float[Array, " D"],
+    cov: Float[Array, "D D"],
+    detections: Detections,
+    table: HypothesisTable,
+    kids: Children,
+) -> tuple[Float[Array, "A Mc"], Float[Array, "A Mc"]]:
+    """Deterministic ``log ψ``: ``log N(r̄; 0, J Σ Jᵀ + I) + log normalizers + log P(in view)``.
+
+    ``r̄`` and ``J`` are the whitened residuals of the child's detections at the propagated mean
+    and their Jacobian (thesis Eq. 4.14-4.15 in whitened form, all detections of the child jointly
+    so the shared robot pose correlates them).
+    """
+    n_obj, m = mean.shape[0] // 3 - 1, sensor.classifier.num_classes
+    objs, classes = jnp.arange(n_obj), jnp.arange(m)
+    rows = jax.vmap(_residual_rows, (None, None, None, 0, None, None))  # classes
+    rows = jax.vmap(rows, (None, None, 0, None, None, None))  # objects
+    rows = jax.vmap(rows, (None, None, None, None, 0, 0))  # detections
+    r_bar, log_norm = rows(sensor, mean, objs, classes, detections.geo, detections.scores)
+    # The whitened Jacobian does not depend on the measured values: take it from slot 0.
+    jac_fn = jax.jacfwd(lambda s, n, c: _residual_rows(sensor, s, n, c, detections.geo[0], detections.scores[0])[0])
+    jac = jax.vmap(jax.vmap(jac_fn, (None, None, 0)), (None, 0, None))(mean, objs, classes)
+    rdim = jac.shape[2]
+    jac = jac.reshape(n_obj * m * rdim, -1)
+    gram = jac @ cov @ jac.T  # (N M R, N M R)
+    log_vis = jax.vmap(_log_visibility_probability, (None, None, None, 0))(sensor, mean, cov, objs)
+
+    assign = jnp.asarray(table.assign)
+    occupied = assign >= 0
+
+    def one_child(a, slot_class):
+        obj = jnp.maximum(assign[a], 0)
+        occ = occupied[a]
+        base = (obj * m + slot_class) * rdim
+        idx = (base[:, None] + jnp.arange(rdim)[None, :]).reshape(-1)
+        occ_rows = jnp.repeat(occ, rdim)
+        s = jnp.where(occ_rows[:, None] & occ_rows[None, :], gram[idx][:, idx], 0.0)
+        s = s + jnp.eye(s.shape[0])
+        slots = jnp.arange(assign.shape[1])
+        r = jnp.where(occ[:, None], r_bar[slots, obj, slot_class], 0.0).reshape(-1)
+        chol = jnp.linalg.cholesky(s)
+        white = jsl.solve_triangular(chol, r, lower=True)
+        log_det = 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))
+        log_lik = -0.5 * jnp.sum(white**2) - 0.5 * log_det
+        log_lik += jnp.sum(jnp.where(occ, log_norm[slots, obj, slot_class], 0.0))
+        return log_lik + jnp.sum(jnp.where(occ, log_vis[obj], 0.0)), log_lik
+
+    a_idx = jnp.arange(assign.shape[0])
+    return jax.vmap(jax.vmap(one_child, (None, 0)), (0, 0))(a_idx, kids.slot_class)

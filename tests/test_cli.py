@@ -1,0 +1,158 @@
+"""Tests of the ``hybridslam`` command (in-process through ``hybridslam.cli.main``) and its plot helpers.
+
+JAX compiles dominate: every estimator run here uses one shape (3 steps, 2 detection slots,
+capacity 8, 50 samples), so the mirror step compiles once and the demo adds only the
+``independent`` and ``none`` steps.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import equinox as eqx
+import numpy as np
+import pytest
+
+import hybridslam as hs
+from hybridslam import cli, plot
+
+SMALL = ["--samples", "50", "--capacity", "8"]
+
+
+@pytest.fixture(scope="module")
+def scenario_path(tmp_path_factory) -> str:
+    """A 3-step simulated scenario written by ``hybridslam simulate`` (seed 0 has a 2-detection step)."""
+    path = tmp_path_factory.mktemp("cli") / "scenario.json"
+    assert cli.main(["simulate", "--seed", "0", "--steps", "3", "--alpha", "0.25", "-o", str(path)]) == 0
+    return str(path)
+
+
+def error_line(capsys) -> str:
+    """stderr must be exactly one line ``hybridslam: error: ...``; return it."""
+    err = capsys.readouterr().err
+    lines = err.splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("hybridslam: error: ")
+    assert "Traceback" not in err
+    return lines[0]
+
+
+def test_simulate_writes_loadable_scenario(scenario_path):
+    s = hs.load_scenario(scenario_path)
+    assert s.num_steps == 3 and s.num_objects == 6
+    assert s.true_robot_poses is not None and s.true_robot_poses.shape == (4, 3)
+    assert s.classifier.model == "mirror" and s.classifier.alpha == 0.25 and s.classifier.K == 15.0
+    assert s == hs.simulate(0, steps=3, alpha=0.25, K=15.0)
+
+
+def test_run_prints_table_and_writes_result(scenario_path, tmp_path, capsys):
+    out = tmp_path / "result.json"
+    assert cli.main(["run", scenario_path, "-o", str(out), *SMALL]) == 0
+    stdout = capsys.readouterr().out
+    result = hs.load_result(out)
+    assert [r.k for r in result.steps] == [1, 2, 3]
+    assert "samples=50" in result.estimator and "capacity=8" in result.estimator
+    assert len(result.timing["step_s"]) == 3
+    lines = stdout.splitlines()
+    header = next(i for i, line in enumerate(lines) if line.split()[:3] == ["k", "det", "alive"])
+    rows = [line.split() for line in lines[header + 1 : header + 4]]
+    assert [int(r[0]) for r in rows] == [1, 2, 3]
+    assert [len(r) for r in rows] == [8, 8, 8]  # k, det, alive, entropy, det_cov, err_wmax, err_wavg, ms
+    assert "compile time" in stdout
+
+
+def test_same_seed_same_result(scenario_path, tmp_path):
+    paths = [tmp_path / "a.json", tmp_path / "b.json"]
+    for path in paths:
+        assert cli.main(["run", scenario_path, "-o", str(path), *SMALL, "--seed", "7"]) == 0
+    a, b = (json.loads(p.read_text()) for p in paths)
+    assert "timing" in a and "timing" in b
+    del a["timing"], b["timing"]
+    assert a == b
+
+
+def test_run_warns_on_capacity_and_visibility(scenario_path, tmp_path, capsys, monkeypatch):
+    """The warnings come from StepInfo; fake the counters on a real run (same compiled step)."""
+    real = cli.run_scenario
+
+    def run_with_bad_news(scenario, *, on_step, **kwargs):
+        def patched(record, info, seconds):
+            if record.k == 2:
+                info = eqx.tree_at(lambda i: (i.prune.dropped_capacity, i.visibility_ignored), info,
+                                   (np.int64(5), np.bool_(True)))
+            on_step(record, info, seconds)
+
+        return real(scenario, on_step=patched, **kwargs)
+
+    monkeypatch.setattr(cli, "run_scenario", run_with_bad_news)
+    assert cli.main(["run", scenario_path, "-o", str(tmp_path / "r.json"), *SMALL]) == 0
+    warnings = [line for line in capsys.readouterr().err.splitlines() if line.startswith("WARNING")]
+    assert len(warnings) == 2, warnings
+    assert "step 2" in warnings[0] and "5 hypotheses" in warnings[0] and "--capacity" in warnings[0]
+    assert "step 2" in warnings[1] and "visibility" in warnings[1]
+
+
+def test_malformed_scenario_is_one_line_error(scenario_path, tmp_path, capsys):
+    obj = json.loads(open(scenario_path).read())
+    del obj["geometric_cov"]
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(obj))
+    assert cli.main(["run", str(bad), "-o", str(tmp_path / "r.json")]) == 2
+    assert error_line(capsys).startswith("hybridslam: error: geometric_cov")
+    assert not (tmp_path / "r.json").exists()
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--classifier", "bogus"], "--classifier"),
+        (["--prune-ratio", "0.5"], "prune_ratio"),
+        (["--capacity", "0"], "capacity"),
+        (["--samples", "x"], "--samples"),
+    ],
+)
+def test_bad_settings_exit_2(scenario_path, tmp_path, capsys, args, message):
+    assert cli.main(["run", scenario_path, "-o", str(tmp_path / "r.json"), *args]) == 2
+    assert message in error_line(capsys)
+
+
+def test_missing_input_and_unwritable_output_exit_2(scenario_path, tmp_path, capsys):
+    assert cli.main(["run", str(tmp_path / "missing.json"), "-o", str(tmp_path / "r.json")]) == 2
+    assert "missing.json" in error_line(capsys)
+    assert cli.main(["run", scenario_path, "-o", str(tmp_path / "no" / "dir" / "r.json")]) == 2
+    assert "cannot write" in error_line(capsys)
+    assert cli.main(["simulate", "-o", str(tmp_path)]) == 2  # a directory
+    assert "cannot write" in error_line(capsys)
+    assert cli.main([]) == 2
+    error_line(capsys)
+
+
+def test_demo_smoke(tmp_path, capsys):
+    out = tmp_path / "demo"
+    argv = ["demo", "-o", str(out), "--tracks", "1", "--steps", "3", *SMALL]
+    assert cli.main(argv) == 0
+    with open(out / "metrics.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert list(rows[0]) == list(cli.CSV_COLUMNS)
+    assert len(rows) == 3 * 1 * 3  # models x tracks x steps
+    assert {r["model"] for r in rows} == {"mirror", "independent", "none"}
+    assert all(r["err_wmax"] != "" and float(r["step_ms"]) > 0 for r in rows)
+    for name in ("metrics.png", "posterior.png"):
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert hs.load_scenario(out / "scenarios" / "track00.json").num_steps == 3
+    assert len(hs.load_result(out / "results" / "none_track00.json").steps) == 3
+    stdout = capsys.readouterr().out
+    assert all(model in stdout for model in ("mirror", "independent", "none"))
+
+
+def test_covariance_ellipse_and_band():
+    pts = plot.covariance_ellipse([1.0, 2.0], np.diag([4.0, 1.0]), nsig=2)
+    assert np.allclose(pts[0], pts[-1])
+    assert np.isclose(np.max(pts[:, 0]), 1.0 + 4.0, atol=0.01) and np.isclose(np.max(pts[:, 1]), 2.0 + 2.0, atol=0.01)
+    # every point is on the 2-sigma contour: (p - m)^T S^-1 (p - m) = 4
+    d = pts - [1.0, 2.0]
+    assert np.allclose(np.einsum("ni,ij,nj->n", d, np.diag([0.25, 1.0]), d), 4.0)
+    mean, half = plot.mean_band(np.array([[1.0, 2.0], [3.0, np.nan]]))
+    assert np.allclose(mean, [2.0, 2.0])
+    assert np.isclose(half[0], 1.96 * np.sqrt(2.0) / np.sqrt(2.0)) and np.isnan(half[1])

@@ -1,0 +1,197 @@
+"""Tests for hybridslam.result: parsing, validation messages, round trips."""
+
+from __future__ import annotations
+
+import copy
+import json
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from hybridslam.result import (
+    ComponentRecord,
+    Result,
+    StepRecord,
+    load_result,
+    parse_result,
+    result_to_json,
+    save_result,
+)
+from hybridslam.scenario import ScenarioError
+
+COV = [[0.1, 0.01, 0.0], [0.01, 0.1, 0.0], [0.0, 0.0, 0.02]]
+
+
+def minimal() -> dict:
+    """A small valid result: 2 steps, with 2 and 1 components."""
+    return {
+        "format": "hybridslam-result/1",
+        "estimator": "test 0.1",
+        "steps": [
+            {"k": 1,
+             "components": [
+                 {"weight": 0.75, "associations": [[0]], "classes": [0, -1],
+                  "pose_mean": [1.0, 0.0, 0.0], "pose_cov": COV},
+                 {"weight": 0.25, "associations": [[1]], "classes": [-1, 1],
+                  "pose_mean": [1.1, 0.0, 0.0], "pose_cov": COV}],
+             "metrics": {"entropy": 0.56, "det_cov": 0.0099, "num_components": 2,
+                         "err_wmax": 0.1, "err_wavg": 0.12}},
+            {"k": 2,
+             "components": [
+                 {"weight": 1.0, "associations": [[0], []], "classes": [0, -1],
+                  "pose_mean": [2.0, 0.1, 0.05], "pose_cov": COV}],
+             "metrics": {"entropy": 0.0, "det_cov": 0.0099, "num_components": 1}},
+        ],
+        "timing": {"compile_s": 3.2, "step_s": [0.012, 0.011]},
+    }
+
+
+def test_parse_and_round_trip() -> None:
+    obj = minimal()
+    r = parse_result(obj)
+    assert r.estimator == "test 0.1" and [s.k for s in r.steps] == [1, 2]
+    c = r.steps[0].components[1]
+    assert c.weight == 0.25 and c.associations == [[1]] and c.classes == [-1, 1]
+    assert c.pose_cov.shape == (3, 3) and c.pose_mean.dtype == np.float64
+    assert r.steps[1].metrics == {"entropy": 0.0, "det_cov": 0.0099, "num_components": 1}
+    assert r.timing == {"compile_s": 3.2, "step_s": [0.012, 0.011]}
+    assert result_to_json(r) == obj
+    assert parse_result(result_to_json(r)) == r
+    del obj["timing"]
+    assert parse_result(obj).timing is None and "timing" not in result_to_json(parse_result(obj))
+
+
+def test_save_load(tmp_path) -> None:
+    r = parse_result(minimal())
+    save_result(r, tmp_path / "r.json")
+    assert load_result(tmp_path / "r.json") == r
+
+
+def test_save_from_numpy_values(tmp_path) -> None:
+    """Estimators hand over numpy scalars and arrays; the file holds plain JSON."""
+    comp = ComponentRecord(np.float32(1.0), [np.array([0, 1])], list(np.array([0, 1])),
+                           np.zeros(3, np.float32), np.eye(3))
+    r = Result("np", [StepRecord(1, [comp], {"entropy": np.float64(0.0), "det_cov": 1.0,
+                                             "num_components": np.int64(1)})],
+               {"compile_s": 0.5, "step_s": np.array([0.01])})
+    save_result(r, tmp_path / "r.json")
+    back = load_result(tmp_path / "r.json")
+    assert back.steps[0].components[0].associations == [[0, 1]]
+    assert back.steps[0].metrics["num_components"] == 1
+
+
+def test_save_validates(tmp_path) -> None:
+    r = parse_result(minimal())
+    r.steps[0].components.reverse()
+    with pytest.raises(ScenarioError) as e:
+        save_result(r, tmp_path / "r.json")
+    assert e.value.path == "steps[0].components[1].weight"
+    assert not (tmp_path / "r.json").exists()
+
+
+def _set(path: tuple, value):
+    def mutate(obj: dict) -> None:
+        target = obj
+        for key in path[:-1]:
+            target = target[key]
+        if value is _DELETE:
+            del target[path[-1]]
+        else:
+            target[path[-1]] = value
+    return mutate
+
+
+_DELETE = object()
+C0 = ("steps", 0, "components", 0)
+
+MALFORMED = [
+    ("format", _set(("format",), "hybridslam-scenario/1"),
+     "format: expected 'hybridslam-result/1', got 'hybridslam-scenario/1'"),
+    ("missing_estimator", _set(("estimator",), _DELETE), "estimator: missing"),
+    ("k_order", _set(("steps", 1, "k"), 3), "steps[1].k: expected 2 (steps in order from 1), got 3"),
+    ("weight_range", _set((*C0, "weight"), 1.5),
+     "steps[0].components[0].weight: expected a number in (0, 1], got 1.5"),
+    ("weight_zero", _set(("steps", 0, "components", 1, "weight"), 0.0),
+     "steps[0].components[1].weight: expected a number in (0, 1], got 0.0"),
+    ("weight_sum", _set((*C0, "weight"), 0.7), "steps[0].components: weights sum to 0.95, expected 1"),
+    ("weight_order", _set(("steps", 0, "components", 1, "weight"), 0.8),
+     "steps[0].components[1].weight: 0.8 exceeds the previous weight 0.75 "
+     "(components must be sorted by weight, highest first)"),
+    ("weight_bool", _set((*C0, "weight"), True),
+     "steps[0].components[0].weight: expected a number, got boolean"),
+    ("no_components", _set(("steps", 1, "components"), []),
+     "steps[1].components: empty (weights must sum to 1)"),
+    ("associations_length", _set((*C0, "associations"), [[0], [1]]),
+     "steps[0].components[0].associations: expected 1 lists (one per step so far), got 2"),
+    ("association_negative", _set((*C0, "associations", 0, 0), -1),
+     "steps[0].components[0].associations[0][0]: expected an integer >= 0, got -1"),
+    ("class_value", _set((*C0, "classes", 1), -2),
+     "steps[0].components[0].classes[1]: expected an integer >= -1, got -2"),
+    ("pose_mean_length", _set((*C0, "pose_mean"), [0.0, 0.0]),
+     "steps[0].components[0].pose_mean: expected 3 numbers, got 2"),
+    ("pose_cov_symmetric", _set((*C0, "pose_cov"), [[1.0, 0.2, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]),
+     "steps[0].components[0].pose_cov: not symmetric"),
+    ("pose_cov_shape", _set((*C0, "pose_cov"), [[1.0, 0.0], [0.0, 1.0]]),
+     "steps[0].components[0].pose_cov: expected a 3x3 matrix, got 2x2"),
+    ("nan", _set((*C0, "pose_mean", 1), float("nan")),
+     "steps[0].components[0].pose_mean[1]: not a finite number"),
+    ("missing_metric", _set(("steps", 1, "metrics", "entropy"), _DELETE),
+     "steps[1].metrics.entropy: missing"),
+    ("metric_inf", _set(("steps", 0, "metrics", "err_wavg"), float("inf")),
+     "steps[0].metrics.err_wavg: not a finite number"),
+    ("num_components", _set(("steps", 0, "metrics", "num_components"), 3),
+     "steps[0].metrics.num_components: 3, but the step has 2 components"),
+    ("timing_length", _set(("timing", "step_s"), [0.1]), "timing.step_s: expected 2 numbers, got 1"),
+    ("timing_type", _set(("timing",), [3.2]), "timing: expected an object, got list"),
+]
+
+
+@pytest.mark.parametrize("mutate, message", [m[1:] for m in MALFORMED], ids=[m[0] for m in MALFORMED])
+def test_malformed(mutate, message: str) -> None:
+    obj = minimal()
+    mutate(obj)
+    with pytest.raises(ScenarioError) as e:
+        parse_result(obj)
+    assert e.value.path == message.split(": ")[0]
+    assert str(e.value) == message
+
+
+def test_file_errors(tmp_path) -> None:
+    with pytest.raises(ScenarioError, match=r"^<file>: cannot read"):
+        load_result(tmp_path / "missing.json")
+    (tmp_path / "bad.json").write_text("[1, 2")
+    with pytest.raises(ScenarioError, match=r"^<file>: .* is not valid JSON: "):
+        load_result(tmp_path / "bad.json")
+
+
+@st.composite
+def results(draw) -> dict:
+    T = draw(st.integers(0, 4))
+    steps = []
+    for k in range(1, T + 1):
+        raw = draw(st.lists(st.floats(0.01, 1.0), min_size=1, max_size=4))
+        weights = sorted((w / sum(raw) for w in raw), reverse=True)
+        comps = [{"weight": w,
+                  "associations": [draw(st.lists(st.integers(0, 5), max_size=2)) for _ in range(k)],
+                  "classes": draw(st.lists(st.integers(-1, 2), max_size=6)),
+                  "pose_mean": draw(st.lists(st.floats(-1e3, 1e3), min_size=3, max_size=3)),
+                  "pose_cov": np.diag(draw(st.lists(st.floats(0.0, 5.0), min_size=3,
+                                                    max_size=3))).tolist()}
+                 for w in weights]
+        metrics = {"entropy": float(-sum(w * np.log(w) for w in weights)),
+                   "det_cov": draw(st.floats(0.0, 1.0)), "num_components": len(comps)}
+        steps.append({"k": k, "components": comps, "metrics": metrics})
+    timing = {"compile_s": draw(st.floats(0.0, 10.0)),
+              "step_s": draw(st.lists(st.floats(0.0, 1.0), min_size=T, max_size=T))}
+    return {"format": "hybridslam-result/1", "estimator": draw(st.text(max_size=10)),
+            "steps": steps, "timing": timing}
+
+
+@settings(max_examples=20, deadline=None, database=None)
+@given(results())
+def test_random_round_trip(obj: dict) -> None:
+    r = parse_result(copy.deepcopy(obj))
+    assert result_to_json(r) == obj
+    assert parse_result(json.loads(json.dumps(result_to_json(r)))) == r

@@ -1,0 +1,53 @@
+"""The Gauss-Newton measurement update (Eq. 9-11)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import optimistix as optx
+
+import hybridslam as hs
+from hybridslam import geometry
+from hybridslam.update import _residuals, gauss_newton, gauss_newton_update
+
+
+def test_gauss_newton_equals_direct_solve_on_a_linear_problem():
+    rng = np.random.default_rng(1)
+    a, b = jnp.asarray(rng.normal(size=(12, 5))), jnp.asarray(rng.normal(size=12))
+    value, cov, result = gauss_newton(lambda y, _: a @ y - b, jnp.zeros(5), None, 20)
+    assert result == optx.RESULTS.successful
+    np.testing.assert_allclose(value, jnp.linalg.lstsq(a, b)[0], rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(cov, jnp.linalg.inv(a.T @ a), rtol=1e-10)
+
+
+def test_update_reaches_the_stationary_point_of_eq9():
+    """Nonlinear case: at the returned mean a further Gauss-Newton step is ~0 and the covariance is (JᵀJ)⁻¹."""
+    scenario = hs.simulate(0, steps=1)
+    sensor = hs.model_from_scenario(scenario, "mirror").sensor
+    mean = jnp.array([0.0, 0.0, 0.1, 5.0, 1.0, 0.4, 5.0, -1.5, 2.0])
+    cov = jnp.diag(jnp.array([0.5, 0.5, 0.02, 0.05, 0.05, 1e-3, 0.05, 0.05, 1e-3]))
+    # Measurements near what the prior mean predicts (off by about one noise sigma).
+    geo = jnp.stack([geometry.range_bearing(mean[:3], mean[3:6]), geometry.range_bearing(mean[:3], mean[6:9])])
+    det = hs.Detections(geo + jnp.array([[0.3, -0.1], [-0.2, 0.15]]), jnp.array([[0.9, 0.2], [0.3, 0.75]]), jnp.array([True, True]))
+    assign, cls = jnp.array([0, 1]), jnp.array([0, 1])
+    new_mean, new_cov, result = gauss_newton_update(sensor, mean, cov, assign, cls, det, 20)
+    args = (sensor, mean, jnp.linalg.cholesky(cov), assign, cls, det)
+    jac = jax.jacfwd(_residuals)(new_mean, args)
+    newton_step = jnp.linalg.solve(jac.T @ jac, jac.T @ _residuals(new_mean, args))
+    assert result == optx.RESULTS.successful
+    assert float(jnp.max(jnp.abs(newton_step))) < 1e-8
+    np.testing.assert_allclose(new_cov, jnp.linalg.inv(jac.T @ jac), rtol=1e-8, atol=1e-14)
+    np.testing.assert_allclose(new_cov, new_cov.T, atol=0)
+    assert bool(jnp.all(jnp.linalg.eigvalsh(new_cov) > 0))
+    assert float(jnp.linalg.det(new_cov[:2, :2])) < float(jnp.linalg.det(cov[:2, :2]))  # information was added
+
+
+def test_update_without_detections_keeps_the_prior():
+    scenario = hs.simulate(0, steps=1)
+    sensor = hs.model_from_scenario(scenario, "mirror").sensor
+    mean = jnp.array([0.0, 0.0, 0.1, 5.0, 1.0, 0.4])
+    cov = jnp.diag(jnp.array([0.5, 0.5, 0.02, 0.05, 0.05, 1e-3]))
+    det = hs.Detections(jnp.zeros((2, 2)), jnp.zeros((2, 2)), jnp.array([False, False]))
+    new_mean, new_cov, _ = gauss_newton_update(sensor, mean, cov, jnp.array([-1, -1]), jnp.zeros(2, int), det, 20)
+    np.testing.assert_allclose(new_mean, mean, atol=1e-12)
+    np.testing.assert_allclose(new_cov, cov, rtol=1e-10, atol=1e-15)

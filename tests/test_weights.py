@@ -1,0 +1,76 @@
+"""PropWeights (Eq. 16) against closed forms."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.scipy.stats import multivariate_normal as mvn
+
+import hybridslam as hs
+from hybridslam.hypotheses import children, hypothesis_table
+from hybridslam.weights import linearized_log_likelihood, log_mean_exp_outer, sampled_log_likelihood
+
+
+@jax.numpy_rank_promotion("allow")  # jax.scipy's logpdf broadcasts internally
+def test_log_mean_exp_outer_matches_linear_gaussian_evidence():
+    """Linear-Gaussian toy: z_j = H_i x + v, x ~ N(mu, P). The Monte-Carlo mean of Eq. 16 over
+    samples of x must equal the analytic marginal likelihood N(z; H mu, H P Hᵀ + R) of every pair
+    (i_1, i_2), within its own Monte-Carlo error."""
+    rng = np.random.default_rng(0)
+    mu, p = jnp.array([0.5, -0.2]), jnp.array([[0.3, 0.1], [0.1, 0.2]])
+    hs_ = jnp.asarray(rng.normal(size=(3, 2, 2)))  # three candidate "objects"
+    r = 0.5 * jnp.eye(2)
+    z = jnp.array([[0.4, 0.1], [-0.3, 0.6]])  # two detections
+    x = jax.random.multivariate_normal(jax.random.PRNGKey(1), mu, p, (20000,))
+    tables = jnp.stack(
+        [jnp.stack([mvn.logpdf(z[j][None, :] - x @ hs_[i].T, jnp.zeros(2), r) for i in range(3)], -1) for j in range(2)], 1
+    )  # (S, 2, 3)
+    estimate = log_mean_exp_outer(tables)
+    per_sample = tables[:, 0, :, None] + tables[:, 1, None, :]
+    rel_err = jnp.std(jnp.exp(per_sample), 0) / jnp.mean(jnp.exp(per_sample), 0) / np.sqrt(x.shape[0])
+    for i1 in range(3):
+        for i2 in range(3):
+            h = jnp.concatenate([hs_[i1], hs_[i2]])
+            cov = h @ p @ h.T + jnp.kron(jnp.eye(2), r)
+            exact = mvn.logpdf(z.reshape(-1), h @ mu, cov)
+            assert abs(float(estimate[i1, i2] - exact)) < 4 * float(rel_err[i1, i2]) + 1e-3
+
+
+def test_log_mean_exp_outer_is_exact_in_the_log_domain():
+    """Any absolute scale (here around -5000 nats) and entries hundreds of nats apart: entries within
+    600 nats of the best are exact; ones further below may only underflow to -inf (pruned anyway)."""
+    t = jnp.array([[[-900.0, -1.0], [-2.0, -1200.0]], [[-905.0, -3.0], [-1.0, -300.0]]]) - 2500.0
+    brute = jax.scipy.special.logsumexp(t[:, 0, :, None] + t[:, 1, None, :], axis=0) - np.log(2)
+    got = log_mean_exp_outer(t)
+    near = brute > brute.max() - 600
+    np.testing.assert_allclose(got[near], brute[near], rtol=1e-12)
+    assert bool(jnp.all((got[~near] == -jnp.inf) | jnp.isclose(got[~near], brute[~near], rtol=1e-12)))
+    assert int(near.sum()) >= 2 and int((~near).sum()) >= 1
+
+
+def _near_linear_setup():
+    """One precisely known robot looking at two objects 5 m away: range-bearing is nearly linear."""
+    scenario = hs.simulate(0, steps=1)
+    model = hs.model_from_scenario(scenario, "mirror")
+    mean = jnp.array([0.0, 0.0, 0.0, 5.0, 1.0, 0.4, 5.0, -1.5, 2.0])
+    cov = jnp.diag(jnp.array([1e-3, 1e-3, 1e-4, 0.02, 0.02, 1e-3, 0.02, 0.02, 1e-3]))
+    det = hs.Detections(jnp.array([[5.15, 0.2], [0.0, 0.0]]), jnp.array([[0.9, 0.2], [0.0, 0.0]]), jnp.array([True, False]))
+    table = hypothesis_table(2, 2, 2)
+    kids = children(table, jnp.array([-1, -1]), det.mask, jnp.full((2, 2), 0.5))
+    return model, mean, cov, det, table, kids
+
+
+def test_sampled_weight_matches_linearized_where_the_model_is_linear():
+    model, mean, cov, det, table, kids = _near_linear_setup()
+    eps = jax.random.normal(jax.random.PRNGKey(0), (20000, mean.shape[0]))
+    sampled, _ = sampled_log_likelihood(model.sensor, mean, cov, det, eps, table, kids)
+    linear, _ = linearized_log_likelihood(model.sensor, mean, cov, det, table, kids)
+    ok = kids.valid & (linear > -20)  # the plausible children (detection 0 -> object 0, either class)
+    assert int(ok.sum()) == 2
+    np.testing.assert_allclose(sampled[ok], linear[ok], atol=0.02)
+
+
+def test_weights_are_log_probabilities_of_the_children():
+    """Children of one parent that are not valid for the detection mask are never used."""
+    _, _, _, det, table, kids = _near_linear_setup()
+    # 1 detection among 2 objects, 2 classes each: 4 valid children.
+    assert int(kids.valid.sum()) == 4
