@@ -13,6 +13,9 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 from jax.scipy.special import logsumexp
+from collections.abc import Callable
+from functools import partial
+
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from .belief import Belief, Detections
@@ -32,6 +35,29 @@ class StepInfo(eqx.Module):
     parent: Int[Array, " K"]  # slot of each new component's parent in the previous belief
     solver_result: optx.RESULTS  # Gauss-Newton outcome per component (Eq. 9)
     visibility_ignored: Bool[Array, ""]  # no hypothesis had every detected object in view
+
+
+def map_live(fn: Callable, live: Bool[Array, " K"], *args, chunk: int = 4):
+    """``jax.vmap(fn)(*args)`` over the leading ``K`` axis, skipping chunks with no live slot.
+
+    After every step the slots are sorted by weight, so the live components form a prefix: work
+    done this way scales with the live components rather than the capacity. Chunks run in a
+    ``lax.map``; a chunk without a live slot returns zeros (its values are masked by the caller).
+    Under an outer ``vmap`` (many tracks) ``lax.cond`` becomes a select and nothing is skipped.
+    """
+    k = live.shape[0]
+    size = chunk if k % chunk == 0 and k > chunk else k
+    batched = jax.vmap(fn)
+    out_shape = jax.eval_shape(batched, *jax.tree.map(lambda x: x[:size], args))
+    zeros = lambda: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), out_shape)  # noqa: E731
+    split = lambda x: x.reshape((k // size, size) + x.shape[1:])  # noqa: E731
+
+    def one_chunk(xs):
+        live_c, args_c = xs
+        return jax.lax.cond(jnp.any(live_c), lambda: batched(*args_c), zeros)
+
+    out = jax.lax.map(one_chunk, (split(live), jax.tree.map(split, args)))
+    return jax.tree.map(lambda x: x.reshape((k,) + x.shape[2:]), out)
 
 
 def _realize(classes: Int[Array, " N"], assign: Int[Array, " Dmax"], slot_class: Int[Array, " Dmax"], new):
@@ -62,13 +88,10 @@ def _step(
     # Line 5: PropWeights, Eq. 16.
     if cfg.weights == "sampled":
         eps = jax.random.normal(key, (cfg.num_samples, mean.shape[-1]), dtype=mean.dtype)
-        log_lik, log_lik_free = jax.vmap(sampled_log_likelihood, (None, 0, 0, None, None, None, 0))(
-            model.sensor, mean, cov, detections, eps, table, kids
-        )
+        weigh = lambda m, c, kid: sampled_log_likelihood(model.sensor, m, c, detections, eps, table, kid)  # noqa: E731
     else:
-        log_lik, log_lik_free = jax.vmap(linearized_log_likelihood, (None, 0, 0, None, None, 0))(
-            model.sensor, mean, cov, detections, table, kids
-        )
+        weigh = lambda m, c, kid: linearized_log_likelihood(model.sensor, m, c, detections, table, kid)  # noqa: E731
+    log_lik, log_lik_free = map_live(weigh, belief.alive, mean, cov, kids)
     possible = kids.valid & belief.alive[:, None, None]
     # `where`, not `+`: empty slots may carry non-finite likelihoods that must not leak.
     prior = belief.log_weights[:, None, None] + kids.log_prior
@@ -85,11 +108,9 @@ def _step(
     slot_class = kids.slot_class[parent, a, m]
 
     # Line 11: update every kept child with its measurement factors (Eq. 9-10).
-    update = jax.vmap(gauss_newton_update, (None, 0, 0, 0, 0, None, None))
-    new_mean, new_cov, result = update(
-        model.sensor, mean[parent], cov[parent], assign, slot_class, detections, cfg.gn_max_steps
-    )
     alive = new_log_w > -jnp.inf
+    update = partial(gauss_newton_update, model.sensor, detections=detections, max_steps=cfg.gn_max_steps)
+    new_mean, new_cov, result = map_live(update, alive, mean[parent], cov[parent], assign, slot_class)
     # Empty slots copy the best component so later batched math on them stays finite.
     new_mean = jnp.where(alive[:, None], new_mean, new_mean[:1])
     new_cov = jnp.where(alive[:, None, None], new_cov, new_cov[:1])

@@ -35,7 +35,7 @@ def test_update_reaches_the_stationary_point_of_eq9():
     jac = jax.jacfwd(_residuals)(new_mean, args)
     newton_step = jnp.linalg.solve(jac.T @ jac, jac.T @ _residuals(new_mean, args))
     assert result == optx.RESULTS.successful
-    assert float(jnp.max(jnp.abs(newton_step))) < 1e-8
+    assert float(jnp.max(jnp.abs(newton_step))) < 1e-6
     np.testing.assert_allclose(new_cov, jnp.linalg.inv(jac.T @ jac), rtol=1e-8, atol=1e-14)
     np.testing.assert_allclose(new_cov, new_cov.T, atol=0)
     assert bool(jnp.all(jnp.linalg.eigvalsh(new_cov) > 0))

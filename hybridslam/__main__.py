@@ -1,0 +1,7 @@
+"""``python -m hybridslam`` is the ``hybridslam`` command."""
+
+import sys
+
+from .cli import main
+
+sys.exit(main())
