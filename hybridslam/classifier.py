@@ -74,12 +74,8 @@ def _mirror_sqrt_information(k: Float[Array, ""]) -> Float[Array, "2 2"]:
     return k * jnp.array([[1.0, -0.5], [0.0, 1.0]], dtype=jnp.result_type(k))
 
 
-class Mirror(ClassifierModel):
-    """The paper's viewpoint-dependent model of a mirror-symmetric object (Eq. 18), M = 2.
-
-    With ``s = sin²(θ/2)``: ``h_0 = [α s + (1 − α), α − α s]`` and ``h_1`` its mirror image;
-    ``Σ_c = (RᵀR)⁻¹``, ``R = K [[1, −0.5], [0, 1]]`` for both classes.
-    """
+class _AlphaK(ClassifierModel):
+    """Two classes parameterized by the viewpoint-dependence ``alpha`` and sharpness ``K`` (Eq. 18)."""
 
     alpha: Float[Array, ""]
     K: Float[Array, ""]
@@ -88,6 +84,14 @@ class Mirror(ClassifierModel):
         self.num_classes = 2
         self.alpha = jnp.asarray(alpha, dtype=float)
         self.K = jnp.asarray(K, dtype=float)
+
+
+class Mirror(_AlphaK):
+    """The paper's viewpoint-dependent model of a mirror-symmetric object (Eq. 18), M = 2.
+
+    With ``s = sin²(θ/2)``: ``h_0 = [α s + (1 − α), α − α s]`` and ``h_1`` its mirror image;
+    ``Σ_c = (RᵀR)⁻¹``, ``R = K [[1, −0.5], [0, 1]]`` for both classes.
+    """
 
     def class_means(self, viewpoint):
         s = 0.5 * (1.0 - viewpoint[0])  # sin²(θ/2) = (1 − cos θ) / 2
@@ -98,21 +102,13 @@ class Mirror(ClassifierModel):
         return jnp.broadcast_to(_mirror_sqrt_information(self.K), (2, 2, 2))
 
 
-class Independent(ClassifierModel):
+class Independent(_AlphaK):
     """Viewpoint-independent Gaussian per class: the moment-matched average of :class:`Mirror`.
 
     Averaging Eq. 18 over a uniform viewpoint, ``E[sin²(θ/2)] = 1/2`` and
     ``Var[sin²(θ/2)] = 1/8``, so ``h̄_0 = [1 − α/2, α/2]`` (``h̄_1`` mirrored) and
     ``Σ̄ = Σ_c + (α²/8) [[1, −1], [−1, 1]]`` — the paper's "viewpoint-independent model" (Sec. V).
     """
-
-    alpha: Float[Array, ""]
-    K: Float[Array, ""]
-
-    def __init__(self, alpha: float | Array, K: float | Array):
-        self.num_classes = 2
-        self.alpha = jnp.asarray(alpha, dtype=float)
-        self.K = jnp.asarray(K, dtype=float)
 
     def class_means(self, viewpoint):
         h0 = jnp.stack([1.0 - self.alpha / 2.0, self.alpha / 2.0])
