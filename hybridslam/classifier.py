@@ -158,4 +158,9 @@ def make_classifier(name: str, num_classes: int, alpha: float | None = None, K: 
         return Independent(alpha, K)
     if name == "none":
         return NoClassifier(num_classes)
+    if name == "confusion":
+        raise ValueError(
+            "classifier.model: 'confusion' is valid in scenario files but not supported by the hybrid "
+            f"estimator yet (supported: {', '.join(MODELS)}); pass another --classifier to run this file"
+        )
     raise ValueError(f"classifier.model: unknown model {name!r} (known: {', '.join(MODELS)})")

@@ -36,6 +36,11 @@ def model_from_scenario(
     A name (``"mirror"``, ``"independent"``, ``"none"``) takes ``alpha`` and ``K`` from the file.
     """
     spec = scenario.classifier
+    if scenario.discovery is not None:
+        raise ValueError(
+            "discovery: unknown maps (new objects) are not supported by the hybrid estimator yet; "
+            "only scenarios whose objects are all mapped can be run"
+        )
     if classifier is None or isinstance(classifier, str):
         name = spec.model if classifier is None else classifier
         if name in ("mirror", "independent") and (spec.alpha is None or spec.K is None):

@@ -70,7 +70,9 @@ def _step(
     belief: Belief, odometry: Float[Array, "3"], detections: Detections, key: PRNGKeyArray
 ) -> tuple[Belief, StepInfo]:
     cfg, model = belief.config, belief.model
-    table = hypothesis_table(belief.num_objects, cfg.max_detections, model.num_classes)
+    realize = model.sensor.classifier.uses_scores
+    # Without semantics no class is ever realized: one (dummy) class combination suffices.
+    table = hypothesis_table(belief.num_objects, cfg.max_detections, model.num_classes if realize else 1)
     k = eqx.error_if(
         belief.k, belief.k >= cfg.max_steps,
         "belief history is full: build the belief with Config(max_steps=...) >= the number of steps",
@@ -80,7 +82,6 @@ def _step(
     mean, cov = jax.vmap(propagate, (0, 0, None, None))(belief.mean, belief.cov, odometry, model.motion_cov)
 
     # Line 2 of PROPWEIGHTS: split each parent into (β_k, new class realizations).
-    realize = model.sensor.classifier.uses_scores
     kids = jax.vmap(children, (None, 0, None, None, None))(
         table, belief.classes, detections.mask, model.class_prior, realize
     )

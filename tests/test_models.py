@@ -85,3 +85,19 @@ def test_mirror_sampling_matches_its_covariance():
     r = np.asarray(clf.class_sqrt_informations(v)[0])
     np.testing.assert_allclose(np.cov(np.asarray(z).T), np.linalg.inv(r.T @ r), rtol=0.05)
     np.testing.assert_allclose(z.mean(0), clf.class_means(v)[0], atol=2e-3)
+
+
+def test_features_of_later_estimators_are_refused_clearly():
+    import dataclasses
+
+    from hybridslam.scenario import Classifier, Discovery
+
+    scenario = hs.simulate(0, steps=1)
+    confusion = scenario.replace(classifier=Classifier("confusion", matrix=np.eye(2)))
+    with pytest.raises(ValueError, match="'confusion' is valid in scenario files but not supported"):
+        hs.model_from_scenario(confusion)
+    hs.model_from_scenario(confusion, "none")  # an explicit override still runs the file
+    unknown_map = scenario.replace(discovery=Discovery(10, -4.0, 9.87))
+    with pytest.raises(ValueError, match="discovery: unknown maps"):
+        hs.model_from_scenario(unknown_map)
+    assert dataclasses.is_dataclass(scenario)

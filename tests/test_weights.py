@@ -74,3 +74,63 @@ def test_weights_are_log_probabilities_of_the_children():
     _, _, _, det, table, kids = _near_linear_setup()
     # 1 detection among 2 objects, 2 classes each: 4 valid children.
     assert int(kids.valid.sum()) == 4
+
+
+def test_children_and_sampled_weights_match_brute_force():
+    """Reference for PropWeights: enumerate the children of one parent by hand (object 0 already of
+    class 1, objects 1-2 open) and average the joint likelihood × visibility over the same samples."""
+    import itertools
+
+    from jax.scipy.special import logsumexp
+
+    from hybridslam.geometry import range_bearing, visible
+    from hybridslam.measurement import detection_residual
+
+    scenario = hs.simulate(0, steps=1)
+    sensor = hs.model_from_scenario(scenario, "mirror").sensor
+    mean = jnp.array([0.0, 0.0, 0.0, 4.0, 1.0, 0.4, 4.5, -1.5, 2.0, -3.0, 3.5, -1.0])  # object 2 behind
+    cov = jnp.diag(jnp.array([0.3, 0.3, 0.05, 0.05, 0.05, 1e-3, 0.05, 0.05, 1e-3, 0.05, 0.05, 1e-3]))
+    det = hs.Detections(jnp.array([[4.2, 0.3], [4.6, -0.35]]), jnp.array([[0.9, 0.2], [0.3, 0.7]]), jnp.array([True, True]))
+    parent_classes = jnp.array([1, -1, -1], dtype=jnp.int32)
+    class_prior = jnp.array([[0.5, 0.5], [0.2, 0.8], [0.6, 0.4]])
+    table = hypothesis_table(3, 2, 2)
+    kids = children(table, parent_classes, det.mask, class_prior)
+    eps = jax.random.normal(jax.random.PRNGKey(3), (256, mean.shape[0]))
+    got, _ = sampled_log_likelihood(sensor, mean, cov, det, eps, table, kids)
+    got = got + kids.log_prior
+
+    samples = mean[None, :] + eps @ jnp.linalg.cholesky(cov).T
+
+    @jax.jit
+    def per_sample(s, objs, cls):
+        x, o = s[:3], s[3:].reshape(-1, 3)
+        total = 0.0
+        for j in range(2):
+            r, log_norm = detection_residual(sensor, x, o[objs[j]], det.geo[j], det.scores[j], cls[j])
+            seen = visible(range_bearing(x, o[objs[j]]), sensor.max_range, sensor.fov)
+            total = total + jnp.where(seen, log_norm - 0.5 * jnp.sum(r**2), -jnp.inf)
+        return total
+
+    expected = {}
+    for objs in itertools.permutations(range(3), 2):
+        open_ = [n for n in objs if int(parent_classes[n]) < 0]
+        for new_classes in itertools.product(range(2), repeat=len(open_)):
+            realized = dict(zip(open_, new_classes))
+            cls = [realized.get(n, int(parent_classes[n])) for n in objs]
+            lik = jax.vmap(per_sample, (0, None, None))(samples, jnp.array(objs), jnp.array(cls))
+            prior = sum(float(jnp.log(class_prior[n, c])) for n, c in realized.items())
+            expected[(objs, tuple(cls))] = float(logsumexp(lik) - np.log(samples.shape[0])) + prior
+
+    found = {}
+    assign = np.asarray(table.assign)
+    for a, m in zip(*np.nonzero(np.asarray(kids.valid))):
+        key_ = (tuple(int(o) for o in assign[a]), tuple(int(c) for c in np.asarray(kids.slot_class[a, m])))
+        assert key_ not in found  # every child appears once
+        found[key_] = float(got[a, m])
+    assert found.keys() == expected.keys() and len(found) == 16
+    for key_, value in expected.items():
+        if value > -np.inf:
+            np.testing.assert_allclose(found[key_], value, rtol=1e-9, atol=1e-9)
+        else:
+            assert found[key_] == -np.inf
+    assert any(v > -np.inf for v in expected.values()) and any(v == -np.inf for v in expected.values())
