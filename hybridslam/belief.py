@@ -24,8 +24,8 @@ from jaxtyping import Array, Bool, Float, Int
 from .model import Model
 from .scenario import Scenario, StackedSteps
 
-WeightMethod = Literal["sampled", "linearized"]
-WEIGHT_METHODS = ("sampled", "linearized")
+WeightMethod = Literal["sampled", "linearized", "laplace-is"]
+WEIGHT_METHODS = ("sampled", "linearized", "laplace-is")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,12 +35,14 @@ class Config:
     capacity: int = 64  # K, the most components kept after pruning
     max_detections: int = 2  # detection slots per step (steps are padded to this)
     max_steps: int = 10  # length of the association history kept per component
-    num_samples: int = 1000  # n_s of PropWeights (Eq. 16)
-    weights: WeightMethod = "sampled"
+    num_samples: int = 1000  # n_s of PropWeights (Eq. 16), weights="sampled"
+    is_samples: int = 256  # draws per candidate child of weights="laplace-is"
+    is_candidates: int = 128  # children (of all parents) that get a Laplace-IS weight, by linearized rank
+    weights: WeightMethod = "laplace-is"  # "sampled" is the paper's Eq. 16 estimator (README, Weights)
     gn_max_steps: int = 20  # Gauss-Newton iteration budget of the update (Eq. 9)
 
     def __post_init__(self):
-        for name in ("capacity", "max_detections", "max_steps", "num_samples", "gn_max_steps"):
+        for name in ("capacity", "max_detections", "max_steps", "num_samples", "is_samples", "is_candidates", "gn_max_steps"):
             value = getattr(self, name)
             if not (isinstance(value, int) and value >= 1):
                 raise ValueError(f"Config.{name}: expected a positive int, got {value!r}")

@@ -33,7 +33,7 @@ from .step import StepInfo
 
 PROG = "hybridslam"
 CLASSIFIERS = ("mirror", "independent", "none")
-WEIGHTS = ("sampled", "linearized")
+WEIGHTS = ("laplace-is", "sampled", "linearized")
 CSV_COLUMNS = (
     "model", "track", "step", "entropy", "det_cov", "err_wmax", "err_wavg", "num_components", "step_ms",
 )
@@ -174,7 +174,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     _check_writable(args.output)
     name = args.classifier or scenario.classifier.model
     print(f"{args.scenario}: {scenario.num_steps} steps, {scenario.num_objects} objects; classifier={name}, "
-          f"weights={args.weights}, samples={args.samples}, capacity={args.capacity}, "
+          f"weights={args.weights}, samples={args.samples or 'default'}, capacity={args.capacity}, "
           f"prune_ratio={args.prune_ratio:g}, seed={args.seed}")
     print("compiling the step ...", flush=True)
     num_det = [len(s.detections) for s in scenario.steps]
@@ -267,7 +267,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         os.makedirs(os.path.join(out, sub), exist_ok=True)
     csv_path = os.path.join(out, "metrics.csv")
     print(f"demo: {args.tracks} tracks x {len(models)} classifier models, {args.steps} steps, "
-          f"{args.samples} samples, capacity {args.capacity}; writing to {out}", flush=True)
+          f"{args.samples or 'default'} samples, capacity {args.capacity}; writing to {out}", flush=True)
 
     rows: list[dict] = []
     posterior: dict[str, list[StepRecord]] = {}
@@ -317,12 +317,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _add_estimator_options(p: argparse.ArgumentParser, seed_help: str = "PRNG seed of the Monte-Carlo weights") -> None:
-    p.add_argument("--samples", type=int, default=1000, help="n_s, Monte-Carlo samples of PropWeights (Eq. 16)")
+    p.add_argument("--samples", type=int, default=None,
+                   help="draws of the weight method: per parent for sampled (n_s of Eq. 16, default 1000), "
+                        "per candidate child for laplace-is (default 256)")
     p.add_argument("--capacity", type=int, default=64, help="most components kept after pruning")
     p.add_argument("--prune-ratio", type=float, default=150.0,
                    help="drop components below w_max / ratio (the paper's 150)")
-    p.add_argument("--weights", choices=WEIGHTS, default="sampled",
-                   help="association weights: Monte-Carlo (Eq. 16) or linearized")
+    p.add_argument("--weights", choices=WEIGHTS, default="laplace-is",
+                   help="association weights: laplace-is (low-variance Eq. 16, default), sampled (the paper's "
+                        "Monte-Carlo Eq. 16) or linearized (deterministic)")
     p.add_argument("--seed", type=int, default=0, help=seed_help)
 
 

@@ -48,10 +48,22 @@ class Run:
 
 
 def config_for(scenario: Scenario, **settings) -> Config:
-    """A :class:`Config` sized for ``scenario`` (history length, detection slots) plus ``settings``."""
+    """A :class:`Config` sized for ``scenario`` (history length, detection slots) plus ``settings``.
+
+    ``num_samples`` names the draws of the chosen weight method: ``n_s`` per parent for
+    ``sampled``, draws per candidate child for ``laplace-is``; ``None`` keeps the method's default.
+    """
+    samples = settings.pop("num_samples", None)
+    if samples is not None:
+        settings["is_samples" if settings.get("weights", Config.weights) == "laplace-is" else "num_samples"] = samples
     settings.setdefault("max_detections", max(scenario.max_detections, 1))
     settings.setdefault("max_steps", max(scenario.num_steps, 1))
     return Config(**settings)
+
+
+def samples_of(config: Config) -> int:
+    """The draws the configured weight method uses (0 for the deterministic ``linearized``)."""
+    return {"sampled": config.num_samples, "laplace-is": config.is_samples}.get(config.weights, 0)
 
 
 def describe(config: Config, classifier: str, prune_ratio: float, seed: int) -> str:
@@ -59,7 +71,7 @@ def describe(config: Config, classifier: str, prune_ratio: float, seed: int) -> 
 
     return (
         f"hybridslam {__version__} hybrid belief (Tchuiev et al. 2019, Alg. 1); classifier={classifier}, "
-        f"weights={config.weights}, samples={config.num_samples}, capacity={config.capacity}, "
+        f"weights={config.weights}, samples={samples_of(config)}, capacity={config.capacity}, "
         f"prune_ratio={prune_ratio:g}, seed={seed}"
     )
 
@@ -93,22 +105,25 @@ def run_scenario(
     *,
     classifier: str | ClassifierModel | None = None,
     capacity: int = 64,
-    num_samples: int = 1000,
-    weights: str = "sampled",
+    num_samples: int | None = None,
+    weights: str = "laplace-is",
     prune_ratio: float = 150.0,
     seed: int = 0,
     max_detections: int | None = None,
     on_step: Callable[[StepRecord, StepInfo, float], None] | None = None,
+    **settings,
 ) -> Run:
     """Run Algorithm 1 over every step of ``scenario``.
 
     ``on_step(record, info, seconds)`` is called after each step (the CLI prints its table row).
     The same arguments give the same result (the per-step keys are ``fold_in(PRNGKey(seed), k)``).
     ``max_detections`` fixes the detection slots (default: the scenario's maximum); runs with equal
-    shapes reuse one compiled step.
+    shapes reuse one compiled step. Further ``settings`` are :class:`Config` fields
+    (``is_samples``, ``is_candidates``, ``gn_max_steps``).
     """
-    sizes = {} if max_detections is None else {"max_detections": max_detections}
-    config = config_for(scenario, capacity=capacity, num_samples=num_samples, weights=weights, **sizes)
+    if max_detections is not None:
+        settings["max_detections"] = max_detections
+    config = config_for(scenario, capacity=capacity, num_samples=num_samples, weights=weights, **settings)
     model = model_from_scenario(scenario, classifier, prune_ratio)
     belief = init_belief(priors_from_scenario(scenario), model, config)
     stacked = stack_steps(scenario, config.max_detections)

@@ -13,17 +13,17 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 from jax.scipy.special import logsumexp
-from collections.abc import Callable
 from functools import partial
 
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
+from .batching import map_live
 from .belief import Belief, Detections
 from .hypotheses import hypothesis_table, children
 from .motion import propagate
 from .prune import PruneStats, prune
 from .update import gauss_newton_update
-from .weights import linearized_log_likelihood, sampled_log_likelihood
+from .weights import laplace_is_log_likelihood, linearized_log_likelihood, sampled_log_likelihood
 
 
 class StepInfo(eqx.Module):
@@ -35,29 +35,7 @@ class StepInfo(eqx.Module):
     parent: Int[Array, " K"]  # slot of each new component's parent in the previous belief
     solver_result: optx.RESULTS  # Gauss-Newton outcome per component (Eq. 9)
     visibility_ignored: Bool[Array, ""]  # no hypothesis had every detected object in view
-
-
-def map_live(fn: Callable, live: Bool[Array, " K"], *args, chunk: int = 4):
-    """``jax.vmap(fn)(*args)`` over the leading ``K`` axis, skipping chunks with no live slot.
-
-    After every step the slots are sorted by weight, so the live components form a prefix: work
-    done this way scales with the live components rather than the capacity. Chunks run in a
-    ``lax.map``; a chunk without a live slot returns zeros (its values are masked by the caller).
-    Under an outer ``vmap`` (many tracks) ``lax.cond`` becomes a select and nothing is skipped.
-    """
-    k = live.shape[0]
-    size = chunk if k % chunk == 0 and k > chunk else k
-    batched = jax.vmap(fn)
-    out_shape = jax.eval_shape(batched, *jax.tree.map(lambda x: x[:size], args))
-    zeros = lambda: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), out_shape)  # noqa: E731
-    split = lambda x: x.reshape((k // size, size) + x.shape[1:])  # noqa: E731
-
-    def one_chunk(xs):
-        live_c, args_c = xs
-        return jax.lax.cond(jnp.any(live_c), lambda: batched(*args_c), zeros)
-
-    out = jax.lax.map(one_chunk, (split(live), jax.tree.map(split, args)))
-    return jax.tree.map(lambda x: x.reshape((k,) + x.shape[2:]), out)
+    ess: Float[Array, " K"]  # normalized effective sample size of each kept weight (1 = exact; NaN if empty)
 
 
 def _realize(classes: Int[Array, " N"], assign: Int[Array, " Dmax"], slot_class: Int[Array, " Dmax"], new):
@@ -92,10 +70,16 @@ def _step(
         weigh = lambda m, c, kid: sampled_log_likelihood(model.sensor, m, c, detections, eps, table, kid)  # noqa: E731
     else:
         weigh = lambda m, c, kid: linearized_log_likelihood(model.sensor, m, c, detections, table, kid)  # noqa: E731
-    log_lik, log_lik_free = map_live(weigh, belief.alive, mean, cov, kids)
+    log_lik, log_lik_free, ess = map_live(weigh, belief.alive, mean, cov, kids)
     possible = kids.valid & belief.alive[:, None, None]
     # `where`, not `+`: empty slots may carry non-finite likelihoods that must not leak.
     prior = belief.log_weights[:, None, None] + kids.log_prior
+    if cfg.weights == "laplace-is":  # screened by the linearized weights just computed
+        eps = jax.random.normal(key, (cfg.is_samples, 3 + 3 * cfg.max_detections), dtype=mean.dtype)
+        screen = jnp.where(possible, prior + jnp.maximum(log_lik, log_lik_free - 50.0), -jnp.inf)
+        log_lik, log_lik_free, ess = laplace_is_log_likelihood(
+            model.sensor, mean, cov, detections, eps, table, kids, screen, cfg.is_candidates, cfg.gn_max_steps
+        )
     log_w = jnp.where(possible, prior + log_lik, -jnp.inf)
     # No hypothesis puts every detected object in view: the 0/1 visibility model cannot explain
     # this step, so weigh it by the measurement likelihood alone rather than lose the belief.
@@ -126,7 +110,10 @@ def _step(
         model=model,
         config=cfg,
     )
-    info = StepInfo(logsumexp(log_w), stats, jnp.sum(alive), parent, result, visibility_ignored)
+    info = StepInfo(
+        logsumexp(log_w), stats, jnp.sum(alive), parent, result, visibility_ignored,
+        jnp.where(alive, ess[parent, a, m], jnp.nan),
+    )
     return new_belief, info
 
 

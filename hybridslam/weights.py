@@ -25,6 +25,7 @@ in ``StepInfo.visibility_ignored``.
 from __future__ import annotations
 
 import math
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -32,6 +33,8 @@ import jax.scipy.linalg as jsl
 from jax.scipy.special import log_ndtr, logsumexp, ndtr
 from jaxtyping import Array, Bool, Float, Int
 
+from . import se2
+from .batching import map_live
 from .belief import Detections
 from .geometry import range_bearing
 from .hypotheses import Children, HypothesisTable
@@ -102,7 +105,7 @@ def sampled_log_likelihood(
     eps: Float[Array, "S D"],
     table: HypothesisTable,
     kids: Children,
-) -> tuple[Float[Array, "A Mc"], Float[Array, "A Mc"]]:
+) -> tuple[Float[Array, "A Mc"], Float[Array, "A Mc"], Float[Array, "A Mc"]]:
     """``log ψ`` of Eq. 16 as the mean over samples ``mean + L eps`` (``cov = L Lᵀ``), per child.
 
     A child's per-sample log-likelihood is a sum over its slots of table entries, so the mean
@@ -118,7 +121,11 @@ def sampled_log_likelihood(
     without_view = jnp.where(occupied, lik, 0.0)
     codes = _slot_codes(table, kids, m)
     index = tuple(codes[..., j] for j in range(dmax))
-    return tuple(log_mean_exp_outer(t.reshape(s, dmax, -1))[index] for t in (with_view, without_view))
+    log_psi, log_psi_free = (log_mean_exp_outer(t.reshape(s, dmax, -1))[index] for t in (with_view, without_view))
+    # ESS / n_s of the Monte-Carlo terms: (Σ w)² / (n_s Σ w²) = exp(2 log mean w − log mean w²).
+    log_mean_sq = log_mean_exp_outer(2.0 * with_view.reshape(s, dmax, -1))[index]
+    ess = jnp.where(log_psi > -jnp.inf, jnp.exp(2.0 * log_psi - log_mean_sq), 0.0)
+    return log_psi, log_psi_free, ess
 
 
 def _residual_rows(sensor, state, n, c, z_geo, scores):
@@ -145,7 +152,7 @@ def linearized_log_likelihood(
     detections: Detections,
     table: HypothesisTable,
     kids: Children,
-) -> tuple[Float[Array, "A Mc"], Float[Array, "A Mc"]]:
+) -> tuple[Float[Array, "A Mc"], Float[Array, "A Mc"], Float[Array, "A Mc"]]:
     """Deterministic ``log ψ``: ``log N(r̄; 0, J Σ Jᵀ + I) + log normalizers + log P(in view)``.
 
     ``r̄`` and ``J`` are the whitened residuals of the child's detections at the propagated mean
@@ -187,4 +194,72 @@ def linearized_log_likelihood(
         return log_lik + jnp.sum(jnp.where(occ, log_vis[obj], 0.0)), log_lik
 
     a_idx = jnp.arange(assign.shape[0])
-    return jax.vmap(jax.vmap(one_child, (None, 0)), (0, 0))(a_idx, kids.slot_class)
+    log_psi, log_psi_free = jax.vmap(jax.vmap(one_child, (None, 0)), (0, 0))(a_idx, kids.slot_class)
+    return log_psi, log_psi_free, jnp.ones_like(log_psi)  # deterministic: no sampling error
+
+
+def _child_marginal(mean, cov, assign):
+    """The Gaussian of Eq. 17 over ``(x_k, x^o of each slot)``; an empty slot is an independent
+    N(0, I) dummy block, which cancels exactly between the target and the proposal."""
+    occupied = assign >= 0
+    idx = jnp.concatenate([jnp.arange(3), (3 + 3 * jnp.maximum(assign, 0)[:, None] + jnp.arange(3)[None, :]).reshape(-1)])
+    keep = jnp.concatenate([jnp.ones(3, bool), jnp.repeat(occupied, 3)])
+    both = keep[:, None] & keep[None, :]
+    marginal_cov = jnp.where(both, cov[idx][:, idx], jnp.eye(idx.shape[0], dtype=cov.dtype))
+    return jnp.where(keep, mean[idx], 0.0), marginal_cov, keep
+
+
+def _child_evidence(sensor, detections, eps, max_steps, mean, cov, assign, slot_class):
+    from .laplace import laplace_is  # local: laplace imports update, which imports this package's belief
+
+    m_mean, m_cov, keep = _child_marginal(mean, cov, assign)
+    angle = keep & (jnp.arange(keep.shape[0]) % 3 == 2)
+
+    def difference(a, b):
+        return jnp.where(angle, se2.wrap(a - b), a - b)
+
+    def measurement(y):
+        x, objs = y[:3], y[3:].reshape(-1, 3)
+        per_det = jax.vmap(detection_residual, (None, None, 0, 0, 0, 0))
+        r, log_norm = per_det(sensor, x, objs, detections.geo, detections.scores, slot_class)
+        seen = jax.vmap(in_view, (None, None, 0))(sensor, x, objs)
+        occ = assign >= 0
+        return (jnp.where(occ[:, None], r, 0.0).reshape(-1), jnp.sum(jnp.where(occ, log_norm, 0.0)),
+                jnp.sum(jnp.where(occ & ~seen, -jnp.inf, 0.0)))
+
+    ev = laplace_is(measurement, m_mean, m_cov, eps, max_steps, difference)
+    return ev.log_evidence, ev.log_evidence_free, ev.ess
+
+
+def laplace_is_log_likelihood(
+    sensor: SensorModel,
+    mean: Float[Array, "K D"],
+    cov: Float[Array, "K D D"],
+    detections: Detections,
+    eps: Float[Array, "S d"],
+    table: HypothesisTable,
+    kids: Children,
+    screen: Float[Array, "K A Mc"],
+    num_candidates: int,
+    max_steps: int,
+) -> tuple[Float[Array, "K A Mc"], Float[Array, "K A Mc"], Float[Array, "K A Mc"]]:
+    """``log ψ`` of Eq. 16 by importance sampling from each child's Laplace approximation.
+
+    See :mod:`hybridslam.laplace`. Solving a Gauss-Newton problem for every child of every parent
+    would cost ``K·A·Mc`` solves, so the children are first ranked by a cheap screening weight
+    (``screen``: the parent weight times the linearized evidence, ``-inf`` for invalid children)
+    and only the ``num_candidates`` best get the Laplace-IS estimate; the rest get ``-inf``. Each
+    candidate solves its problem over ``(x_k, X^o_β)`` (``3 + 3·Dmax`` dimensions, Eq. 17), in
+    chunks that skip empty candidates (:func:`~hybridslam.batching.map_live`).
+    """
+    shape = screen.shape
+    top, flat = jax.lax.top_k(screen.reshape(-1), min(num_candidates, screen.size))
+    parent, a, m = jnp.unravel_index(flat, shape)
+    one = partial(_child_evidence, sensor, detections, eps, max_steps)
+    assign = jnp.asarray(table.assign)[a]
+    packed = map_live(one, top > -jnp.inf, mean[parent], cov[parent], assign, kids.slot_class[parent, a, m], chunk=16)
+    fill = (-jnp.inf, -jnp.inf, 0.0)
+    return tuple(
+        jnp.full(screen.size, f, v.dtype).at[flat].set(jnp.where(top > -jnp.inf, v, f)).reshape(shape)
+        for v, f in zip(packed, fill)
+    )

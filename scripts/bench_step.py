@@ -1,12 +1,15 @@
 """Benchmark one inference step: compile time and latency at K = 16, 64, 256 live components.
 
-Paper setup (6 objects, 2 classes, mirror model), 2 detections per step, n_s = 1000 by default.
+Paper setup (6 objects, 2 classes, mirror model), 2 detections per step.
 Table 1 makes every slot of the belief alive (copies of a real component with equal weights):
 the cost at full capacity. Table 2 runs whole simulated tracks at capacity K, where only the
 components that survive pruning are alive (the step skips chunks of dead slots). Prints; asserts
 nothing.
 
-    python scripts/bench_step.py [--capacities 16 64 256] [--samples 1000] [--weights sampled linearized] [--repeats 20]
+    python scripts/bench_step.py [--capacities 16 64 256] [--samples N] [--weights laplace-is sampled linearized]
+
+"draws" is n_s per parent for sampled (default 1000) and the draws per candidate child for
+laplace-is (default 256); linearized draws nothing.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ import jax
 import jax.numpy as jnp
 
 import hybridslam as hs
-from hybridslam.run import config_for
+from hybridslam.run import config_for, samples_of
 
 
 def full_belief(scenario: hs.Scenario, capacity: int, samples: int, weights: str) -> hs.Belief:
@@ -73,24 +76,26 @@ def bench_tracks(capacity: int, samples: int, weights: str, tracks: int) -> tupl
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--capacities", type=int, nargs="+", default=[16, 64, 256])
-    parser.add_argument("--samples", type=int, default=1000)
-    parser.add_argument("--weights", nargs="+", default=["sampled", "linearized"])
+    parser.add_argument("--samples", type=int, default=None, help="draws of the weight method (default: its own)")
+    parser.add_argument("--weights", nargs="+", default=["laplace-is", "sampled", "linearized"])
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--tracks", type=int, default=3, help="tracks per classifier for table 2 (0: skip)")
     args = parser.parse_args()
     print(f"device: {jax.devices()[0].device_kind} x{len(jax.devices())}, jax {jax.__version__}, float64")
-    print(f"{'weights':>10} {'K':>5} {'n_s':>6} {'compile s':>10} {'step ms (median)':>17} {'step ms (min)':>14}")
+    print(f"{'weights':>10} {'K':>5} {'draws':>6} {'compile s':>10} {'step ms (median)':>17} {'step ms (min)':>14}")
     for weights in args.weights:
         for capacity in args.capacities:
             c, med, best = bench(capacity, args.samples, weights, args.repeats)
-            print(f"{weights:>10} {capacity:>5} {args.samples:>6} {c:>10.2f} {med * 1e3:>17.1f} {best * 1e3:>14.1f}")
+            draws = samples_of(config_for(hs.simulate(0, 1), num_samples=args.samples, weights=weights))
+            print(f"{weights:>10} {capacity:>5} {draws:>6} {c:>10.2f} {med * 1e3:>17.1f} {best * 1e3:>14.1f}")
     if args.tracks:
         print(f"\nwhole tracks (mirror and none, {args.tracks} tracks each, 10 steps, paper setup)")
-        print(f"{'weights':>10} {'K':>5} {'n_s':>6} {'live (mean)':>12} {'step ms (median)':>17}")
+        print(f"{'weights':>10} {'K':>5} {'draws':>6} {'live (mean)':>12} {'step ms (median)':>17}")
         for weights in args.weights:
             for capacity in args.capacities:
                 med, live = bench_tracks(capacity, args.samples, weights, args.tracks)
-                print(f"{weights:>10} {capacity:>5} {args.samples:>6} {live:>12.1f} {med * 1e3:>17.1f}")
+                draws = samples_of(config_for(hs.simulate(0, 1), num_samples=args.samples, weights=weights))
+                print(f"{weights:>10} {capacity:>5} {draws:>6} {live:>12.1f} {med * 1e3:>17.1f}")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,41 @@
+"""Batching over a leading axis that skips the work of dead slots.
+
+A belief has a fixed capacity of component slots and a step has a fixed grid of child
+hypotheses, but only some of either are alive. :func:`map_live` runs a per-slot function over
+chunks of slots and skips chunks with no live slot, so work scales with what is alive while all
+shapes stay static.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool
+
+
+def map_live(fn: Callable, live: Bool[Array, " K"], *args, chunk: int = 4):
+    """``jax.vmap(fn)(*args)`` over the leading ``K`` axis, skipping chunks with no live slot.
+
+    After every step the slots are sorted by weight, so the live components form a prefix: work
+    done this way scales with the live components rather than the capacity. Chunks run in a
+    ``lax.map``; a chunk without a live slot returns zeros (its values are masked by the caller).
+    Under an outer ``vmap`` (many tracks) ``lax.cond`` becomes a select and nothing is skipped.
+    """
+    k = live.shape[0]
+    size = min(chunk, k)
+    pad = -k % size  # the last chunk is padded with dead copies of slot 0
+    live = jnp.concatenate([live, jnp.zeros(pad, bool)])
+    args = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[:1], pad, axis=0)]), args)
+    batched = jax.vmap(fn)
+    out_shape = jax.eval_shape(batched, *jax.tree.map(lambda x: x[:size], args))
+    zeros = lambda: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), out_shape)  # noqa: E731
+    split = lambda x: x.reshape((x.shape[0] // size, size) + x.shape[1:])  # noqa: E731
+
+    def one_chunk(xs):
+        live_c, args_c = xs
+        return jax.lax.cond(jnp.any(live_c), lambda: batched(*args_c), zeros)
+
+    out = jax.lax.map(one_chunk, (split(live), jax.tree.map(split, args)))
+    return jax.tree.map(lambda x: x.reshape((k + pad,) + x.shape[2:])[:k], out)
