@@ -37,6 +37,7 @@ WEIGHTS = ("laplace-is", "sampled", "linearized")
 CSV_COLUMNS = (
     "model", "track", "step", "entropy", "det_cov", "err_wmax", "err_wavg", "num_components", "step_ms",
 )
+LOW_ESS = 0.01  # below this, one weight estimate rests on ~1% of its draws
 SUMMARY_METRICS = ("entropy", "det_cov", "err_wmax", "err_wavg", "num_components")
 
 
@@ -84,6 +85,15 @@ def _step_warnings(k: int, info: StepInfo) -> list[str]:
     failed = int(np.sum(~ok[:alive]))
     if failed:
         out.append(f"step {k}: the Gauss-Newton update did not converge for {failed} of {alive} components")
+    ess = np.asarray(info.ess)[:alive]
+    if alive and np.nanmin(ess) < LOW_ESS:
+        out.append(
+            f"step {k}: a kept weight rests on few draws (effective sample size {np.nanmin(ess):.3g} of 1); "
+            "its value is luck: prefer --weights laplace-is or more --samples"
+        )
+    if int(info.is_solver_failures):
+        out.append(f"step {k}: the laplace-is mode search did not converge for {int(info.is_solver_failures)} "
+                   f"of {alive} components (their weights stay unbiased but are noisier)")
     return out
 
 

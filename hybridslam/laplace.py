@@ -24,6 +24,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
+import optimistix as optx
 from jax.scipy.special import logsumexp
 from jaxtyping import Array, Float
 
@@ -38,6 +39,7 @@ class Evidence(eqx.Module):
     ess: Float[Array, ""]  # normalized effective sample size of the importance weights, in (0, 1]
     mode: Float[Array, " d"]
     cov: Float[Array, "d d"]
+    solver_result: optx.RESULTS  # of the Gauss-Newton search for the mode
 
 
 def _log_gaussian(diff: Float[Array, " d"], chol: Float[Array, "d d"]) -> Float[Array, ""]:
@@ -58,7 +60,8 @@ def laplace_is(
     ``measurement(y)`` returns the whitened residual ``r(y)``, its log normalizer, and
     ``log_view(y)`` (0 or ``-inf``: the object observation model). ``eps`` are standard-normal
     draws (shared by all callers for common random numbers); ``difference(a, b)`` is ``a − b``
-    on the state's manifold (angles wrapped).
+    on the state's manifold (angles wrapped). A mode search that does not converge leaves the
+    estimate unbiased (any proposal is valid) but less efficient: see ``solver_result`` and ``ess``.
     """
     prior_chol = jnp.linalg.cholesky(cov)
 
@@ -66,7 +69,7 @@ def laplace_is(
         prior = jsl.solve_triangular(prior_chol, difference(y, mean), lower=True)
         return jnp.concatenate([prior, measurement(y)[0]])
 
-    mode, post_cov, _ = gauss_newton(residuals, mean, None, max_steps)
+    mode, post_cov, result = gauss_newton(residuals, mean, None, max_steps)
     post_chol = jnp.linalg.cholesky(post_cov)
     draws = mode[None, :] + eps @ post_chol.T
 
@@ -80,4 +83,5 @@ def laplace_is(
     n = eps.shape[0]
     log_ev = logsumexp(with_view) - math.log(n)
     ess = jnp.exp(2.0 * logsumexp(with_view) - logsumexp(2.0 * with_view)) / n
-    return Evidence(log_ev, logsumexp(free) - math.log(n), jnp.where(jnp.isfinite(ess), ess, 0.0), mode, post_cov)
+    ess = jnp.where(jnp.isfinite(ess), ess, 0.0)
+    return Evidence(log_ev, logsumexp(free) - math.log(n), ess, mode, post_cov, result)

@@ -8,18 +8,18 @@ classifier type); model parameters are traced.
 
 from __future__ import annotations
 
+from functools import partial
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optimistix as optx
 from jax.scipy.special import logsumexp
-from functools import partial
-
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from .batching import map_live
 from .belief import Belief, Detections
-from .hypotheses import hypothesis_table, children
+from .hypotheses import Children, HypothesisTable, children, hypothesis_table
 from .motion import propagate
 from .prune import PruneStats, prune
 from .update import gauss_newton_update
@@ -36,12 +36,44 @@ class StepInfo(eqx.Module):
     solver_result: optx.RESULTS  # Gauss-Newton outcome per component (Eq. 9)
     visibility_ignored: Bool[Array, ""]  # no hypothesis had every detected object in view
     ess: Float[Array, " K"]  # normalized effective sample size of each kept weight (1 = exact; NaN if empty)
+    is_solver_failures: Int[Array, ""]  # kept components whose laplace-is mode search did not converge
 
 
 def _realize(classes: Int[Array, " N"], assign: Int[Array, " Dmax"], slot_class: Int[Array, " Dmax"], new):
     """Write the classes of newly associated objects (Sec. IV-D); all others are unchanged."""
     target = jnp.where(new, assign, classes.shape[0])  # out of bounds -> dropped
     return classes.at[target].set(slot_class, mode="drop")
+
+
+# A child whose objects are (almost surely) out of view still ranks by its likelihood when the
+# laplace-is candidates are screened, this many nats below any child in view.
+_SCREEN_OUT_OF_VIEW = 50.0
+
+
+def _weigh_children(
+    belief: Belief, mean, cov, detections: Detections, table: HypothesisTable, kids: Children,
+    prior: Float[Array, "K A Mc"], key: PRNGKeyArray,
+):
+    """PropWeights (Eq. 16) by ``config.weights``: ``log ψ`` of every child with and without the
+    observation model and the normalized ESS of each estimate (arrays ``(K, A, Mc)``), and the
+    whether each laplace-is mode search converged (all True for the other methods)."""
+    cfg, sensor = belief.config, belief.model.sensor
+    if cfg.weights == "sampled":
+        eps = jax.random.normal(key, (cfg.num_samples, mean.shape[-1]), dtype=mean.dtype)
+        weigh = lambda m, c, kid: sampled_log_likelihood(sensor, m, c, detections, eps, table, kid)  # noqa: E731
+        log_lik, log_lik_free, ess = map_live(weigh, belief.alive, mean, cov, kids)
+        return log_lik, log_lik_free, ess, jnp.ones(ess.shape, bool)
+    weigh = lambda m, c, kid: linearized_log_likelihood(sensor, m, c, detections, table, kid)  # noqa: E731
+    linear, linear_free, ess = map_live(weigh, belief.alive, mean, cov, kids)
+    if cfg.weights == "linearized":
+        return linear, linear_free, ess, jnp.ones(ess.shape, bool)
+    # laplace-is: importance-sample the children that the linearized weights rank best.
+    eps = jax.random.normal(key, (cfg.is_samples, 3 + 3 * cfg.max_detections), dtype=mean.dtype)
+    rank = jnp.maximum(linear, linear_free - _SCREEN_OUT_OF_VIEW)
+    screen = jnp.where(kids.valid & belief.alive[:, None, None], prior + rank, -jnp.inf)
+    return laplace_is_log_likelihood(
+        sensor, mean, cov, detections, eps, table, kids, screen, cfg.is_candidates, cfg.gn_max_steps
+    )
 
 
 def _step(
@@ -65,21 +97,10 @@ def _step(
     )
 
     # Line 5: PropWeights, Eq. 16.
-    if cfg.weights == "sampled":
-        eps = jax.random.normal(key, (cfg.num_samples, mean.shape[-1]), dtype=mean.dtype)
-        weigh = lambda m, c, kid: sampled_log_likelihood(model.sensor, m, c, detections, eps, table, kid)  # noqa: E731
-    else:
-        weigh = lambda m, c, kid: linearized_log_likelihood(model.sensor, m, c, detections, table, kid)  # noqa: E731
-    log_lik, log_lik_free, ess = map_live(weigh, belief.alive, mean, cov, kids)
+    prior = belief.log_weights[:, None, None] + kids.log_prior
+    log_lik, log_lik_free, ess, is_converged = _weigh_children(belief, mean, cov, detections, table, kids, prior, key)
     possible = kids.valid & belief.alive[:, None, None]
     # `where`, not `+`: empty slots may carry non-finite likelihoods that must not leak.
-    prior = belief.log_weights[:, None, None] + kids.log_prior
-    if cfg.weights == "laplace-is":  # screened by the linearized weights just computed
-        eps = jax.random.normal(key, (cfg.is_samples, 3 + 3 * cfg.max_detections), dtype=mean.dtype)
-        screen = jnp.where(possible, prior + jnp.maximum(log_lik, log_lik_free - 50.0), -jnp.inf)
-        log_lik, log_lik_free, ess = laplace_is_log_likelihood(
-            model.sensor, mean, cov, detections, eps, table, kids, screen, cfg.is_candidates, cfg.gn_max_steps
-        )
     log_w = jnp.where(possible, prior + log_lik, -jnp.inf)
     # No hypothesis puts every detected object in view: the 0/1 visibility model cannot explain
     # this step, so weigh it by the measurement likelihood alone rather than lose the belief.
@@ -112,7 +133,7 @@ def _step(
     )
     info = StepInfo(
         logsumexp(log_w), stats, jnp.sum(alive), parent, result, visibility_ignored,
-        jnp.where(alive, ess[parent, a, m], jnp.nan),
+        jnp.where(alive, ess[parent, a, m], jnp.nan), jnp.sum(alive & ~is_converged[parent, a, m]),
     )
     return new_belief, info
 
@@ -124,7 +145,7 @@ Args:
     belief: the belief after step ``k - 1``.
     odometry: ``u_k``, shape ``(3,)``, a measurement of ``between(x_{k-1}, x_k)``.
     detections: the step's detections, padded to ``belief.config.max_detections`` slots.
-    key: PRNG key for the Monte-Carlo weights (unused by ``weights="linearized"``).
+    key: PRNG key for the Monte-Carlo draws (unused by ``weights="linearized"``).
 
 Returns:
     ``(belief, info)``: the belief after step ``k`` and a :class:`StepInfo`.

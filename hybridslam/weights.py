@@ -30,6 +30,7 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
+import optimistix as optx
 from jax.scipy.special import log_ndtr, logsumexp, ndtr
 from jaxtyping import Array, Bool, Float, Int
 
@@ -228,7 +229,7 @@ def _child_evidence(sensor, detections, eps, max_steps, mean, cov, assign, slot_
                 jnp.sum(jnp.where(occ & ~seen, -jnp.inf, 0.0)))
 
     ev = laplace_is(measurement, m_mean, m_cov, eps, max_steps, difference)
-    return ev.log_evidence, ev.log_evidence_free, ev.ess
+    return ev.log_evidence, ev.log_evidence_free, ev.ess, ev.solver_result == optx.RESULTS.successful
 
 
 def laplace_is_log_likelihood(
@@ -242,7 +243,7 @@ def laplace_is_log_likelihood(
     screen: Float[Array, "K A Mc"],
     num_candidates: int,
     max_steps: int,
-) -> tuple[Float[Array, "K A Mc"], Float[Array, "K A Mc"], Float[Array, "K A Mc"]]:
+) -> tuple[Float[Array, "K A Mc"], Float[Array, "K A Mc"], Float[Array, "K A Mc"], Bool[Array, "K A Mc"]]:
     """``log ψ`` of Eq. 16 by importance sampling from each child's Laplace approximation.
 
     See :mod:`hybridslam.laplace`. Solving a Gauss-Newton problem for every child of every parent
@@ -250,16 +251,19 @@ def laplace_is_log_likelihood(
     (``screen``: the parent weight times the linearized evidence, ``-inf`` for invalid children)
     and only the ``num_candidates`` best get the Laplace-IS estimate; the rest get ``-inf``. Each
     candidate solves its problem over ``(x_k, X^o_β)`` (``3 + 3·Dmax`` dimensions, Eq. 17), in
-    chunks that skip empty candidates (:func:`~hybridslam.batching.map_live`).
+    chunks that skip empty candidates (:func:`~hybridslam.batching.map_live`). Also returns
+    whether each child's mode search converged (a failed one leaves the estimate unbiased but less
+    efficient; True for children that were not candidates).
     """
     shape = screen.shape
     top, flat = jax.lax.top_k(screen.reshape(-1), min(num_candidates, screen.size))
     parent, a, m = jnp.unravel_index(flat, shape)
     one = partial(_child_evidence, sensor, detections, eps, max_steps)
     assign = jnp.asarray(table.assign)[a]
-    packed = map_live(one, top > -jnp.inf, mean[parent], cov[parent], assign, kids.slot_class[parent, a, m], chunk=16)
-    fill = (-jnp.inf, -jnp.inf, 0.0)
+    live = top > -jnp.inf
+    *packed, converged = map_live(one, live, mean[parent], cov[parent], assign, kids.slot_class[parent, a, m], chunk=16)
+    fill = (-jnp.inf, -jnp.inf, 0.0, True)
     return tuple(
-        jnp.full(screen.size, f, v.dtype).at[flat].set(jnp.where(top > -jnp.inf, v, f)).reshape(shape)
-        for v, f in zip(packed, fill)
+        jnp.full(screen.size, f, v.dtype).at[flat].set(jnp.where(live, v, f)).reshape(shape)
+        for v, f in zip((*packed, converged), fill)
     )

@@ -40,6 +40,7 @@ def compare(a: list[dict], b: list[dict]) -> tuple[list[bool], list[float]]:
 
 
 def run(scenario: hs.Scenario, classifier: str, weights: str, seed: int, **settings) -> list[dict]:
+    """Association posteriors of one run (capacity 64; ``settings`` go to :func:`hs.run_scenario`)."""
     result = hs.run_scenario(
         scenario, classifier=classifier, weights=weights, seed=seed, capacity=64, max_detections=2, **settings
     ).result
@@ -52,6 +53,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=10)
     parser.add_argument("--classifiers", nargs="+", default=["mirror", "none"])
     parser.add_argument("--methods", nargs="+", default=["sampled", "laplace-is", "linearized"])
+    parser.add_argument("--accuracy", type=int, default=4, help="scenarios for the accuracy-vs-draws table (0: skip)")
     args = parser.parse_args()
 
     cases = [(seed, clf) for clf in args.classifiers for seed in range(args.scenarios)]
@@ -81,6 +83,25 @@ def main() -> None:
         print(f"{method:>11} {100 * statistics.mean(s['agree']):>10.1f}% {statistics.mean(s['tv']):>8.4f} "
               f"{max(s['tv']):>7.3f} {sum(s['unstable_cases']):>12d} of {n:<7d} "
               f"{100 * statistics.mean(s['ref_agree']):>9.1f}% {statistics.mean(s['ref_tv']):>12.4f}")
+    if args.accuracy:
+        accuracy_table(args.accuracy, args.steps, args.classifiers)
+
+
+def accuracy_table(num_scenarios: int, steps: int, classifiers: list[str]) -> None:
+    """Mean TV distance to the reference as a function of the number of draws, per method."""
+    draws = {"sampled": [100, 1000, 10000], "laplace-is": [16, 64, 256]}
+    errors: dict[tuple[str, int], list[float]] = defaultdict(list)
+    cases = [(seed, clf) for clf in classifiers for seed in range(num_scenarios)]
+    for seed, clf in tqdm(cases, desc="accuracy"):
+        scenario = hs.simulate(1000 + seed, steps=steps)
+        reference = run(scenario, clf, "laplace-is", 0, is_samples=1024)
+        for method, counts in draws.items():
+            for n in counts:
+                errors[(method, n)] += compare(run(scenario, clf, method, 1, num_samples=n), reference)[1]
+    print(f"\naccuracy against the reference ({len(cases)} scenario configurations, {steps} steps): mean TV")
+    for method, counts in draws.items():
+        cells = "  ".join(f"{n:>5} draws: {statistics.mean(errors[(method, n)]):.4f}" for n in counts)
+        print(f"{method:>11}  {cells}")
 
 
 if __name__ == "__main__":

@@ -81,3 +81,15 @@ def test_laplace_is_weights_are_stable_across_seeds(scenario):
         tvs.append(0.5 * sum(abs(pa.get(h, 0.0) - pb.get(h, 0.0)) for h in set(pa) | set(pb)))
         assert max(pa, key=pa.get) == max(pb, key=pb.get)
     assert np.mean(tvs) < 0.03 and max(tvs) < 0.1, tvs
+
+
+def test_ess_diagnostic_exposes_the_paper_estimator_under_the_broad_prior(scenario):
+    """Step 1 from Σ_p = diag(100, 100, 0.04): the paper's weights rest on ~1 draw of n_s, the
+    Laplace-IS weights on most of theirs."""
+    kwargs = dict(classifier="none", capacity=8, max_detections=SLOTS)
+    sampled = hs.run_scenario(scenario, weights="sampled", num_samples=1000, **kwargs).infos[0]
+    laplace = hs.run_scenario(scenario, weights="laplace-is", num_samples=SAMPLES, **kwargs).infos[0]
+    alive = int(sampled.num_alive)
+    assert float(jnp.max(sampled.ess[:alive])) < 0.05
+    assert float(jnp.min(laplace.ess[: int(laplace.num_alive)])) > 0.3
+    assert int(laplace.is_solver_failures) == 0
