@@ -128,15 +128,6 @@ def init_belief(priors: Priors, model: Model, config: Config = Config()) -> Beli
     )
 
 
-def detections_at(stacked: StackedSteps, k: int) -> Detections:
-    """Step ``k`` (0-based) of a scenario's padded arrays as :class:`Detections`."""
-    return Detections(
-        jnp.asarray(stacked.geo[k], dtype=float),
-        jnp.asarray(stacked.scores[k], dtype=float),
-        jnp.asarray(stacked.mask[k]),
-    )
-
-
 def stacked_detections(stacked: StackedSteps) -> Detections:
     """All steps of a scenario as one :class:`Detections` with a leading time axis ``T``."""
     return Detections(

@@ -4,8 +4,8 @@ For a parent with propagated Gaussian ``b⁻`` and a child ``(β_k, C)``,
 
     w_child ∝ w_parent · ∫ P(Z_k | x_k, X^o, C, β_k) · P(β_k | x_k, X^o) · b⁻(x_k, X^o) dx_k dX^o.   (Eq. 16)
 
-Two estimators of the integral, both returning ``log ψ`` for every child of one parent on the
-``(A, Mc)`` grid of :mod:`hypotheses`:
+Three estimators of the integral, returning ``log ψ`` for every child on the ``(A, Mc)`` grid of
+:mod:`hypotheses` (per parent; all parents at once for ``laplace-is``):
 
 * :func:`sampled_log_likelihood` — the paper's Monte-Carlo mean over ``n_s`` draws from ``b⁻``.
   All children (and all parents) share the same standard-normal draws (common random numbers).
@@ -15,8 +15,11 @@ Two estimators of the integral, both returning ``log ψ`` for every child of one
   linearized measurement model (thesis Eq. 4.14-4.15, ``C = H Σ Hᵀ + Γ``) for all of the child's
   detections jointly, times the probability that the named objects are in view under the
   linearized predictive of range and bearing.
+* :func:`laplace_is_log_likelihood` — importance sampling from each child's Laplace approximation
+  (:mod:`hybridslam.laplace`), for the children the linearized weights rank best.
 
-Both return a pair ``(log ψ, log ψ ignoring visibility)``. The second is a fallback for a step
+Each returns ``(log ψ, log ψ ignoring visibility, ESS)`` (laplace-is adds whether each mode search
+converged). The second is a fallback for a step
 whose detections no hypothesis can explain (every child needs an object out of view: a model
 violation, e.g. a false detection); :func:`~hybridslam.step.step` uses it only then, and says so
 in ``StepInfo.visibility_ignored``.
@@ -39,6 +42,7 @@ from .batching import map_live
 from .belief import Detections
 from .geometry import range_bearing
 from .hypotheses import Children, HypothesisTable
+from .laplace import laplace_is
 from .measurement import SensorModel, detection_residual, detection_residuals, in_view
 
 
@@ -211,8 +215,6 @@ def _child_marginal(mean, cov, assign):
 
 
 def _child_evidence(sensor, detections, eps, max_steps, mean, cov, assign, slot_class):
-    from .laplace import laplace_is  # local: laplace imports update, which imports this package's belief
-
     m_mean, m_cov, keep = _child_marginal(mean, cov, assign)
     angle = keep & (jnp.arange(keep.shape[0]) % 3 == 2)
 
