@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 from jaxtyping import Array, Bool, Float, Int
@@ -73,6 +74,26 @@ def detection_residual(
     pick = jnp.arange(r_sem.shape[0]) == c  # one-hot select: elementwise, no gather
     r_c = jnp.sum(jnp.where(pick[:, None], r_sem, 0.0), axis=0)
     return jnp.concatenate([r_geo, r_c]), jnp.sum(jnp.where(pick, log_norm, 0.0))
+
+
+def slot_residuals(
+    sensor: SensorModel,
+    x: Float[Array, "3"],
+    slot_objects: Float[Array, "Dmax 3"],
+    z_geo: Float[Array, "Dmax 2"],
+    scores: Float[Array, "Dmax M"],
+    assign: Int[Array, " Dmax"],
+    slot_class: Int[Array, " Dmax"],
+) -> tuple[Float[Array, " Dmax*R"], Float[Array, ""]]:
+    """The joint measurement factor of a step (Eq. 10): the stacked whitened residuals of every
+    occupied slot (zeros for empty slots, ``assign < 0``) and the sum of their log normalizers.
+
+    ``slot_objects[j]`` is the pose of the object that slot ``j`` is associated with.
+    """
+    per_det = jax.vmap(detection_residual, (None, None, 0, 0, 0, 0))
+    r, log_norm = per_det(sensor, x, slot_objects, z_geo, scores, slot_class)
+    occupied = assign >= 0
+    return jnp.where(occupied[:, None], r, 0.0).reshape(-1), jnp.sum(jnp.where(occupied, log_norm, 0.0))
 
 
 def in_view(sensor: SensorModel, x: Float[Array, "3"], obj: Float[Array, "3"]) -> Bool[Array, ""]:

@@ -55,8 +55,8 @@ def _weigh_children(
     prior: Float[Array, "K A Mc"], key: PRNGKeyArray,
 ):
     """PropWeights (Eq. 16) by ``config.weights``: ``log ψ`` of every child with and without the
-    observation model and the normalized ESS of each estimate (arrays ``(K, A, Mc)``), and the
-    whether each laplace-is mode search converged (all True for the other methods)."""
+    observation model, the normalized ESS of each estimate, and whether each laplace-is mode search
+    converged (all True for the other methods). Arrays ``(K, A, Mc)``."""
     cfg, sensor = belief.config, belief.model.sensor
     if cfg.weights == "sampled":
         eps = jax.random.normal(key, (cfg.num_samples, mean.shape[-1]), dtype=mean.dtype)

@@ -20,7 +20,7 @@ from jaxtyping import Array, Float, Int
 
 from . import se2
 from .belief import Detections
-from .measurement import SensorModel, detection_residual
+from .measurement import SensorModel, slot_residuals
 
 GN_TOLERANCE = 1e-6  # on the state: 1 µm, 1 µrad — far below the posterior spread of Sec. V (cm)
 
@@ -34,10 +34,10 @@ def _residuals(y, args):
     sensor, mean, chol, assign, slot_class, detections = args
     prior = jsl.solve_triangular(chol, wrap_angles(y - mean), lower=True)
     x, objs = y[:3], y[3:].reshape(-1, 3)
-    per_det = jax.vmap(detection_residual, (None, None, 0, 0, 0, 0))
-    meas, _ = per_det(sensor, x, objs[jnp.maximum(assign, 0)], detections.geo, detections.scores, slot_class)
-    meas = jnp.where((assign >= 0)[:, None], meas, 0.0)
-    return jnp.concatenate([prior, meas.reshape(-1)])
+    meas, _ = slot_residuals(
+        sensor, x, objs[jnp.maximum(assign, 0)], detections.geo, detections.scores, assign, slot_class
+    )
+    return jnp.concatenate([prior, meas])
 
 
 def gauss_newton(

@@ -43,7 +43,7 @@ from .belief import Detections
 from .geometry import range_bearing
 from .hypotheses import Children, HypothesisTable
 from .laplace import laplace_is
-from .measurement import SensorModel, detection_residual, detection_residuals, in_view
+from .measurement import SensorModel, detection_residual, detection_residuals, in_view, slot_residuals
 
 
 def _split(state: Float[Array, " D"]) -> tuple[Float[Array, "3"], Float[Array, "N 3"]]:
@@ -222,13 +222,10 @@ def _child_evidence(sensor, detections, eps, max_steps, mean, cov, assign, slot_
         return jnp.where(angle, se2.wrap(a - b), a - b)
 
     def measurement(y):
-        x, objs = y[:3], y[3:].reshape(-1, 3)
-        per_det = jax.vmap(detection_residual, (None, None, 0, 0, 0, 0))
-        r, log_norm = per_det(sensor, x, objs, detections.geo, detections.scores, slot_class)
+        x, objs = y[:3], y[3:].reshape(-1, 3)  # objs[j]: the object of slot j (Eq. 17 layout)
+        r, log_norm = slot_residuals(sensor, x, objs, detections.geo, detections.scores, assign, slot_class)
         seen = jax.vmap(in_view, (None, None, 0))(sensor, x, objs)
-        occ = assign >= 0
-        return (jnp.where(occ[:, None], r, 0.0).reshape(-1), jnp.sum(jnp.where(occ, log_norm, 0.0)),
-                jnp.sum(jnp.where(occ & ~seen, -jnp.inf, 0.0)))
+        return r, log_norm, jnp.sum(jnp.where((assign >= 0) & ~seen, -jnp.inf, 0.0))
 
     ev = laplace_is(measurement, m_mean, m_cov, eps, max_steps, difference)
     return ev.log_evidence, ev.log_evidence_free, ev.ess, ev.solver_result == optx.RESULTS.successful
