@@ -15,13 +15,17 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool
 
 
-def map_live(fn: Callable, live: Bool[Array, " K"], *args, chunk: int = 4):
+def map_live(fn: Callable, live: Bool[Array, " K"], *args, chunk: int = 4, axis_name: str | None = None):
     """``jax.vmap(fn)(*args)`` over the leading ``K`` axis, skipping chunks with no live slot.
 
     After every step the slots are sorted by weight, so the live components form a prefix: work
     done this way scales with the live components rather than the capacity. Chunks run in a
     ``lax.map``; a chunk without a live slot returns zeros (its values are masked by the caller).
-    Under an outer ``vmap`` (many tracks) ``lax.cond`` becomes a select and nothing is skipped.
+
+    Under an outer ``jax.vmap`` (many tracks) a ``lax.cond`` on a per-track predicate becomes a
+    select and nothing would be skipped. Pass that vmap's ``axis_name``: the predicate is then
+    "live in any track" (a ``psum`` over the axis, unbatched), so a chunk dead in every track is
+    still skipped. Outside a vmap with that axis name, ``axis_name`` must be ``None``.
     """
     k = live.shape[0]
     size = min(chunk, k)
@@ -35,7 +39,10 @@ def map_live(fn: Callable, live: Bool[Array, " K"], *args, chunk: int = 4):
 
     def one_chunk(xs):
         live_c, args_c = xs
-        return jax.lax.cond(jnp.any(live_c), lambda: batched(*args_c), zeros)
+        any_live = jnp.any(live_c)
+        if axis_name is not None:
+            any_live = jax.lax.psum(any_live.astype(jnp.int32), axis_name) > 0
+        return jax.lax.cond(any_live, lambda: batched(*args_c), zeros)
 
     out = jax.lax.map(one_chunk, (split(live), jax.tree.map(split, args)))
     return jax.tree.map(lambda x: x.reshape((k + pad,) + x.shape[2:])[:k], out)

@@ -40,6 +40,9 @@ class Config:
     is_candidates: int = 128  # children (of all parents) that get a Laplace-IS weight, by linearized rank
     weights: WeightMethod = "laplace-is"  # "sampled" is the paper's Eq. 16 estimator (README, Weights)
     gn_max_steps: int = 20  # Gauss-Newton iteration budget of the update (Eq. 9)
+    # Name of an enclosing jax.vmap axis over beliefs (set by hybridslam.sweep): lets the step skip
+    # work on component slots that are empty in every belief of the batch (batching.map_live).
+    batch_axis: str | None = None
 
     def __post_init__(self):
         for name in ("capacity", "max_detections", "max_steps", "num_samples", "is_samples", "is_candidates", "gn_max_steps"):
@@ -48,6 +51,8 @@ class Config:
                 raise ValueError(f"Config.{name}: expected a positive int, got {value!r}")
         if self.weights not in WEIGHT_METHODS:
             raise ValueError(f"Config.weights: expected one of {WEIGHT_METHODS}, got {self.weights!r}")
+        if self.batch_axis is not None and not isinstance(self.batch_axis, str):
+            raise ValueError(f"Config.batch_axis: expected a vmap axis name (str) or None, got {self.batch_axis!r}")
 
 
 class Detections(eqx.Module):

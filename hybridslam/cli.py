@@ -3,6 +3,9 @@
     hybridslam simulate --seed 0 --steps 10 --alpha 0.25 -o scenario.json
     hybridslam run scenario.json -o result.json [--classifier mirror] [--samples 1000] ...
     hybridslam demo [-o runs/demo] [--tracks 4] [--steps 10]
+    hybridslam sweep [--alphas 0,0.25,0.5] [--models mirror,independent,none] [--tracks 8] -o runs/sweep
+    hybridslam sweep --scenarios 'logs/*.json' [--models ...] -o runs/logs
+    hybridslam plot runs/sweep
 
 Every user error (bad option, missing or malformed file, invalid setting, unwritable output)
 ends with exit status 2 and one line ``hybridslam: error: <message>`` on stderr.
@@ -23,7 +26,8 @@ import numpy as np
 import optimistix as optx
 from tqdm import tqdm
 
-from . import plot
+from . import plot, study
+from .sweep import device_mesh
 from .model import model_from_scenario
 from .result import Result, StepRecord, save_result
 from .run import Run, config_for, run_scenario
@@ -322,6 +326,160 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------- #
+# hybridslam sweep / plot
+# --------------------------------------------------------------------------- #
+
+SWEEP_DEFAULTS = {"alphas": "0,0.25,0.5", "tracks": 8, "steps": 10, "K": 15.0}
+
+
+def _floats(text: str, option: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise CLIError(f"{option}: expected comma-separated numbers, got {text!r}") from None
+    if not values or not all(math.isfinite(v) for v in values):
+        raise CLIError(f"{option}: expected finite comma-separated numbers, got {text!r}")
+    return values
+
+
+def _models(text: str | None) -> tuple[str, ...] | None:
+    if text is None:
+        return None
+    names = tuple(m.strip() for m in text.split(",") if m.strip())
+    bad = [m for m in names if m not in CLASSIFIERS]
+    if not names or bad:
+        raise CLIError(f"--models: unknown model(s) {', '.join(bad) or repr(text)} (known: {', '.join(CLASSIFIERS)})")
+    return names
+
+
+def alpha_summary(rows: Sequence[dict]) -> str:
+    """Per (alpha, model): mean ± 95% half-width over tracks of each track's mean over its steps."""
+    header = f"{'alpha':>6} {'model':<12} {'tracks':>6} {'H(w)':>15} {'det_cov':>11} {'err_wmax':>15} {'err_wavg':>15}"
+    lines = [header, "-" * len(header)]
+    curves = {m: plot.alpha_curves(rows, m) for m in ("entropy", "det_cov", "err_wmax", "err_wavg")}
+    models = list(dict.fromkeys(str(r["model"]) for r in rows))
+    alphas = sorted({float(r["alpha"]) for r in rows})
+    for a in alphas:
+        for model in models:
+            cells = []
+            for metric, spec in (("entropy", ".3f"), ("det_cov", ".3e"), ("err_wmax", ".3f"), ("err_wavg", ".3f")):
+                xs, values = curves[metric][model]
+                j = int(np.searchsorted(xs, a))
+                mean, half = plot.mean_band(values[:, j : j + 1])
+                text = _fmt(float(mean[0]), spec)
+                if metric != "det_cov" and not math.isnan(float(half[0])):
+                    text += f" ±{float(half[0]):.3f}"
+                cells.append(text)
+            n = curves["entropy"][model][1].shape[0]
+            lines.append(f"{a:>6g} {model:<12} {n:>6} {cells[0]:>15} {cells[1]:>11} {cells[2]:>15} {cells[3]:>15}")
+    return "\n".join(lines)
+
+
+def _draw(folder: str, rows: Sequence[dict]) -> list[str]:
+    """The study's plots from its table rows; returns the files written."""
+    if not rows:
+        return []
+    if "alpha" in rows[0]:
+        path = os.path.join(folder, "alpha_sweep.png")
+        plot.plot_alpha_sweep(rows, path)
+    else:
+        path = os.path.join(folder, "metrics.png")
+        plot.plot_metrics(rows, path)
+    return [path]
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    """A study: alphas x models x simulated tracks (Fig. 5), or runs over scenario files; resumable."""
+    estimator = study.Estimator(weights=args.weights, samples=args.samples, capacity=args.capacity,
+                                prune_ratio=args.prune_ratio)
+    models = _models(args.models)
+    folder = args.output
+    if os.path.exists(folder) and not os.path.isdir(folder):
+        raise CLIError(f"-o {folder!r}: exists and is not a folder")
+    try:
+        if args.scenarios is not None:
+            given = [f"--{k}" for k in SWEEP_DEFAULTS if getattr(args, k) is not None]
+            if given:
+                raise CLIError(f"{', '.join(given)}: only for simulated studies; scenario files carry their own settings")
+            spec: study.AlphaStudy | study.FileStudy = study.FileStudy(
+                tuple(study.scenario_paths(args.scenarios)), models, args.seed, estimator)
+            what = f"{len(spec.paths)} scenario file(s) x {', '.join(models) if models else 'their own model'}"
+        else:
+            opts = {k: SWEEP_DEFAULTS[k] if getattr(args, k) is None else getattr(args, k) for k in SWEEP_DEFAULTS}
+            spec = study.AlphaStudy(
+                alphas=_floats(str(opts["alphas"]), "--alphas"), models=models or CLASSIFIERS,
+                tracks=int(opts["tracks"]), steps=int(opts["steps"]), K=float(opts["K"]), seed=args.seed,
+                estimator=estimator)
+            what = (f"{len(spec.alphas)} alpha(s) x {len(spec.models)} model(s) x {spec.tracks} tracks of "
+                    f"{spec.steps} steps")
+        if args.samples is not None and args.samples < 1 or args.capacity < 1:
+            raise CLIError("--samples and --capacity must be positive")
+        if not args.prune_ratio >= 1:
+            raise CLIError(f"--prune-ratio: must be >= 1, got {args.prune_ratio}")
+        os.makedirs(folder, exist_ok=True)
+        records = study.Records(folder, spec.header())  # refuses records made with other settings
+        mesh = device_mesh()
+        print(f"sweep: {what}; weights={args.weights}, samples={args.samples or 'default'}, "
+              f"capacity={args.capacity}, seed={args.seed}; {mesh.size} device(s) "
+              f"({mesh.devices.flat[0].platform}); writing to {folder}", flush=True)
+        t_start = time.perf_counter()
+        cells = len(spec.cells()) if isinstance(spec, study.AlphaStudy) else None
+        bar = tqdm(total=cells, desc="sweep", unit="cell", file=sys.stderr, dynamic_ncols=True)
+        compile_s = run_s = 0.0
+
+        def on_cell(label: str, record: dict | None) -> None:
+            nonlocal compile_s, run_s
+            if record is None:
+                bar.set_postfix_str(label)
+                return
+            compile_s += record["compile_s"]
+            run_s += record["run_s"]
+            for line in study.cell_warnings(record):
+                _warn(f"{label}: {line}", stream=sys.stderr)
+            bar.update(1)
+
+        with bar:
+            if isinstance(spec, study.AlphaStudy):
+                bar.update(sum(c in records for c in spec.cells()))
+                rows = study.run_alpha_study(spec, folder, mesh=mesh, on_cell=on_cell)
+            else:
+                rows = study.run_file_study(spec, folder, mesh=mesh, on_cell=on_cell)
+    except study.StudyError as e:
+        raise CLIError(str(e)) from None
+    except ValueError as e:
+        if isinstance(e, ScenarioError):
+            raise
+        raise CLIError(str(e)) from None
+    written = _draw(folder, rows)
+    print(f"wrote {os.path.join(folder, study.TABLE)} ({len(rows)} rows), {study.RECORDS}"
+          + "".join(f", {os.path.basename(p)}" for p in written)
+          + (", results/" if isinstance(spec, study.FileStudy) else ""))
+    if isinstance(spec, study.AlphaStudy):
+        print(f"\nmean over tracks of each track's mean over steps 1-{spec.steps} (± 95% half-width)")
+        print(alpha_summary(rows))
+    else:
+        print(summary_table(rows, list(dict.fromkeys(r["model"] for r in rows))))
+    total = time.perf_counter() - t_start
+    track_steps = sum(1 for _ in rows)
+    print(f"\nsweep finished in {total:.1f} s (this session: compile {compile_s:.1f} s, batched runs "
+          f"{run_s:.1f} s; {track_steps} track-steps in the table)")
+    return 0
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    """Redraw a study's plots from its table."""
+    path = os.path.join(args.folder, study.TABLE)
+    if not os.path.isfile(path):
+        raise CLIError(f"{args.folder!r}: no {study.TABLE} (run hybridslam sweep -o {args.folder} first)")
+    rows = study.read_table(path)
+    if not rows:
+        raise CLIError(f"{path}: the table is empty (no finished cell yet)")
+    written = _draw(args.folder, rows)
+    print("wrote " + ", ".join(written))
+    return 0
+
+
+# --------------------------------------------------------------------------- #
 # Parser and entry point
 # --------------------------------------------------------------------------- #
 
@@ -341,7 +499,7 @@ def _add_estimator_options(p: argparse.ArgumentParser, seed_help: str = "PRNG se
 
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog=PROG, description="Semantic SLAM with ambiguous data association (hybrid belief).")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="{simulate,run,demo}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{simulate,run,demo,sweep,plot}")
 
     p = sub.add_parser("simulate", help="write a paper-setup scenario file (Sec. V)")
     p.add_argument("--seed", type=int, default=0, help="track and measurement seed")
@@ -366,6 +524,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--alpha", type=float, default=0.25, help="classifier alpha of Eq. 18")
     _add_estimator_options(p, seed_help="track t is simulated with seed + t; every run uses seed for its weights")
     p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("sweep", help="a resumable study: alphas x models x tracks (Fig. 5), or scenario files")
+    p.add_argument("-o", "--output", default=os.path.join("runs", "sweep"),
+                   help="output folder (a folder with a finished or interrupted study resumes it)")
+    p.add_argument("--alphas", default=None, help=f"alphas of Eq. 18, comma-separated (default {SWEEP_DEFAULTS['alphas']})")
+    p.add_argument("--models", default=None,
+                   help="classifier models, comma-separated (default: mirror,independent,none; with "
+                        "--scenarios: each file's own)")
+    p.add_argument("--tracks", type=int, default=None, help=f"simulated tracks per cell (default {SWEEP_DEFAULTS['tracks']})")
+    p.add_argument("--steps", type=int, default=None, help=f"steps per track (default {SWEEP_DEFAULTS['steps']})")
+    p.add_argument("--K", type=float, default=None, help=f"classifier K of Eq. 18 (default {SWEEP_DEFAULTS['K']:g})")
+    p.add_argument("--scenarios", default=None, metavar="DIR_OR_GLOB",
+                   help="run over these scenario files instead of simulating (files of equal shape are batched)")
+    _add_estimator_options(p, seed_help="track t is simulated with seed + t and weighed with PRNG seed seed + t")
+    p.set_defaults(func=cmd_sweep, capacity=16)
+
+    p = sub.add_parser("plot", help="redraw a study's plots from its table.csv")
+    p.add_argument("folder", help="the study's output folder")
+    p.set_defaults(func=cmd_plot)
     return parser
 
 

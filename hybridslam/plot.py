@@ -199,3 +199,65 @@ def plot_posterior_panels(scenario: Scenario, records: Mapping[str, Sequence[Ste
     fig.suptitle(f"Robot pose mixture: {nsig:g}-sigma ellipses, line width ~ weight; x = true pose at that step",
                  fontsize=11)
     fig.savefig(path, dpi=120, bbox_inches="tight")  # "tight" keeps the outside legends
+
+
+def alpha_curves(rows: Iterable[Mapping[str, object]], metric: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per model: the alphas and a ``(tracks, alphas)`` array of each track's mean of ``metric`` over its steps.
+
+    ``rows`` are ``table.csv``-like mappings of an alpha study (keys ``alpha, model, track, step``).
+    """
+    cells: dict[str, dict[float, dict[int, list[float]]]] = {}
+    for row in rows:
+        per_alpha = cells.setdefault(str(row["model"]), {}).setdefault(_number(row["alpha"]), {})
+        per_alpha.setdefault(int(_number(row["track"])), []).append(_number(row.get(metric)))
+    curves = {}
+    for model, per_alpha in cells.items():
+        alphas = np.array(sorted(per_alpha))
+        tracks = sorted({t for a in per_alpha.values() for t in a})
+        values = np.full((len(tracks), len(alphas)), np.nan)
+        for j, a in enumerate(alphas):
+            for t, vals in per_alpha[a].items():
+                finite = [v for v in vals if math.isfinite(v)]
+                values[tracks.index(t), j] = np.mean(finite) if finite else np.nan
+        curves[model] = (alphas, values)
+    return curves
+
+
+def plot_alpha_sweep(rows: Iterable[Mapping[str, object]], path: str | os.PathLike, *, title: str | None = None) -> None:
+    """The paper's Fig. 5: H(w), det Σ, x̃^wmax, x̃^wavg against alpha, one line per classifier model.
+
+    Each point is the mean over tracks of the track's mean over its steps, with a shaded 95%
+    band ``mean ± 1.96 · sd / √n`` over tracks. Saves the figure to ``path``.
+    """
+    rows = list(rows)
+    models = list(dict.fromkeys(str(r["model"]) for r in rows))
+    fig = Figure(figsize=(11, 7.8), layout="constrained")
+    axes = fig.subplots(2, 2)
+    num_tracks, num_steps = 0, max((int(_number(r["step"])) for r in rows), default=0)
+    for ax, (metric, panel, log) in zip(axes.flat, METRIC_PANELS):
+        curves = alpha_curves(rows, metric)
+        for i, model in enumerate(models):
+            alphas, values = curves[model]
+            num_tracks = max(num_tracks, values.shape[0])
+            mean, half = mean_band(values)
+            color, (ls, marker) = f"C{i}", _STYLES[i % len(_STYLES)]
+            ax.plot(alphas, mean, ls=ls, marker=marker, color=color, ms=4, lw=1.8, mfc="none", label=model)
+            lo, hi = mean - half, mean + half
+            if log:
+                lo = np.where(lo > 0, lo, mean / 10.0)
+            ax.fill_between(alphas, lo, hi, color=color, alpha=0.15, lw=0)
+        ax.set_title(panel, fontsize=10)
+        ax.set_xlabel(r"viewpoint dependence $\alpha$ (Eq. 18)")
+        if log:
+            ax.set_yscale("log")
+        else:
+            top = ax.get_ylim()[1]
+            ax.set_ylim(-0.03 * top, top)
+        ax.grid(True, alpha=0.3)
+    handles, labels = axes.flat[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncols=max(len(models), 1), fontsize=9,
+               title=f"classifier model: mean over {num_tracks} track(s) of the mean over steps 1-{num_steps}; "
+                     "shaded: 95% band, mean ± 1.96·sd/√n")
+    if title:
+        fig.suptitle(title, fontsize=11)
+    fig.savefig(path, dpi=120)

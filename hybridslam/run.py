@@ -80,24 +80,39 @@ def step_record(belief: Belief, num_detections: list[int], true_pose: np.ndarray
     """The host-side record of one belief (SCENARIO_FORMAT.md, "Result file")."""
     m = jax.device_get(_metrics(belief, None if true_pose is None else jnp.asarray(true_pose)))
     b = jax.device_get(belief)
-    k = int(b.k)
-    w = np.exp(b.log_weights)
+    return record_from_arrays(
+        int(b.k), b.log_weights, b.classes, b.history, b.mean[:, :3], b.cov[:, :3, :3],
+        num_detections, m, has_truth=true_pose is not None,
+    )
+
+
+def record_from_arrays(
+    k: int, log_weights: np.ndarray, classes: np.ndarray, history: np.ndarray, pose_mean: np.ndarray,
+    pose_cov: np.ndarray, num_detections: list[int], m, *, has_truth: bool,
+) -> StepRecord:
+    """A :class:`StepRecord` from host arrays of one belief (``K`` slots) and its :class:`Metrics` ``m``.
+
+    Components with non-zero weight, sorted by weight (highest first, ties by slot), weights
+    renormalized to sum to one; ``history[:, j, :num_detections[j]]`` are the associations of step
+    ``j + 1``.
+    """
+    w = np.exp(np.asarray(log_weights))
     order = [i for i in np.argsort(-w, kind="stable") if w[i] > 0]
     total = float(np.sum(w[order]))
     components = [
         ComponentRecord(
             weight=float(w[i] / total),
-            associations=[[int(o) for o in b.history[i, j, : num_detections[j]]] for j in range(k)],
-            classes=[int(c) for c in b.classes[i]],
-            pose_mean=np.asarray(b.mean[i, :3], dtype=float),
-            pose_cov=0.5 * (b.cov[i, :3, :3] + b.cov[i, :3, :3].T),
+            associations=[[int(o) for o in history[i, j, : num_detections[j]]] for j in range(k)],
+            classes=[int(c) for c in classes[i]],
+            pose_mean=np.asarray(pose_mean[i], dtype=float),
+            pose_cov=0.5 * (np.asarray(pose_cov[i], dtype=float) + np.asarray(pose_cov[i], dtype=float).T),
         )
         for i in order
     ]
-    values = {"entropy": m.entropy, "det_cov": m.det_cov, "num_components": len(components)}
-    if true_pose is not None:
-        values.update(err_wmax=m.err_wmax, err_wavg=m.err_wavg)
-    return StepRecord(k=k, components=components, metrics={key: float(v) if key != "num_components" else v for key, v in values.items()})
+    values = {"entropy": float(m.entropy), "det_cov": float(m.det_cov), "num_components": len(components)}
+    if has_truth:
+        values.update(err_wmax=float(m.err_wmax), err_wavg=float(m.err_wavg))
+    return StepRecord(k=k, components=components, metrics=values)
 
 
 def run_scenario(

@@ -61,10 +61,10 @@ def _weigh_children(
     if cfg.weights == "sampled":
         eps = jax.random.normal(key, (cfg.num_samples, mean.shape[-1]), dtype=mean.dtype)
         weigh = lambda m, c, kid: sampled_log_likelihood(sensor, m, c, detections, eps, table, kid)  # noqa: E731
-        log_lik, log_lik_free, ess = map_live(weigh, belief.alive, mean, cov, kids)
+        log_lik, log_lik_free, ess = map_live(weigh, belief.alive, mean, cov, kids, axis_name=cfg.batch_axis)
         return log_lik, log_lik_free, ess, jnp.ones(ess.shape, bool)
     weigh = lambda m, c, kid: linearized_log_likelihood(sensor, m, c, detections, table, kid)  # noqa: E731
-    linear, linear_free, ess = map_live(weigh, belief.alive, mean, cov, kids)
+    linear, linear_free, ess = map_live(weigh, belief.alive, mean, cov, kids, axis_name=cfg.batch_axis)
     if cfg.weights == "linearized":
         return linear, linear_free, ess, jnp.ones(ess.shape, bool)
     # laplace-is: importance-sample the children that the linearized weights rank best.
@@ -72,7 +72,8 @@ def _weigh_children(
     rank = jnp.maximum(linear, linear_free - _SCREEN_OUT_OF_VIEW)
     screen = jnp.where(kids.valid & belief.alive[:, None, None], prior + rank, -jnp.inf)
     return laplace_is_log_likelihood(
-        sensor, mean, cov, detections, eps, table, kids, screen, cfg.is_candidates, cfg.gn_max_steps
+        sensor, mean, cov, detections, eps, table, kids, screen, cfg.is_candidates, cfg.gn_max_steps,
+        axis_name=cfg.batch_axis,
     )
 
 
@@ -116,7 +117,9 @@ def _step(
     # Line 11: update every kept child with its measurement factors (Eq. 9-10).
     alive = new_log_w > -jnp.inf
     update = partial(gauss_newton_update, model.sensor, detections=detections, max_steps=cfg.gn_max_steps)
-    new_mean, new_cov, result = map_live(update, alive, mean[parent], cov[parent], assign, slot_class)
+    new_mean, new_cov, result = map_live(
+        update, alive, mean[parent], cov[parent], assign, slot_class, axis_name=cfg.batch_axis
+    )
     # Empty slots copy the best component so later batched math on them stays finite.
     new_mean = jnp.where(alive[:, None], new_mean, new_mean[:1])
     new_cov = jnp.where(alive[:, None, None], new_cov, new_cov[:1])

@@ -242,6 +242,7 @@ def laplace_is_log_likelihood(
     screen: Float[Array, "K A Mc"],
     num_candidates: int,
     max_steps: int,
+    axis_name: str | None = None,
 ) -> tuple[Float[Array, "K A Mc"], Float[Array, "K A Mc"], Float[Array, "K A Mc"], Bool[Array, "K A Mc"]]:
     """``log ψ`` of Eq. 16 by importance sampling from each child's Laplace approximation.
 
@@ -252,7 +253,8 @@ def laplace_is_log_likelihood(
     candidate solves its problem over ``(x_k, X^o_β)`` (``3 + 3·Dmax`` dimensions, Eq. 17), in
     chunks that skip empty candidates (:func:`~hybridslam.batching.map_live`). Also returns
     whether each child's mode search converged (a failed one leaves the estimate unbiased but less
-    efficient; True for children that were not candidates).
+    efficient; True for children that were not candidates). ``axis_name``: see
+    :func:`~hybridslam.batching.map_live`.
     """
     shape = screen.shape
     top, flat = jax.lax.top_k(screen.reshape(-1), min(num_candidates, screen.size))
@@ -260,7 +262,8 @@ def laplace_is_log_likelihood(
     one = partial(_child_evidence, sensor, detections, eps, max_steps)
     assign = jnp.asarray(table.assign)[a]
     live = top > -jnp.inf
-    *packed, converged = map_live(one, live, mean[parent], cov[parent], assign, kids.slot_class[parent, a, m], chunk=16)
+    *packed, converged = map_live(one, live, mean[parent], cov[parent], assign, kids.slot_class[parent, a, m], chunk=16,
+                                    axis_name=axis_name)
     fill = (-jnp.inf, -jnp.inf, 0.0, True)
     return tuple(
         jnp.full(screen.size, f, v.dtype).at[flat].set(jnp.where(live, v, f)).reshape(shape)

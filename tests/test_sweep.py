@@ -1,0 +1,143 @@
+"""The sweep engine: batched runs equal single runs, kill-and-resume, sharding over 4 devices.
+
+One tiny study (2 alphas x 2 models x 3 tracks x 3 steps, capacity 4, deterministic
+``linearized`` weights so that compiles stay short) is run once in this process; the other tests
+compare against its table. The subprocess tests share a persistent compilation cache.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+import hybridslam as hs
+from hybridslam import study, sweep
+from hybridslam.run import config_for
+
+TINY = dict(alphas=(0.1, 0.4), models=("mirror", "none"), tracks=3, steps=3)
+ESTIMATOR = study.Estimator(weights="linearized", capacity=4)
+CLI_ARGS = ["--alphas", "0.1,0.4", "--models", "mirror,none", "--tracks", "3", "--steps", "3",
+            "--capacity", "4", "--weights", "linearized"]
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """The uninterrupted single-device run: (folder, table text, rows)."""
+    folder = str(tmp_path_factory.mktemp("tiny"))
+    rows = study.run_alpha_study(study.AlphaStudy(**TINY, estimator=ESTIMATOR), folder)
+    with open(os.path.join(folder, study.TABLE), encoding="utf-8") as f:
+        return folder, f.read(), rows
+
+
+@pytest.fixture(scope="module")
+def cache_env(tmp_path_factory):
+    env = dict(os.environ)
+    env["JAX_COMPILATION_CACHE_DIR"] = str(tmp_path_factory.mktemp("jax_cache"))
+    env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+    env.pop("XLA_FLAGS", None)
+    return env
+
+
+def _sweep_cmd(folder: str, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "hybridslam", "sweep", *CLI_ARGS, *extra, "-o", folder]
+
+
+def test_table_layout(tiny):
+    folder, text, rows = tiny
+    lines = text.splitlines()
+    assert lines[0] == ",".join(study.ALPHA_COLUMNS)
+    assert len(lines) == 1 + 2 * 2 * 3 * 3 == 1 + len(rows)
+    keys = [(r["alpha"], r["model"], r["track"], r["step"]) for r in rows]
+    assert keys == sorted(keys, key=lambda k: (TINY["alphas"].index(k[0]), TINY["models"].index(k[1]), k[2], k[3]))
+    # Without semantics the alpha of the scores cannot matter: the `none` rows agree across alphas.
+    none = {a: [r["entropy"] for r in rows if r["model"] == "none" and r["alpha"] == a] for a in TINY["alphas"]}
+    assert none[0.1] == none[0.4]
+    records = [json.loads(line) for line in open(os.path.join(folder, study.RECORDS), encoding="utf-8")]
+    assert records[0]["format"] == study.RECORD_FORMAT and len(records) == 1 + 4
+
+
+def test_batched_run_equals_single_runs(tiny):
+    """A track in a batch gets the numbers `run_scenario` gives it alone (same seed)."""
+    scenarios = [hs.simulate(t, steps=3, alpha=0.4) for t in range(3)]
+    config = config_for(scenarios[0], capacity=4, weights="linearized", max_detections=2)
+    run = sweep.run_batch(sweep.batch_inputs(scenarios, config, classifier="mirror", seeds=[0, 1, 2]))
+    assert run.compile_s == 0.0  # the study compiled this shape already: one executable per shape
+    for t in (0, 2):
+        alone = hs.run_scenario(scenarios[t], classifier="mirror", capacity=4, weights="linearized",
+                                seed=t, max_detections=2).result.steps
+        batched = sweep.step_records(run.trace, t, scenarios[t])
+        for a, b in zip(alone, batched):
+            assert [c.associations for c in a.components] == [c.associations for c in b.components]
+            np.testing.assert_allclose([c.weight for c in a.components], [c.weight for c in b.components],
+                                       rtol=1e-9, atol=1e-12)
+            for key in a.metrics:
+                np.testing.assert_allclose(a.metrics[key], b.metrics[key], rtol=1e-9, atol=1e-12)
+
+
+def test_resume_after_kill_gives_the_same_table(tiny, tmp_path, cache_env):
+    _, expected, _ = tiny
+    folder = str(tmp_path / "killed")
+    proc = subprocess.Popen(_sweep_cmd(folder), env=cache_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    records = os.path.join(folder, study.RECORDS)
+    deadline = time.monotonic() + 240
+    try:
+        while time.monotonic() < deadline and proc.poll() is None:
+            if os.path.exists(records) and sum(1 for _ in open(records, encoding="utf-8")) >= 2:
+                break
+            time.sleep(0.05)
+        assert proc.poll() is None, "the sweep finished before it could be killed"
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait()
+    done = sum(1 for _ in open(records, encoding="utf-8")) - 1
+    assert 1 <= done < 4
+    with open(records, "a", encoding="utf-8") as f:  # as if killed in the middle of a write
+        f.write('{"cell": {"alpha": 0.4, "model": "mir')
+    out = subprocess.run(_sweep_cmd(folder), env=cache_env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    with open(os.path.join(folder, study.TABLE), encoding="utf-8") as f:
+        assert f.read() == expected
+    lines = open(records, encoding="utf-8").read().splitlines()
+    assert len(lines) == 1 + 4 and all(json.loads(line) for line in lines)
+
+
+def test_sharded_over_four_devices_equals_one(tiny, tmp_path, cache_env):
+    _, expected, _ = tiny
+    env = dict(cache_env, XLA_FLAGS="--xla_force_host_platform_device_count=4")
+    folder = str(tmp_path / "sharded")
+    # One model (one compile) suffices; 3 tracks on 4 devices also exercises the padding.
+    out = subprocess.run(_sweep_cmd(folder, "--models", "mirror"), env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert "4 device(s)" in out.stdout
+    records = [json.loads(line) for line in open(os.path.join(folder, study.RECORDS), encoding="utf-8")][1:]
+    assert all(r["devices"] == 4 for r in records)
+    with open(os.path.join(folder, study.TABLE), encoding="utf-8") as f:
+        got = f.read()
+    exp_rows = [line.split(",") for line in expected.splitlines() if ",none," not in line]
+    got_rows = [line.split(",") for line in got.splitlines()]
+    assert [r[:5] for r in got_rows] == [r[:5] for r in exp_rows]
+    for e, g in zip(exp_rows[1:], got_rows[1:]):
+        np.testing.assert_allclose([float(v or "nan") for v in g[5:]], [float(v or "nan") for v in e[5:]],
+                                   rtol=1e-9, atol=1e-12, equal_nan=True)
+
+
+def test_other_settings_are_refused(tiny):
+    folder, _, _ = tiny
+    with pytest.raises(study.StudyError, match=r"capacity: 4 there, 8 now"):
+        study.Records(folder, study.AlphaStudy(**TINY, estimator=study.Estimator(weights="linearized", capacity=8)).header())
+
+
+def test_extending_the_grid_reuses_finished_cells(tiny, tmp_path):
+    """More alphas on the same folder run only the new cells (here none: a subset of the grid)."""
+    folder, expected, _ = tiny
+    calls = []
+    rows = study.run_alpha_study(study.AlphaStudy(alphas=(0.4,), models=("none",), tracks=3, steps=3,
+                                                  estimator=ESTIMATOR), folder, on_cell=lambda *a: calls.append(a))
+    assert calls == [] and len(rows) == 3 * 3
