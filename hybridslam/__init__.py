@@ -23,6 +23,10 @@ from .classifier import Independent as Independent
 from .classifier import Mirror as Mirror
 from .classifier import NoClassifier as NoClassifier
 from .classifier import make_classifier as make_classifier
+from .learned import Learned as Learned
+from .learned import fit_classifier as fit_classifier
+from .learned import load_classifier as load_classifier
+from .learned import save_classifier as save_classifier
 from .marginals import association_probabilities as association_probabilities
 from .marginals import class_probabilities as class_probabilities
 from .marginals import pose_mixture as pose_mixture

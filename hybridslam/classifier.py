@@ -147,17 +147,36 @@ class NoClassifier(ClassifierModel):
         return jnp.zeros((m, m), scores.dtype), jnp.zeros((m,), scores.dtype)
 
 
-MODELS = ("mirror", "independent", "none")
+MODELS = ("mirror", "independent", "none", "learned")
 
 
-def make_classifier(name: str, num_classes: int, alpha: float | None = None, K: float | None = None) -> ClassifierModel:
-    """Build a classifier model by its scenario-file name (``classifier.model``)."""
+def make_classifier(
+    name: str, num_classes: int, alpha: float | None = None, K: float | None = None, *, path: str | None = None
+) -> ClassifierModel:
+    """Build a classifier model by its scenario-file name (``classifier.model``).
+
+    ``"learned"`` loads the model file at ``path`` (:func:`hybridslam.learned.load_classifier`).
+    """
     if name == "mirror":
         return Mirror(alpha, K)
     if name == "independent":
         return Independent(alpha, K)
     if name == "none":
         return NoClassifier(num_classes)
+    if name == "learned":
+        from .learned import load_classifier  # learned.py builds on this module
+
+        if path is None:
+            raise ValueError("classifier.path: the 'learned' model needs the path of its model file")
+        try:
+            model = load_classifier(path)
+        except ValueError as e:
+            raise ValueError(f"classifier.path: {e}") from e
+        if model.num_classes != num_classes:
+            raise ValueError(
+                f"classifier.path: {path!r} is a model of {model.num_classes} classes, expected {num_classes}"
+            )
+        return model
     if name == "confusion":
         raise ValueError(
             "classifier.model: 'confusion' is valid in scenario files but not supported by the hybrid "

@@ -33,7 +33,8 @@ def model_from_scenario(
 ) -> Model:
     """Read the model from a scenario; ``classifier`` overrides ``scenario.classifier.model``.
 
-    A name (``"mirror"``, ``"independent"``, ``"none"``) takes ``alpha`` and ``K`` from the file.
+    A name (``"mirror"``, ``"independent"``, ``"none"``) takes ``alpha`` and ``K`` from the file;
+    ``"learned"`` loads the model file named by ``classifier.path``.
     """
     spec = scenario.classifier
     if scenario.discovery is not None:
@@ -47,7 +48,9 @@ def model_from_scenario(
             raise ValueError(
                 f"classifier {name!r} needs alpha and K, but the scenario's model is {spec.model!r}"
             )
-        classifier = make_classifier(name, scenario.num_classes, spec.alpha, spec.K)
+        if name == "learned" and spec.path is None:
+            raise ValueError(f"classifier 'learned' needs a model file, but the scenario's model is {spec.model!r}")
+        classifier = make_classifier(name, scenario.num_classes, spec.alpha, spec.K, path=spec.path)
     if classifier.num_classes != scenario.num_classes:
         raise ValueError(
             f"classifier has {classifier.num_classes} classes, scenario has {scenario.num_classes}"

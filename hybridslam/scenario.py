@@ -24,7 +24,7 @@ from typing import Any, Callable, NamedTuple, NoReturn
 import numpy as np
 
 SCENARIO_FORMAT = "hybridslam-scenario/1"
-MODELS = ("confusion", "independent", "mirror", "none")
+MODELS = ("confusion", "independent", "learned", "mirror", "none")
 _SYM_TOL = 1e-9  # relative to the largest absolute entry
 _PROB_TOL = 1e-6
 _TOP_KEYS = frozenset(
@@ -101,6 +101,7 @@ class Classifier:
     alpha: float | None = None  # mirror, independent
     K: float | None = None  # mirror, independent
     matrix: np.ndarray | None = None  # confusion: (M, M), matrix[label, class]
+    path: str | None = None  # learned: model file; load_scenario makes it absolute
     __eq__ = _eq
 
 
@@ -329,6 +330,11 @@ def _classifier(obj: Any, path: str, num_classes: int) -> Classifier:
     if model == "confusion":
         matrix = _get(obj, "matrix", path, _matrix, num_classes, num_classes)
         return Classifier(model, matrix=_distributions(matrix, _join(path, "matrix"), axis=0))
+    if model == "learned":
+        file = _get(obj, "path", path, _string)
+        if not file.strip():
+            _fail(_join(path, "path"), "empty path")
+        return Classifier(model, path=file)
     return Classifier(model)
 
 
@@ -449,6 +455,8 @@ def _classifier_json(c: Classifier) -> dict:
         out["K"] = float(c.K)
     if c.matrix is not None:
         out["matrix"] = _floats(c.matrix)
+    if c.path is not None:
+        out["path"] = c.path
     return out
 
 
@@ -532,8 +540,17 @@ def _read_json(path: str | os.PathLike) -> Any:
 
 
 def load_scenario(path: str | os.PathLike) -> Scenario:
-    """Read and validate a scenario file."""
-    return parse_scenario(_read_json(path))
+    """Read and validate a scenario file.
+
+    A relative ``classifier.path`` is resolved against the file's directory (and kept absolute, so
+    the scenario can be saved anywhere).
+    """
+    s = parse_scenario(_read_json(path))
+    file = s.classifier.path
+    if file is not None and not os.path.isabs(file):
+        file = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(path)), file))
+        s = s.replace(classifier=dataclasses.replace(s.classifier, path=file))
+    return s
 
 
 def save_scenario(s: Scenario, path: str | os.PathLike) -> None:

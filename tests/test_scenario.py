@@ -187,7 +187,7 @@ MALFORMED = [
     ("scores_length", _set(("steps", 0, "detections", 0, "scores"), [0.1, 0.2, 0.7]),
      "steps[0].detections[0].scores: expected 2 numbers, got 3"),
     ("unknown_model", _set(("classifier", "model"), "foo"),
-     "classifier.model: unknown model 'foo' (known: confusion, independent, mirror, none)"),
+     "classifier.model: unknown model 'foo' (known: confusion, independent, learned, mirror, none)"),
     ("bool_number", _set(("steps", 0, "detections", 0, "range"), True),
      "steps[0].detections[0].range: expected a number, got boolean"),
     ("string_number", _set(("classifier", "K"), "15"), "classifier.K: expected a number, got string"),
