@@ -38,6 +38,9 @@ class Config:
     num_samples: int = 1000  # n_s of PropWeights (Eq. 16), weights="sampled"
     is_samples: int = 256  # draws per candidate child of weights="laplace-is"
     is_candidates: int = 128  # children (of all parents) that get a Laplace-IS weight, by linearized rank
+    # ... and only those within this many nats of the best child's linearized weight (e^-30 ≈ 1e-13:
+    # far below the pruning threshold w_max/150 ≈ e^-5); the others would be pruned anyway.
+    is_screen_nats: float = 30.0
     weights: WeightMethod = "laplace-is"  # "sampled" is the paper's Eq. 16 estimator (README, Weights)
     gn_max_steps: int = 20  # Gauss-Newton iteration budget of the update (Eq. 9)
     # Name of an enclosing jax.vmap axis over beliefs (set by hybridslam.sweep): lets the step skip
@@ -49,6 +52,8 @@ class Config:
             value = getattr(self, name)
             if not (isinstance(value, int) and value >= 1):
                 raise ValueError(f"Config.{name}: expected a positive int, got {value!r}")
+        if not (isinstance(self.is_screen_nats, (int, float)) and self.is_screen_nats > 0):
+            raise ValueError(f"Config.is_screen_nats: expected a positive number, got {self.is_screen_nats!r}")
         if self.weights not in WEIGHT_METHODS:
             raise ValueError(f"Config.weights: expected one of {WEIGHT_METHODS}, got {self.weights!r}")
         if self.batch_axis is not None and not isinstance(self.batch_axis, str):

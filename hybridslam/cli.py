@@ -346,9 +346,16 @@ def _models(text: str | None) -> tuple[str, ...] | None:
     if text is None:
         return None
     names = tuple(m.strip() for m in text.split(",") if m.strip())
-    bad = [m for m in names if m not in CLASSIFIERS]
+    bad = [m for m in names if m not in CLASSIFIERS and not m.startswith(study.LEARNED_PREFIX)]
     if not names or bad:
-        raise CLIError(f"--models: unknown model(s) {', '.join(bad) or repr(text)} (known: {', '.join(CLASSIFIERS)})")
+        raise CLIError(f"--models: unknown model(s) {', '.join(bad) or repr(text)} "
+                       f"(known: {', '.join(CLASSIFIERS)}, learned:PATH)")
+    for m in names:
+        if m.startswith(study.LEARNED_PREFIX):
+            try:
+                study.resolve_model(m)
+            except ValueError as e:
+                raise CLIError(f"--models {m}: {e}") from None
     return names
 
 
@@ -530,7 +537,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="output folder (a folder with a finished or interrupted study resumes it)")
     p.add_argument("--alphas", default=None, help=f"alphas of Eq. 18, comma-separated (default {SWEEP_DEFAULTS['alphas']})")
     p.add_argument("--models", default=None,
-                   help="classifier models, comma-separated (default: mirror,independent,none; with "
+                   help="classifier models, comma-separated: mirror, independent, none, or learned:PATH (a "
+                        "model file of scripts/fit_classifier.py) (default: mirror,independent,none; with "
                         "--scenarios: each file's own)")
     p.add_argument("--tracks", type=int, default=None, help=f"simulated tracks per cell (default {SWEEP_DEFAULTS['tracks']})")
     p.add_argument("--steps", type=int, default=None, help=f"steps per track (default {SWEEP_DEFAULTS['steps']})")

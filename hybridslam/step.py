@@ -71,6 +71,9 @@ def _weigh_children(
     eps = jax.random.normal(key, (cfg.is_samples, 3 + 3 * cfg.max_detections), dtype=mean.dtype)
     rank = jnp.maximum(linear, linear_free - _SCREEN_OUT_OF_VIEW)
     screen = jnp.where(kids.valid & belief.alive[:, None, None], prior + rank, -jnp.inf)
+    # Children hopelessly below the best would be pruned anyway: leaving them out lets the Laplace-IS
+    # chunks of empty candidates be skipped (most steps have a handful of serious children).
+    screen = jnp.where(screen >= jnp.max(screen) - cfg.is_screen_nats, screen, -jnp.inf)
     return laplace_is_log_likelihood(
         sensor, mean, cov, detections, eps, table, kids, screen, cfg.is_candidates, cfg.gn_max_steps,
         axis_name=cfg.batch_axis,

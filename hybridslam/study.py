@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from .belief import Config
+from .classifier import ClassifierModel
 from .result import Result, save_result
 from .run import config_for, describe
 from .scenario import Scenario, load_scenario
@@ -105,6 +106,23 @@ class FileStudy:
 
     def header(self) -> dict:
         return {"kind": "files", "seed": self.seed, **dataclasses.asdict(self.estimator)}
+
+
+LEARNED_PREFIX = "learned:"
+
+
+def resolve_model(name: str) -> str | ClassifierModel:
+    """A study's model name as :func:`~hybridslam.sweep.batch_inputs` takes it.
+
+    ``"mirror"``, ``"independent"``, ``"none"`` stay names (alpha and K come from each scenario);
+    ``"learned:PATH"`` loads the learned classifier in the model file ``PATH`` (its fitted h_c and
+    Σ_c replace the true model's, for every alpha).
+    """
+    if name.startswith(LEARNED_PREFIX):
+        from .learned import load_classifier
+
+        return load_classifier(name[len(LEARNED_PREFIX):])
+    return name
 
 
 def scenario_paths(pattern: str) -> list[str]:
@@ -284,6 +302,7 @@ def run_alpha_study(study: AlphaStudy, folder: str, *, mesh=None, on_cell: Progr
     mesh = device_mesh() if mesh is None else mesh
     table = os.path.join(folder, TABLE)
     seeds = [study.seed + t for t in range(study.tracks)]
+    resolved = {m: resolve_model(m) for m in study.models}  # a bad model file fails before any run
     for alpha in study.alphas:
         todo = [m for m in study.models if {"alpha": float(alpha), "model": m} not in records]
         if not todo:
@@ -294,8 +313,8 @@ def run_alpha_study(study: AlphaStudy, folder: str, *, mesh=None, on_cell: Progr
             cell = {"alpha": float(alpha), "model": model}
             if on_cell:
                 on_cell(f"alpha {alpha:g}, {model}", None)
-            inputs = batch_inputs(scenarios, config, classifier=model, prune_ratio=study.estimator.prune_ratio,
-                                  seeds=seeds)
+            inputs = batch_inputs(scenarios, config, classifier=resolved[model],
+                                  prune_ratio=study.estimator.prune_ratio, seeds=seeds)
             record = _record(cell, run_batch(inputs, mesh))
             records.append(record)
             _write_table(table, ALPHA_COLUMNS, alpha_rows(study, records))
@@ -357,8 +376,8 @@ def run_file_study(study: FileStudy, folder: str, *, mesh=None, on_cell: Progres
         if on_cell:
             on_cell(label, None)
         config = study.estimator.config(group[0], max_detections=_max_detections(group))
-        inputs = batch_inputs(group, config, classifier=cell["run_as"], prune_ratio=study.estimator.prune_ratio,
-                              seeds=[study.seed] * len(group))
+        inputs = batch_inputs(group, config, classifier=resolve_model(cell["run_as"]),
+                              prune_ratio=study.estimator.prune_ratio, seeds=[study.seed] * len(group))
         run = run_batch(inputs, mesh)
         _write_results(study, cell, group, run, config, folder)
         record = _record(cell, run)

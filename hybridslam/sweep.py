@@ -150,8 +150,11 @@ def run_batch(inputs: Inputs, mesh: Mesh | None = None) -> BatchRun:
     return BatchRun(trace, compile_s, run_s, mesh.size)
 
 
+_init_batch = jax.jit(jax.vmap(init_belief, in_axes=(0, 0, None)), static_argnums=2)
+
+
 def _stack(trees):
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *trees)
+    return jax.tree.map(lambda *xs: jnp.asarray(np.stack(xs)), *trees)
 
 
 def batch_inputs(
@@ -176,17 +179,19 @@ def batch_inputs(
     if len(shapes) > 1:
         raise ValueError(f"batch_inputs: scenarios differ in (objects, classes, steps): {sorted(shapes)}")
     config = dataclasses.replace(config, batch_axis=BATCH_AXIS)
-    beliefs, odometry, detections, truth = [], [], [], []
-    for s in scenarios:
-        beliefs.append(init_belief(priors_from_scenario(s), model_from_scenario(s, classifier, prune_ratio), config))
-        st = stack_steps(s, config.max_detections)
-        odometry.append(st.odometry)
-        detections.append(Detections(jnp.asarray(st.geo), jnp.asarray(st.scores), jnp.asarray(st.mask)))
-        truth.append(np.full((s.num_steps, 3), np.nan) if s.true_robot_poses is None else s.true_robot_poses[1:])
+    models = _stack([model_from_scenario(s, classifier, prune_ratio) for s in scenarios])
+    priors = _stack([priors_from_scenario(s) for s in scenarios])
+    steps = [stack_steps(s, config.max_detections) for s in scenarios]
+    truth = [np.full((s.num_steps, 3), np.nan) if s.true_robot_poses is None else s.true_robot_poses[1:]
+             for s in scenarios]
     return Inputs(
-        belief=_stack(beliefs),
-        odometry=jnp.asarray(np.stack(odometry), dtype=float),
-        detections=_stack(detections),
+        belief=_init_batch(priors, models, config),
+        odometry=jnp.asarray(np.stack([st.odometry for st in steps]), dtype=float),
+        detections=Detections(
+            jnp.asarray(np.stack([st.geo for st in steps]), dtype=float),
+            jnp.asarray(np.stack([st.scores for st in steps]), dtype=float),
+            jnp.asarray(np.stack([st.mask for st in steps])),
+        ),
         key=jnp.stack([jax.random.PRNGKey(seed) for seed in seeds]),
         truth=jnp.asarray(np.stack(truth), dtype=float),
     )

@@ -262,7 +262,7 @@ def laplace_is_log_likelihood(
     one = partial(_child_evidence, sensor, detections, eps, max_steps)
     assign = jnp.asarray(table.assign)[a]
     live = top > -jnp.inf
-    *packed, converged = map_live(one, live, mean[parent], cov[parent], assign, kids.slot_class[parent, a, m], chunk=16,
+    *packed, converged = map_live(one, live, mean[parent], cov[parent], assign, kids.slot_class[parent, a, m], chunk=4,
                                     axis_name=axis_name)
     fill = (-jnp.inf, -jnp.inf, 0.0, True)
     return tuple(

@@ -1,8 +1,8 @@
 """The sweep engine: batched runs equal single runs, kill-and-resume, sharding over 4 devices.
 
-One tiny study (2 alphas x 2 models x 3 tracks x 3 steps, capacity 4, deterministic
-``linearized`` weights so that compiles stay short) is run once in this process; the other tests
-compare against its table. The subprocess tests share a persistent compilation cache.
+One tiny study (3 alphas x 1 model x 3 tracks x 3 steps, capacity 4, deterministic
+``linearized`` weights so that there is one short compile) is run once in this process; the
+other tests compare against its table. The subprocess tests share a persistent compilation cache.
 """
 
 from __future__ import annotations
@@ -21,10 +21,25 @@ import hybridslam as hs
 from hybridslam import study, sweep
 from hybridslam.run import config_for
 
-TINY = dict(alphas=(0.1, 0.4), models=("mirror", "none"), tracks=3, steps=3)
+TINY = dict(alphas=(0.1, 0.4, 0.7), models=("mirror",), tracks=3, steps=3)
 ESTIMATOR = study.Estimator(weights="linearized", capacity=4)
-CLI_ARGS = ["--alphas", "0.1,0.4", "--models", "mirror,none", "--tracks", "3", "--steps", "3",
+CLI_ARGS = ["--alphas", "0.1,0.4,0.7", "--models", "mirror", "--tracks", "3", "--steps", "3",
             "--capacity", "4", "--weights", "linearized"]
+# The CLI in a child process that SIGKILLs itself right after its first cell record reaches the
+# disk, half way through writing the second one (a real kill, at a deterministic point).
+KILLED_AFTER_ONE_CELL = """
+import os, signal, sys
+from hybridslam import cli, study
+append = study.Records.append
+def append_then_die(self, record):
+    if self.done:
+        with open(self.path, "a", encoding="utf-8") as f:
+            f.write('{"cell": {"alpha": 0.4, "mo')
+        os.kill(os.getpid(), signal.SIGKILL)
+    append(self, record)
+study.Records.append = append_then_die
+sys.exit(cli.main(sys.argv[1:]))
+"""
 
 
 @pytest.fixture(scope="module")
@@ -45,22 +60,21 @@ def cache_env(tmp_path_factory):
     return env
 
 
-def _sweep_cmd(folder: str, *extra: str) -> list[str]:
-    return [sys.executable, "-m", "hybridslam", "sweep", *CLI_ARGS, *extra, "-o", folder]
+def _sweep_cmd(folder: str, *extra: str, python: tuple[str, ...] = ("-m", "hybridslam")) -> list[str]:
+    return [sys.executable, *python, "sweep", *CLI_ARGS, *extra, "-o", folder]
 
 
 def test_table_layout(tiny):
     folder, text, rows = tiny
     lines = text.splitlines()
     assert lines[0] == ",".join(study.ALPHA_COLUMNS)
-    assert len(lines) == 1 + 2 * 2 * 3 * 3 == 1 + len(rows)
-    keys = [(r["alpha"], r["model"], r["track"], r["step"]) for r in rows]
-    assert keys == sorted(keys, key=lambda k: (TINY["alphas"].index(k[0]), TINY["models"].index(k[1]), k[2], k[3]))
-    # Without semantics the alpha of the scores cannot matter: the `none` rows agree across alphas.
-    none = {a: [r["entropy"] for r in rows if r["model"] == "none" and r["alpha"] == a] for a in TINY["alphas"]}
-    assert none[0.1] == none[0.4]
+    assert len(lines) == 1 + 3 * 3 * 3 == 1 + len(rows)
+    keys = [(r["alpha"], r["track"], r["step"]) for r in rows]
+    assert keys == [(a, t, k) for a in TINY["alphas"] for t in range(3) for k in (1, 2, 3)]
+    assert {r["seed"] for r in rows} == {0, 1, 2}
     records = [json.loads(line) for line in open(os.path.join(folder, study.RECORDS), encoding="utf-8")]
-    assert records[0]["format"] == study.RECORD_FORMAT and len(records) == 1 + 4
+    assert records[0]["format"] == study.RECORD_FORMAT and len(records) == 1 + 3
+    assert [r["cell"] for r in records[1:]] == [{"alpha": a, "model": "mirror"} for a in TINY["alphas"]]
 
 
 def test_batched_run_equals_single_runs(tiny):
@@ -84,43 +98,36 @@ def test_batched_run_equals_single_runs(tiny):
 def test_resume_after_kill_gives_the_same_table(tiny, tmp_path, cache_env):
     _, expected, _ = tiny
     folder = str(tmp_path / "killed")
-    proc = subprocess.Popen(_sweep_cmd(folder), env=cache_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    killed = subprocess.run(_sweep_cmd(folder, python=("-c", KILLED_AFTER_ONE_CELL)), env=cache_env,
+                            capture_output=True, text=True, timeout=300)
+    assert killed.returncode == -signal.SIGKILL, killed.stderr
     records = os.path.join(folder, study.RECORDS)
-    deadline = time.monotonic() + 240
-    try:
-        while time.monotonic() < deadline and proc.poll() is None:
-            if os.path.exists(records) and sum(1 for _ in open(records, encoding="utf-8")) >= 2:
-                break
-            time.sleep(0.05)
-        assert proc.poll() is None, "the sweep finished before it could be killed"
-        proc.send_signal(signal.SIGKILL)
-    finally:
-        proc.wait()
-    done = sum(1 for _ in open(records, encoding="utf-8")) - 1
-    assert 1 <= done < 4
-    with open(records, "a", encoding="utf-8") as f:  # as if killed in the middle of a write
-        f.write('{"cell": {"alpha": 0.4, "model": "mir')
-    out = subprocess.run(_sweep_cmd(folder), env=cache_env, capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stderr
+    text = open(records, encoding="utf-8").read()
+    assert text.count("\n") == 2 and not text.endswith("\n")  # header, one cell, half a line
+    with open(os.path.join(folder, study.TABLE), encoding="utf-8") as f:
+        assert f.read() == "\n".join(expected.splitlines()[:1 + 9]) + "\n"  # the finished cell's rows
+
+    resumed = subprocess.run(_sweep_cmd(folder), env=cache_env, capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr
     with open(os.path.join(folder, study.TABLE), encoding="utf-8") as f:
         assert f.read() == expected
     lines = open(records, encoding="utf-8").read().splitlines()
-    assert len(lines) == 1 + 4 and all(json.loads(line) for line in lines)
+    assert len(lines) == 1 + 3 and all(json.loads(line) for line in lines)
 
 
 def test_sharded_over_four_devices_equals_one(tiny, tmp_path, cache_env):
     _, expected, _ = tiny
     env = dict(cache_env, XLA_FLAGS="--xla_force_host_platform_device_count=4")
     folder = str(tmp_path / "sharded")
-    # One model (one compile) suffices; 3 tracks on 4 devices also exercises the padding.
-    out = subprocess.run(_sweep_cmd(folder, "--models", "mirror"), env=env, capture_output=True, text=True, timeout=300)
+    # 3 tracks on 4 devices also exercises the padding.
+    out = subprocess.run(_sweep_cmd(folder), env=env, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert "4 device(s)" in out.stdout
     records = [json.loads(line) for line in open(os.path.join(folder, study.RECORDS), encoding="utf-8")][1:]
     assert all(r["devices"] == 4 for r in records)
     with open(os.path.join(folder, study.TABLE), encoding="utf-8") as f:
         got = f.read()
-    exp_rows = [line.split(",") for line in expected.splitlines() if ",none," not in line]
+    exp_rows = [line.split(",") for line in expected.splitlines()]
     got_rows = [line.split(",") for line in got.splitlines()]
     assert [r[:5] for r in got_rows] == [r[:5] for r in exp_rows]
     for e, g in zip(exp_rows[1:], got_rows[1:]):
@@ -134,10 +141,10 @@ def test_other_settings_are_refused(tiny):
         study.Records(folder, study.AlphaStudy(**TINY, estimator=study.Estimator(weights="linearized", capacity=8)).header())
 
 
-def test_extending_the_grid_reuses_finished_cells(tiny, tmp_path):
-    """More alphas on the same folder run only the new cells (here none: a subset of the grid)."""
-    folder, expected, _ = tiny
+def test_a_subset_of_the_grid_reuses_finished_cells(tiny):
+    """Another grid on the same folder runs only its new cells (here none: a subset)."""
+    folder, _, rows = tiny
     calls = []
-    rows = study.run_alpha_study(study.AlphaStudy(alphas=(0.4,), models=("none",), tracks=3, steps=3,
-                                                  estimator=ESTIMATOR), folder, on_cell=lambda *a: calls.append(a))
-    assert calls == [] and len(rows) == 3 * 3
+    subset = study.AlphaStudy(alphas=(0.4,), models=("mirror",), tracks=3, steps=3, estimator=ESTIMATOR)
+    again = study.run_alpha_study(subset, folder, on_cell=lambda *a: calls.append(a))
+    assert calls == [] and again == [r for r in rows if r["alpha"] == 0.4]
