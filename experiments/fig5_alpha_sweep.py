@@ -15,6 +15,8 @@ from __future__ import annotations
 import argparse
 import os
 
+import numpy as np
+
 from hybridslam import plot, study
 from hybridslam.cli import alpha_summary
 
@@ -37,6 +39,16 @@ def main(output: str = os.path.join("runs", "figures"), tracks: int = 50, steps:
     plot.plot_alpha_sweep(rows, path, title=f"Fig. 5: {tracks} tracks x {steps} steps, weights {weights}")
     print(f"\nmean over {tracks} tracks of each track's mean over steps 1-{steps} (± 95% half-width)")
     print(alpha_summary(rows))
+    print("\npaired over tracks (same trajectories and scores), mirror minus none: mean ± 95% half-width "
+          "(share of tracks where mirror is lower)")
+    for metric in ("entropy", "det_cov", "err_wmax", "err_wavg"):
+        curves = plot.alpha_curves(rows, metric)
+        alphas, mirror = curves["mirror"]
+        diff = mirror - curves["none"][1]
+        half = 1.96 * np.std(diff, axis=0, ddof=1) / np.sqrt(diff.shape[0])
+        cells = [f"{a:g}: {d:+.3g} ±{h:.2g} ({100 * np.mean(diff[:, j] < 0):.0f}%)"
+                 for j, (a, d, h) in enumerate(zip(alphas, diff.mean(axis=0), half))]
+        print(f"  {metric:<9} " + "; ".join(cells))
     print(f"wrote {path} (table: {os.path.join(folder, study.TABLE)})")
     return path
 

@@ -28,6 +28,7 @@ import os
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
+import jax
 import numpy as np
 
 from .belief import Config
@@ -156,6 +157,8 @@ class Records:
         self.path = os.path.join(folder, RECORDS)
         self.done: dict[str, dict] = {}
         head = {"format": RECORD_FORMAT, **header}
+        if not os.path.exists(self.path) and not _writer():
+            return
         if not os.path.exists(self.path):
             with open(self.path, "w", encoding="utf-8") as f:
                 f.write(json.dumps(head) + "\n")
@@ -191,11 +194,13 @@ class Records:
         return _cell_key(cell) in self.done
 
     def append(self, record: dict) -> None:
+        self.done[_cell_key(record["cell"])] = record
+        if not _writer():
+            return
         with open(self.path, "a", encoding="utf-8") as f:
             f.write(json.dumps(record, allow_nan=True) + "\n")
             f.flush()
             os.fsync(f.fileno())
-        self.done[_cell_key(record["cell"])] = record
 
 
 def _record(cell: dict, run: BatchRun, extra: dict | None = None) -> dict:
@@ -242,7 +247,14 @@ def _csv_value(value: Any) -> str:
     return str(value)
 
 
+def _writer() -> bool:
+    """Only process 0 writes files when a study runs on several hosts (``jax.distributed``)."""
+    return jax.process_index() == 0
+
+
 def _write_table(path: str, columns: Sequence[str], rows: Iterable[dict]) -> None:
+    if not _writer():
+        return
     tmp = path + ".tmp"
     with open(tmp, "w", newline="", encoding="utf-8") as f:
         writer = csv.writer(f)
@@ -392,6 +404,8 @@ def run_file_study(study: FileStudy, folder: str, *, mesh=None, on_cell: Progres
 
 def _write_results(study: FileStudy, cell: dict, group: Sequence[Scenario], run: BatchRun, config: Config,
                    folder: str) -> None:
+    if not _writer():
+        return
     steps = group[0].num_steps
     per_step = run.run_s / max(len(group) * steps, 1)  # wall time amortized over the batch
     for t, (path, scenario) in enumerate(zip(cell["scenarios"], group)):

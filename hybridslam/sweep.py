@@ -5,7 +5,9 @@ model, so tracks may differ in alpha, K or covariances) and their ``B`` scenario
 runs every step of every track in one call: ``jax.vmap`` over tracks of a ``lax.scan`` over steps
 of :func:`hybridslam.step._step` (Algorithm 1). The batch axis is sharded over a
 ``jax.sharding.Mesh`` of all devices (one CPU, several GPUs, several hosts after
-``jax.distributed.initialize()``), padded to a multiple of the device count.
+``jax.distributed.initialize()``), padded to a multiple of the device count. With several
+processes, every process runs the same study and gets the whole trace back
+(``process_allgather``); only process 0 writes files (:mod:`hybridslam.study`).
 
 The vmap axis is named (:data:`BATCH_AXIS`) and the beliefs carry ``Config.batch_axis``, so the
 step still skips chunks of component slots that are empty in every track
@@ -28,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
@@ -86,7 +89,8 @@ def _run_track(inputs: Inputs) -> Trace:
             dropped_capacity=info.prune.dropped_capacity,
             visibility_ignored=info.visibility_ignored,
             gn_failures=jnp.sum(alive & (info.solver_result != optx.RESULTS.successful)),
-            min_ess=jnp.min(jnp.where(alive, info.ess, jnp.inf)),
+            # The ESS is that of the with-visibility estimate, which a visibility-ignored step does not use.
+            min_ess=jnp.where(info.visibility_ignored, jnp.nan, jnp.min(jnp.where(alive, info.ess, jnp.inf))),
             is_failures=info.is_solver_failures,
         )
         return belief, out
@@ -146,6 +150,8 @@ def run_batch(inputs: Inputs, mesh: Mesh | None = None) -> BatchRun:
     t0 = time.perf_counter()
     trace = jax.block_until_ready(compiled(sharded))
     run_s = time.perf_counter() - t0
+    if jax.process_count() > 1:  # several hosts: every process gets the whole batch
+        trace = multihost_utils.process_allgather(trace, tiled=True)
     trace = jax.tree.map(lambda x: np.asarray(x)[:size], jax.device_get(trace))
     return BatchRun(trace, compile_s, run_s, mesh.size)
 

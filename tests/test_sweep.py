@@ -148,3 +148,58 @@ def test_a_subset_of_the_grid_reuses_finished_cells(tiny):
     subset = study.AlphaStudy(alphas=(0.4,), models=("mirror",), tracks=3, steps=3, estimator=ESTIMATOR)
     again = study.run_alpha_study(subset, folder, on_cell=lambda *a: calls.append(a))
     assert calls == [] and again == [r for r in rows if r["alpha"] == 0.4]
+
+
+def test_scenario_files_give_result_files_equal_to_single_runs(tiny, tmp_path):
+    """`--scenarios`: files of equal shape run as one batch; each gets the result `run` would write."""
+    files = tmp_path / "logs"
+    files.mkdir()
+    scenarios = {f"log{t}": hs.simulate(10 + t, steps=3, alpha=0.4) for t in range(3)}
+    for name, s in scenarios.items():
+        hs.save_scenario(s, str(files / f"{name}.json"))
+    out = str(tmp_path / "out")
+    spec = study.FileStudy(tuple(study.scenario_paths(str(files))), None, 7, ESTIMATOR)
+    rows = study.run_file_study(spec, out)
+    assert len(rows) == 3 * 3 and {r["scenario"] for r in rows} == {f"{n}.json" for n in scenarios}
+    for name, s in scenarios.items():
+        got = hs.load_result(os.path.join(out, "results", f"{name}.json"))
+        want = hs.run_scenario(s, capacity=4, weights="linearized", seed=7, max_detections=2).result
+        assert got.timing is not None and len(got.timing["step_s"]) == 3
+        for a, b in zip(want.steps, got.steps):
+            assert [c.associations for c in a.components] == [c.associations for c in b.components]
+            np.testing.assert_allclose([c.weight for c in a.components], [c.weight for c in b.components], rtol=1e-9)
+            np.testing.assert_allclose(a.metrics["entropy"], b.metrics["entropy"], rtol=1e-9, atol=1e-12)
+    calls = []
+    study.run_file_study(spec, out, on_cell=lambda *a: calls.append(a))
+    assert calls == []  # finished groups are not run again
+
+
+def test_files_are_grouped_by_shape_and_model():
+    a, b = hs.simulate(0, steps=3), hs.simulate(1, steps=4)
+    spec = study.FileStudy(("a.json", "b.json", "c.json"), None)
+    cells = study.file_groups(spec, {"a.json": a, "b.json": b, "c.json": a})
+    assert [(c["run_as"], c["scenarios"]) for c in cells] == [("mirror", ["a.json", "c.json"]), ("mirror", ["b.json"])]
+    two = study.file_groups(study.FileStudy(("a.json",), ("mirror", "none")), {"a.json": a})
+    assert [c["run_as"] for c in two] == ["mirror", "none"]
+
+
+def test_cli_plot_and_sweep_errors(tiny, tmp_path, capsys):
+    from hybridslam import cli
+
+    folder, _, _ = tiny
+    assert cli.main(["plot", folder]) == 0
+    assert os.path.getsize(os.path.join(folder, "alpha_sweep.png")) > 10_000
+    cases = [
+        (["plot", str(tmp_path)], "no table.csv"),
+        (["sweep", "--scenarios", str(tmp_path / "nothing*.json"), "-o", str(tmp_path / "o")], "no scenario files"),
+        (["sweep", "--scenarios", str(tmp_path), "--alphas", "0.1", "-o", str(tmp_path / "o")], "--alphas: only for simulated"),
+        (["sweep", "--models", "mirror,learned:" + str(tmp_path / "missing.eqx"), "-o", str(tmp_path / "o")], "missing.eqx"),
+        (["sweep", "--models", "mirrror", "-o", str(tmp_path / "o")], "unknown model(s) mirrror"),
+        (["sweep", "--alphas", "0.1,x", "-o", str(tmp_path / "o")], "--alphas: expected"),
+        (["sweep", "--alphas", "0.1", "--tracks", "3", "--steps", "3", "--capacity", "8", "--weights",
+          "linearized", "--models", "mirror", "-o", folder], "capacity: 4 there, 8 now"),
+    ]
+    for argv, message in cases:
+        assert cli.main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert err.startswith("hybridslam: error: ") and message in err, (argv, err)
