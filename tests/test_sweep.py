@@ -203,3 +203,18 @@ def test_cli_plot_and_sweep_errors(tiny, tmp_path, capsys):
         assert cli.main(argv) == 2, argv
         err = capsys.readouterr().err
         assert err.startswith("hybridslam: error: ") and message in err, (argv, err)
+
+
+def test_learned_model_names_resolve_to_the_model_file(tmp_path):
+    import jax
+
+    model = hs.Learned(2, (4,), key=jax.random.PRNGKey(0))
+    path = str(tmp_path / "m.eqx")
+    hs.save_classifier(model, path)
+    loaded = study.resolve_model("learned:" + path)
+    assert isinstance(loaded, hs.Learned)
+    vp = np.array([0.6, 0.8])
+    np.testing.assert_array_equal(loaded.class_means(vp), model.class_means(vp))
+    assert study.resolve_model("mirror") == "mirror"
+    with pytest.raises(ValueError, match="nope.eqx"):
+        study.resolve_model("learned:" + str(tmp_path / "nope.eqx"))
