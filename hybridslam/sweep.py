@@ -44,6 +44,7 @@ from .scenario import Scenario, stack_steps
 from .step import _step
 
 BATCH_AXIS = "tracks"
+MAX_TRACKS_PER_DEVICE = 64
 
 
 class Inputs(eqx.Module):
@@ -133,8 +134,9 @@ class BatchRun:
 def run_batch(inputs: Inputs, mesh: Mesh | None = None) -> BatchRun:
     """Run every track of ``inputs`` to its last step, sharded over ``mesh`` (default: all devices).
 
-    The batch is padded to a multiple of the device count with copies of track 0; the copies
-    are dropped from the result. Each track's numbers depend only on its own inputs (its PRNG key
+    The batch is padded to a multiple of the device count with copies of track 0 (the copies
+    are dropped from the result); more than :data:`MAX_TRACKS_PER_DEVICE` tracks per device run
+    as equal slices one after the other. Each track's numbers depend only on its own inputs (its PRNG key
     included), not on the batch it runs in or on the number of devices.
     """
     if inputs.belief.config.batch_axis != BATCH_AXIS:
@@ -143,16 +145,26 @@ def run_batch(inputs: Inputs, mesh: Mesh | None = None) -> BatchRun:
         )
     mesh = device_mesh() if mesh is None else mesh
     size = inputs.odometry.shape[0]
-    pad = -size % mesh.size
+    # Batches wider than MAX_TRACKS_PER_DEVICE run as equal slices in sequence (one executable):
+    # XLA:CPU was seen to hang on a single 256-wide batch of the step.
+    slices = -(-size // (MAX_TRACKS_PER_DEVICE * mesh.size))
+    width = -(-size // (slices * mesh.size)) * mesh.size
+    pad = slices * width - size
     padded = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[:1], pad, axis=0)]), inputs)
-    sharded = jax.device_put(padded, NamedSharding(mesh, PartitionSpec(BATCH_AXIS)))
-    compiled, compile_s = _compiled(sharded)
-    t0 = time.perf_counter()
-    trace = jax.block_until_ready(compiled(sharded))
-    run_s = time.perf_counter() - t0
-    if jax.process_count() > 1:  # several hosts: every process gets the whole batch
-        trace = multihost_utils.process_allgather(trace, tiled=True)
-    trace = jax.tree.map(lambda x: np.asarray(x)[:size], jax.device_get(trace))
+    compile_s = run_s = 0.0
+    traces = []
+    for i in range(slices):
+        part = jax.tree.map(lambda x: x[i * width : (i + 1) * width], padded)
+        sharded = jax.device_put(part, NamedSharding(mesh, PartitionSpec(BATCH_AXIS)))
+        compiled, seconds = _compiled(sharded)
+        compile_s += seconds
+        t0 = time.perf_counter()
+        trace = jax.block_until_ready(compiled(sharded))
+        run_s += time.perf_counter() - t0
+        if jax.process_count() > 1:  # several hosts: every process gets the whole batch
+            trace = multihost_utils.process_allgather(trace, tiled=True)
+        traces.append(jax.device_get(trace))
+    trace = jax.tree.map(lambda *xs: np.concatenate(xs)[:size], *traces)
     return BatchRun(trace, compile_s, run_s, mesh.size)
 
 
