@@ -90,6 +90,19 @@ def _observe(rng, setup: PaperSetup, classifier, x: np.ndarray, objects: np.ndar
     return tuple(dets)
 
 
+def move(pose: np.ndarray, action: np.ndarray, rng: np.random.Generator, setup: PaperSetup = PaperSetup()) -> np.ndarray:
+    """The true next pose ``x ∘ a ∘ Exp(w)``, ``w ~ N(0, Σ_w)`` (the motion model of Eq. 11)."""
+    w = rng.multivariate_normal(np.zeros(3), np.diag(setup.motion_cov))
+    return _compose(_compose(np.asarray(pose, float), np.asarray(action, float)), _exp(w))
+
+
+def observe(rng: np.random.Generator, pose: np.ndarray, objects: np.ndarray, classifier,
+            setup: PaperSetup = PaperSetup()) -> tuple[Detection, ...]:
+    """Detections from ``pose`` of the true ``objects`` (N, 3): the nearest visible ones, with
+    range-bearing noise and scores drawn from ``classifier`` for class ``setup.true_class``."""
+    return _observe(rng, setup, classifier, np.asarray(pose, float), np.asarray(objects, float))
+
+
 def simulate(
     seed: int, steps: int = 10, alpha: float = 0.25, K: float = 15.0, setup: PaperSetup = PaperSetup()
 ) -> Scenario:

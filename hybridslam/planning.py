@@ -1,0 +1,213 @@
+"""Data-association-aware planning on the hybrid belief (DA-BSP, the paper's reference [3]).
+
+A planner does not know the ground truth. To score a candidate action sequence ``a_1..a_H`` it
+*predicts* what the robot would observe: it draws a component of the belief by weight, a joint
+state (robot pose and objects) from that component's Gaussian, and classes (the component's
+realizations, or the class prior where it leaves them open); it moves the drawn robot with the
+motion model and the actions, and draws detections from the sensor model (nearest visible
+objects, Eq. 10 geometric noise, Eq. 2 classifier scores). Then it runs the belief update
+(Algorithm 1) on those predicted observations, with the actions as odometry, and scores the
+resulting belief: expected association entropy H(w) (Eq. 8; lower means the association is
+resolved) plus, optionally, ``λ · log det Σ`` of the best component's position.
+
+:func:`score_candidates` does all of it for a batch of candidates and several observation
+draws each in one ``jax.jit``-compiled ``vmap``: one executable per (candidates, horizon,
+draws, belief shape). The batch axis is named, so the step skips component slots that are empty
+in every rollout (``Config.batch_axis``). :func:`prepare` shrinks a belief for planning (keep
+the best components, room in the history for the horizon).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax.scipy.special import logsumexp
+from jaxtyping import Array, Float, Int, PRNGKeyArray
+
+from . import geometry, se2
+from .belief import Belief, Detections
+from .metrics import association_entropy
+from .step import _step
+
+PLAN_AXIS = "candidates"
+
+
+def prepare(belief: Belief, horizon: int, capacity: int | None = None, **settings) -> Belief:
+    """A copy of ``belief`` ready for :func:`score_candidates`.
+
+    Keeps the ``capacity`` best components (slots are sorted by weight; the kept weights are
+    renormalized), adds ``horizon`` steps to the history, and names the batch axis.
+    ``settings`` replace other :class:`~hybridslam.belief.Config` fields for the predicted
+    updates, e.g. ``weights="linearized"`` or ``gn_max_steps=2`` (an iterated-EKF update: cheaper,
+    and plenty for predictions). Host-side (shapes change): call it once per planning round,
+    outside ``jit``.
+    """
+    cfg = belief.config
+    keep = cfg.capacity if capacity is None else min(capacity, cfg.capacity)
+    log_w = belief.log_weights[:keep]
+    log_w = jnp.where(log_w > -jnp.inf, log_w - logsumexp(log_w), -jnp.inf)
+    # The whole history plus the horizon: the shape stays the same from step to step of a run, so
+    # score_candidates compiles once per run.
+    history = belief.history[:keep]
+    history = jnp.concatenate([history, jnp.full((keep, horizon) + history.shape[2:], -1, history.dtype)], axis=1)
+    config = dataclasses.replace(cfg, capacity=keep, max_steps=history.shape[1], batch_axis=PLAN_AXIS, **settings)
+    return Belief(log_w, belief.mean[:keep], belief.cov[:keep], belief.classes[:keep], history, belief.k,
+                  belief.model, config)
+
+
+class World(eqx.Module):
+    """One draw of the unknown world from the belief: robot pose, object poses and classes."""
+
+    robot: Float[Array, "3"]
+    objects: Float[Array, "N 3"]
+    classes: Int[Array, " N"]
+
+
+def sample_world(belief: Belief, key: PRNGKeyArray) -> World:
+    """Draw a component by weight, a joint state from its Gaussian, classes from it or the prior."""
+    k_comp, k_state, k_class = jax.random.split(key, 3)
+    i = jax.random.categorical(k_comp, belief.log_weights)
+    cov = belief.cov[i]
+    # An eigen-square-root: the joint covariance can be numerically singular (perfectly known dims).
+    vals, vecs = jnp.linalg.eigh(0.5 * (cov + cov.T))
+    eps = jax.random.normal(k_state, (cov.shape[0],), cov.dtype)
+    state = belief.mean[i] + vecs @ (jnp.sqrt(jnp.maximum(vals, 0.0)) * eps)
+    drawn = jax.random.categorical(k_class, jnp.log(belief.model.class_prior))
+    classes = jnp.where(belief.classes[i] >= 0, belief.classes[i], drawn)
+    return World(state[:3], state[3:].reshape(-1, 3), classes)
+
+
+def observe(belief: Belief, world: World, pose: Float[Array, "3"], key: PRNGKeyArray) -> Detections:
+    """Detections of the nearest visible objects from ``pose`` (at most ``max_detections``).
+
+    Range and bearing get Σ_v noise (Eq. 10), scores are drawn from the classifier model at the
+    object's viewpoint and class (Eq. 2). Slots without a visible object are masked.
+    """
+    sensor = belief.model.sensor
+    slots = belief.config.max_detections
+    rb = jax.vmap(geometry.range_bearing, (None, 0))(pose, world.objects)
+    seen = jax.vmap(geometry.visible, (0, None, None))(rb, sensor.max_range, sensor.fov)
+    order = jnp.argsort(jnp.where(seen, rb[:, 0], jnp.inf))[:slots]
+    k_geo, k_sem = jax.random.split(key)
+    noise = jax.random.normal(k_geo, (slots, 2), rb.dtype) @ jnp.linalg.cholesky(sensor.geometric_cov).T
+    geo = rb[order] + noise
+    geo = jnp.stack([jnp.maximum(geo[:, 0], 0.0), se2.wrap(geo[:, 1])], axis=-1)
+    views = jax.vmap(geometry.viewpoint, (None, 0))(pose, world.objects[order])
+    keys = jax.random.split(k_sem, slots)
+    scores = jax.vmap(sensor.classifier.sample)(keys, world.classes[order], views)
+    return Detections(geo, scores, seen[order])
+
+
+def predict_observations(
+    belief: Belief, actions: Float[Array, "H 3"], key: PRNGKeyArray
+) -> tuple[Float[Array, "H 3"], Detections]:
+    """The odometry and detections the robot would get executing ``actions`` in a world drawn from ``belief``.
+
+    The robot moves ``x_k = x_{k-1} ∘ a_k ∘ Exp(w_k)``, ``w_k ~ N(0, Σ_w)`` (the motion model
+    of Eq. 11), so the odometry reading is the action itself.
+    """
+    k_world, k_motion, k_obs = jax.random.split(key, 3)
+    world = sample_world(belief, k_world)
+    chol_w = jnp.linalg.cholesky(belief.model.motion_cov)
+    noise = jax.random.normal(k_motion, actions.shape, actions.dtype) @ chol_w.T
+
+    def move(pose, xs):
+        action, w, k = xs
+        pose = se2.compose(se2.compose(pose, action), se2.exp(w))
+        return pose, observe(belief, world, pose, k)
+
+    keys = jax.random.split(k_obs, actions.shape[0])
+    _, detections = jax.lax.scan(move, world.robot, (actions, noise, keys))
+    return actions, detections
+
+
+def rollout(belief: Belief, odometry: Float[Array, "H 3"], detections: Detections, key: PRNGKeyArray) -> Belief:
+    """The belief after ``H`` steps of Algorithm 1 on the given inputs (``lax.scan``; pure)."""
+
+    def body(b, xs):
+        u, det, k = xs
+        return _step(b, u, det, jax.random.fold_in(key, k))[0], None
+
+    steps = jnp.arange(odometry.shape[0])
+    final, _ = jax.lax.scan(body, belief, (odometry, detections, steps))
+    return final
+
+
+def objective(belief: Belief, logdet_weight: Float[Array, ""] | float = 0.0) -> Float[Array, ""]:
+    """``H(w) + λ · log det Σ_best``: association entropy (Eq. 8) and the best component's
+    2x2 position covariance; lower is better."""
+    best = jnp.argmax(belief.log_weights)
+    logdet = jnp.linalg.slogdet(belief.cov[best, :2, :2])[1]
+    return association_entropy(belief) + logdet_weight * logdet
+
+
+def _score_one(belief, actions, keys, logdet_weight):
+    """Mean objective over the observation draws ``keys`` of one candidate."""
+
+    def one_draw(key):
+        k_pred, k_step = jax.random.split(key)
+        odometry, detections = predict_observations(belief, actions, k_pred)
+        return objective(rollout(belief, odometry, detections, k_step), logdet_weight)
+
+    return jnp.mean(jax.lax.map(one_draw, keys))
+
+
+CHUNK = 64  # candidates per vmapped batch (XLA:CPU hung on one 256-wide batch of this program)
+
+
+@eqx.filter_jit
+def _score(belief, candidates, keys, logdet_weight):
+    score = jax.vmap(_score_one, (None, 0, None, None), axis_name=PLAN_AXIS)
+    num = candidates.shape[0]
+    size = min(CHUNK, num)
+    pad = -num % size
+    padded = jnp.concatenate([candidates, jnp.repeat(candidates[:1], pad, axis=0)])
+    chunks = padded.reshape((-1, size) + candidates.shape[1:])
+    out = jax.lax.map(lambda c: score(belief, c, keys, logdet_weight), chunks)
+    return out.reshape(-1)[:num]
+
+
+def score_candidates(
+    belief: Belief,
+    candidates: Float[Array, "C H 3"],
+    key: PRNGKeyArray,
+    num_draws: int = 1,
+    logdet_weight: float = 0.0,
+) -> Float[Array, " C"]:
+    """Expected objective of each candidate action sequence (lower is better), one jitted call.
+
+    ``belief`` must come from :func:`prepare` (room for ``H`` more steps, batch axis named).
+    Every candidate is scored on the same ``num_draws`` predicted worlds and noise draws (common
+    random numbers): differences between candidates are not sampling noise between draws.
+    """
+    if belief.config.batch_axis != PLAN_AXIS:
+        raise ValueError("score_candidates: pass a belief from hybridslam.planning.prepare(belief, horizon)")
+    horizon = candidates.shape[1]
+    if int(belief.k) + horizon > belief.config.max_steps:
+        raise ValueError(
+            f"score_candidates: the belief has room for {belief.config.max_steps - int(belief.k)} more steps, "
+            f"the candidates have {horizon}; call prepare(belief, horizon={horizon})"
+        )
+    keys = jax.random.split(key, num_draws)
+    return _score(belief, jnp.asarray(candidates, dtype=belief.mean.dtype), keys, jnp.asarray(logdet_weight, float))
+
+
+def arc_candidates(
+    num: int, horizon: int, step_length: float = 1.0, max_turn: float = 0.6, key: PRNGKeyArray | None = None
+) -> Float[Array, "C H 3"]:
+    """A batch of action sequences: constant-curvature arcs, and (with ``key``) random turns.
+
+    Each action is ``[step_length, 0, turn]``. Without ``key``: ``num`` arcs with turns evenly
+    spaced in ``[-max_turn, max_turn]``. With ``key``: the first ``num // 2`` are those arcs, the rest
+    have independent uniform turns per step.
+    """
+    n_arcs = num if key is None else max(num // 2, 1)
+    turns = jnp.linspace(-max_turn, max_turn, n_arcs)[:, None] * jnp.ones((1, horizon))
+    if key is not None and num > n_arcs:
+        turns = jnp.concatenate([turns, jax.random.uniform(key, (num - n_arcs, horizon), minval=-max_turn,
+                                                           maxval=max_turn)])
+    forward = jnp.full(turns.shape, step_length)
+    return jnp.stack([forward, jnp.zeros_like(turns), turns], axis=-1)
