@@ -84,6 +84,17 @@ def metric_curves(
 _STYLES = (("-", "o"), ("--", "s"), (":", "^"), ("-.", "D"))
 
 
+def _line_with_band(ax: Axes, x: np.ndarray, values: np.ndarray, i: int, label: str, log: bool) -> None:
+    """Line ``i`` (color and style by index): the mean over rows of ``values`` and its 95% band."""
+    mean, half = mean_band(values)
+    color, (ls, marker) = f"C{i}", _STYLES[i % len(_STYLES)]
+    ax.plot(x, mean, ls=ls, marker=marker, color=color, ms=4, lw=1.8, mfc="none", label=label)
+    lo, hi = mean - half, mean + half
+    if log:  # keep the band on the positive axis
+        lo = np.where(lo > 0, lo, mean / 10.0)
+    ax.fill_between(x, lo, hi, color=color, alpha=0.15, lw=0)
+
+
 def plot_metrics(rows: Iterable[Mapping[str, object]], path: str | os.PathLike) -> None:
     """Four panels (H(w), det Σ, x̃^wmax, x̃^wavg) against the step, one line per model.
 
@@ -101,13 +112,7 @@ def plot_metrics(rows: Iterable[Mapping[str, object]], path: str | os.PathLike) 
         for i, model in enumerate(models):
             steps, values = curves[model]
             num_tracks = max(num_tracks, values.shape[0])
-            mean, half = mean_band(values)
-            color, (ls, marker) = f"C{i}", _STYLES[i % len(_STYLES)]
-            ax.plot(steps, mean, ls=ls, marker=marker, color=color, ms=4, lw=1.8, mfc="none", label=model)
-            lo, hi = mean - half, mean + half
-            if log:  # keep the band on the positive axis
-                lo = np.where(lo > 0, lo, mean / 10.0)
-            ax.fill_between(steps, lo, hi, color=color, alpha=0.15, lw=0)
+            _line_with_band(ax, steps, values, i, model, log)
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("step k")
         if log:
@@ -239,13 +244,7 @@ def plot_alpha_sweep(rows: Iterable[Mapping[str, object]], path: str | os.PathLi
         for i, model in enumerate(models):
             alphas, values = curves[model]
             num_tracks = max(num_tracks, values.shape[0])
-            mean, half = mean_band(values)
-            color, (ls, marker) = f"C{i}", _STYLES[i % len(_STYLES)]
-            ax.plot(alphas, mean, ls=ls, marker=marker, color=color, ms=4, lw=1.8, mfc="none", label=model)
-            lo, hi = mean - half, mean + half
-            if log:
-                lo = np.where(lo > 0, lo, mean / 10.0)
-            ax.fill_between(alphas, lo, hi, color=color, alpha=0.15, lw=0)
+            _line_with_band(ax, alphas, values, i, model, log)
         ax.set_title(panel, fontsize=10)
         ax.set_xlabel(r"viewpoint dependence $\alpha$ (Eq. 18)")
         if log:
