@@ -23,6 +23,11 @@ from .classifier import Independent as Independent
 from .classifier import Mirror as Mirror
 from .classifier import NoClassifier as NoClassifier
 from .classifier import make_classifier as make_classifier
+from .gradients import best_pose_log_det as best_pose_log_det
+from .gradients import expected_association_entropy as expected_association_entropy
+from .gradients import expected_position_error as expected_position_error
+from .gradients import hypothesis_neg_log_weight as hypothesis_neg_log_weight
+from .gradients import rollout as rollout
 from .learned import Learned as Learned
 from .learned import fit_classifier as fit_classifier
 from .learned import load_classifier as load_classifier
@@ -36,6 +41,7 @@ from .metrics import association_entropy as association_entropy
 from .metrics import metrics as metrics
 from .model import Model as Model
 from .model import model_from_scenario as model_from_scenario
+from .model import with_smooth_visibility as with_smooth_visibility
 from .result import Result as Result
 from .result import load_result as load_result
 from .result import save_result as save_result

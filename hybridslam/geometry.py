@@ -2,11 +2,13 @@
 
 Conventions from SCENARIO_FORMAT.md. The geometric likelihood is the paper's
 ``P(z^geo | x_k, x^o) = N(h^geo(x_k, x^o), Σ_v)`` (Sec. III, Eq. 10); visibility is the object
-observation model ``P(β_k | x_k, X^o)`` of Sec. IV-B (1 if every named object is in view).
+observation model ``P(β_k | x_k, X^o)`` of Sec. IV-B (1 if every named object is in view), or its
+smooth relaxation :func:`log_smooth_visibility` (differentiable; see ``docs/gradients.md``).
 """
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
@@ -53,3 +55,25 @@ def visible(
 ) -> Bool[Array, ""]:
     """Sensor footprint: ``range <= max_range`` and ``|bearing| <= fov / 2``."""
     return (range_bearing_[0] <= max_range) & (jnp.abs(range_bearing_[1]) <= 0.5 * fov)
+
+
+def log_smooth_visibility(
+    range_bearing_: Float[Array, "2"], max_range: Float[Array, ""], fov: Float[Array, ""],
+    temperature: Float[Array, "2"],
+) -> Float[Array, ""]:
+    """Log of the smooth sensor footprint, a product of logistic sigmoids of the three margins:
+
+        P(visible) = σ((max_range − r) / τ_r) · σ((fov/2 − b) / τ_b) · σ((fov/2 + b) / τ_b)
+
+    with ``temperature = (τ_r, τ_b)`` in metres and radians: the distance over which the
+    probability falls from 73 % to 27 % across the edge is ``2 τ``. The two bearing factors (rather
+    than one of ``|b|``) keep it smooth at ``b = 0``; the product is even in ``b``, so it is also
+    continuous across ``b = ±π``. As ``τ → 0`` it tends to :func:`visible`; a temperature of exactly 0
+    gives that hard limit (``0`` or ``-inf``), with zero gradient.
+    """
+    half = 0.5 * fov
+    margins = jnp.stack([max_range - range_bearing_[0], half - range_bearing_[1], half + range_bearing_[1]])
+    tau = jnp.stack([temperature[0], temperature[1], temperature[1]])
+    smooth = tau > 0
+    safe = jnp.where(smooth, tau, 1.0)  # double where: no NaN gradient from the τ = 0 branch
+    return jnp.sum(jnp.where(smooth, jax.nn.log_sigmoid(margins / safe), jnp.where(margins >= 0, 0.0, -jnp.inf)))

@@ -58,8 +58,9 @@ def laplace_is(
     """Estimate ``log ∫ exp(−½‖r(y)‖² + log_norm + log_view(y)) N(y; mean, cov) dy``.
 
     ``measurement(y)`` returns the whitened residual ``r(y)``, its log normalizer, and
-    ``log_view(y)`` (0 or ``-inf``: the object observation model). ``eps`` are standard-normal
-    draws (shared by all callers for common random numbers); ``difference(a, b)`` is ``a − b``
+    ``log_view(y)`` (the object observation model: 0 or ``-inf`` for the hard footprint, finite for
+    the smooth one). ``eps`` are standard-normal draws (shared by all callers for common random
+    numbers; the draws ``mode + L eps`` are reparameterized); ``difference(a, b)`` is ``a − b``
     on the state's manifold (angles wrapped). A mode search that does not converge leaves the
     estimate unbiased (any proposal is valid) but less efficient: see ``solver_result`` and ``ess``.
     """
@@ -81,7 +82,13 @@ def laplace_is(
 
     with_view, free = jax.vmap(log_terms)(draws, eps)
     n = eps.shape[0]
-    log_ev = logsumexp(with_view) - math.log(n)
+    log_ev = _log_mean_exp(with_view)
     ess = jnp.exp(2.0 * logsumexp(with_view) - logsumexp(2.0 * with_view)) / n
     ess = jnp.where(jnp.isfinite(ess), ess, 0.0)
-    return Evidence(log_ev, logsumexp(free) - math.log(n), ess, mode, post_cov, result)
+    return Evidence(log_ev, _log_mean_exp(free), ess, mode, post_cov, result)
+
+
+def _log_mean_exp(terms: Float[Array, " S"]) -> Float[Array, ""]:
+    """``log mean exp(terms)``; ``-inf`` with a zero (not NaN) gradient when every term is ``-inf``."""
+    some = jnp.any(terms > -jnp.inf)
+    return jnp.where(some, logsumexp(jnp.where(some, terms, 0.0)) - math.log(terms.shape[0]), -jnp.inf)

@@ -23,12 +23,20 @@ _LOG_2PI = math.log(2.0 * math.pi)
 
 
 class SensorModel(eqx.Module):
-    """Geometric noise, classifier and field of view. All parameters are traced arrays."""
+    """Geometric noise, classifier and field of view. All parameters are traced arrays.
+
+    ``visibility_temperature`` selects the object observation model ``P(β_k | x_k, X^o)``:
+    ``None`` (the default) is the paper's 0/1 footprint (Sec. IV-B); an array ``(τ_r, τ_b)``
+    (metres, radians) is its smooth relaxation, differentiable everywhere (see
+    :func:`log_visibility`). Whether it is ``None`` is static (a different code path); the
+    temperatures themselves are traced.
+    """
 
     geometric_cov: Float[Array, "2 2"]
     classifier: ClassifierModel
     max_range: Float[Array, ""]
     fov: Float[Array, ""]
+    visibility_temperature: Float[Array, "2"] | None = None
 
     @property
     def residual_dim(self) -> int:
@@ -99,3 +107,15 @@ def slot_residuals(
 def in_view(sensor: SensorModel, x: Float[Array, "3"], obj: Float[Array, "3"]) -> Bool[Array, ""]:
     """The 0/1 object observation model ``P(β | x_k, x^o)`` for one object (Sec. IV-B)."""
     return geometry.visible(geometry.range_bearing(x, obj), sensor.max_range, sensor.fov)
+
+
+def log_visibility(sensor: SensorModel, x: Float[Array, "3"], obj: Float[Array, "3"]) -> Float[Array, ""]:
+    """``log P(object in view | x_k, x^o)``: the sensor's object observation model (Sec. IV-B).
+
+    ``0`` or ``-inf`` for the paper's hard footprint (``visibility_temperature is None``);
+    otherwise the smooth model of :func:`~hybridslam.geometry.log_smooth_visibility`.
+    """
+    rb = geometry.range_bearing(x, obj)
+    if sensor.visibility_temperature is None:
+        return jnp.where(geometry.visible(rb, sensor.max_range, sensor.fov), 0.0, -jnp.inf)
+    return geometry.log_smooth_visibility(rb, sensor.max_range, sensor.fov, sensor.visibility_temperature)

@@ -6,6 +6,8 @@ one compiled step; ``jax.vmap`` over a batch of models runs such a sweep in one 
 
 from __future__ import annotations
 
+from typing import TypeVar
+
 import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
@@ -28,13 +30,39 @@ class Model(eqx.Module):
         return self.sensor.classifier.num_classes
 
 
+_M = TypeVar("_M", "Model", SensorModel)
+
+
+def with_smooth_visibility(model: _M, range_temperature, bearing_temperature=None) -> _M:
+    """``model`` (a :class:`Model` or a :class:`SensorModel`) with the smooth object observation model.
+
+    ``range_temperature`` ``τ_r`` is in metres, ``bearing_temperature`` ``τ_b`` in radians; it defaults
+    to ``τ_r / max_range`` (the same margin, as arc length, at full range). See
+    :func:`hybridslam.geometry.log_smooth_visibility`. A temperature of 0 is the hard 0/1 footprint
+    again (as a limit: the values, not the gradients); ``visibility_temperature=None`` is the default
+    hard model.
+    """
+    sensor = model.sensor if isinstance(model, Model) else model
+    tau_r = jnp.asarray(range_temperature, dtype=float)
+    tau_b = tau_r / sensor.max_range if bearing_temperature is None else jnp.asarray(bearing_temperature, dtype=float)
+    if tau_r.shape != () or tau_b.shape != ():
+        raise ValueError(f"visibility temperatures: expected two scalars, got shapes {tau_r.shape} and {tau_b.shape}")
+    sensor = eqx.tree_at(
+        lambda s: s.visibility_temperature, sensor, jnp.stack([tau_r, tau_b]), is_leaf=lambda v: v is None
+    )
+    return eqx.tree_at(lambda m: m.sensor, model, sensor) if isinstance(model, Model) else sensor
+
+
 def model_from_scenario(
-    scenario: Scenario, classifier: str | ClassifierModel | None = None, prune_ratio: float = 150.0
+    scenario: Scenario, classifier: str | ClassifierModel | None = None, prune_ratio: float = 150.0,
+    visibility_temperature: float | tuple[float, float] | None = None,
 ) -> Model:
     """Read the model from a scenario; ``classifier`` overrides ``scenario.classifier.model``.
 
     A name (``"mirror"``, ``"independent"``, ``"none"``) takes ``alpha`` and ``K`` from the file;
-    ``"learned"`` loads the model file named by ``classifier.path``.
+    ``"learned"`` loads the model file named by ``classifier.path``. ``visibility_temperature``
+    ``τ_r`` or ``(τ_r, τ_b)`` (metres, radians) selects the smooth object observation model
+    (:func:`with_smooth_visibility`); ``None`` keeps the paper's 0/1 footprint.
     """
     spec = scenario.classifier
     if scenario.discovery is not None:
@@ -59,4 +87,10 @@ def model_from_scenario(
         raise ValueError(f"prune_ratio must be >= 1, got {prune_ratio}")
     f = lambda a: jnp.asarray(a, dtype=float)  # noqa: E731
     sensor = SensorModel(f(scenario.geometric_cov), classifier, f(scenario.max_range), f(scenario.fov))
-    return Model(f(scenario.motion_cov), sensor, f(scenario.class_prior), f(prune_ratio))
+    model = Model(f(scenario.motion_cov), sensor, f(scenario.class_prior), f(prune_ratio))
+    if visibility_temperature is None:
+        return model
+    tau = jnp.atleast_1d(jnp.asarray(visibility_temperature, dtype=float))
+    if tau.shape not in ((1,), (2,)):
+        raise ValueError(f"visibility_temperature: expected tau_r or (tau_r, tau_b), got {visibility_temperature!r}")
+    return with_smooth_visibility(model, *tau)

@@ -3,7 +3,8 @@
 ``step(belief, odometry, detections, key)`` is pure; ``jax.vmap`` it over a leading axis of
 beliefs to run many tracks (or many parameter settings: the model lives in the belief) at once.
 Compiles once per (capacity, history length, detection slots, objects, classes, weight method,
-classifier type); model parameters are traced.
+classifier type, hard or smooth visibility); model parameters are traced. Differentiable in every
+continuous input (``docs/gradients.md``).
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ class StepInfo(eqx.Module):
     num_alive: Int[Array, ""]  # components after pruning
     parent: Int[Array, " K"]  # slot of each new component's parent in the previous belief
     solver_result: optx.RESULTS  # Gauss-Newton outcome per component (Eq. 9)
-    visibility_ignored: Bool[Array, ""]  # no hypothesis had every detected object in view
+    visibility_ignored: Bool[Array, ""]  # no hypothesis had every detected object in view (0/1 model only)
     ess: Float[Array, " K"]  # normalized effective sample size of each kept weight (1 = exact; NaN if empty)
     is_solver_failures: Int[Array, ""]  # kept components whose laplace-is mode search did not converge
 

@@ -18,6 +18,11 @@ Three estimators of the integral, returning ``log ψ`` for every child on the ``
 * :func:`laplace_is_log_likelihood` — importance sampling from each child's Laplace approximation
   (:mod:`hybridslam.laplace`), for the children the linearized weights rank best.
 
+The object observation model ``P(β_k | x_k, X^o)`` is the sensor's (:func:`~hybridslam.measurement.log_visibility`):
+the paper's 0/1 footprint by default, or its smooth relaxation, which makes every weight a smooth
+function of the belief and the model (``docs/gradients.md``). With fixed draws ``eps`` (from the
+step's key) the Monte-Carlo estimates are smooth too: the samples are reparameterized.
+
 Each returns ``(log ψ, log ψ ignoring visibility, ESS)`` (laplace-is adds whether each mode search
 converged). The second is a fallback for a step
 whose detections no hypothesis can explain (every child needs an object out of view: a model
@@ -43,7 +48,7 @@ from .belief import Detections
 from .geometry import range_bearing
 from .hypotheses import Children, HypothesisTable
 from .laplace import laplace_is
-from .measurement import SensorModel, detection_residual, detection_residuals, in_view, slot_residuals
+from .measurement import SensorModel, detection_residual, detection_residuals, log_visibility, slot_residuals
 
 
 def _split(state: Float[Array, " D"]) -> tuple[Float[Array, "3"], Float[Array, "N 3"]]:
@@ -67,8 +72,9 @@ def _detection_log_likelihoods(sensor, x, obj, z_geo, scores):
 
 def log_likelihood_table(
     sensor: SensorModel, state: Float[Array, " D"], detections: Detections
-) -> tuple[Float[Array, "Dmax N M"], Bool[Array, " N"]]:
-    """``log P(z_j | x, x^o_n, c)`` for every (detection, object, class), and which objects are in view.
+) -> tuple[Float[Array, "Dmax N M"], Float[Array, " N"]]:
+    """``log P(z_j | x, x^o_n, c)`` for every (detection, object, class), and ``log P(object n in view)``
+    (``0``/``-inf`` for the hard footprint, finite for the smooth one).
 
     Trigonometry depends on (robot, object) only; ``vmap`` keeps it unbatched over detections,
     so it is evaluated ``N`` times per state.
@@ -77,7 +83,7 @@ def log_likelihood_table(
     f = jax.vmap(_detection_log_likelihoods, (None, None, 0, None, None))  # objects
     f = jax.vmap(f, (None, None, None, 0, 0))  # detections
     table = f(sensor, x, objs, detections.geo, detections.scores)
-    return table, jax.vmap(in_view, (None, None, 0))(sensor, x, objs)
+    return table, jax.vmap(log_visibility, (None, None, 0))(sensor, x, objs)
 
 
 def log_mean_exp_outer(tables: Float[Array, "S Dmax B"]) -> Float[Array, "*B"]:
@@ -99,7 +105,9 @@ def log_mean_exp_outer(tables: Float[Array, "S Dmax B"]) -> Float[Array, "*B"]:
     letters = "abcdefghijklmnopqrtuvwxyz"[:dmax]
     spec = "s," + ",".join(f"s{c}" for c in letters) + "->" + letters
     total = jnp.einsum(spec, omega, *(scaled[:, j] for j in range(dmax)))
-    return top + jnp.log(total) - math.log(s)
+    positive = total > 0.0
+    # Double where: an entry that is exactly 0 (log -inf) must give a zero gradient, not NaN.
+    return jnp.where(positive, top + jnp.log(jnp.where(positive, total, 1.0)) - math.log(s), -jnp.inf)
 
 
 def sampled_log_likelihood(
@@ -117,12 +125,12 @@ def sampled_log_likelihood(
     over samples of every combination of (object, class) per slot is one
     :func:`log_mean_exp_outer`; each child then reads its entry.
     """
-    samples = mean[None, :] + eps @ jnp.linalg.cholesky(cov).T
-    lik, seen = jax.vmap(log_likelihood_table, (None, 0, None))(sensor, samples, detections)
+    samples = mean[None, :] + eps @ jnp.linalg.cholesky(cov).T  # reparameterized: smooth in mean and cov
+    lik, log_view = jax.vmap(log_likelihood_table, (None, 0, None))(sensor, samples, detections)
     s, dmax = lik.shape[:2]
     m = sensor.classifier.num_classes
     occupied = detections.mask[None, :, None, None]
-    with_view = jnp.where(occupied, jnp.where(seen[:, None, :, None], lik, -jnp.inf), 0.0)
+    with_view = jnp.where(occupied, lik + log_view[:, None, :, None], 0.0)
     without_view = jnp.where(occupied, lik, 0.0)
     codes = _slot_codes(table, kids, m)
     index = tuple(codes[..., j] for j in range(dmax))
@@ -144,10 +152,18 @@ def _log_visibility_probability(sensor: SensorModel, mean, cov, n):
     jac = jax.jacfwd(h)(mean)
     rb = h(mean)
     std = jnp.sqrt(jnp.diagonal(jac @ cov @ jac.T) + 1e-12)
+    if sensor.visibility_temperature is not None:
+        # Smooth footprint (geometry.log_smooth_visibility): σ(m/τ) ≈ Φ(m/(τ√(8/π))) (equal slope at 0),
+        # and E[Φ(m/s)] over m ~ N(m̄, v) is Φ(m̄/√(s² + v)): the hard formula with a wider spread.
+        # Both bearing edges share one Φ-difference (accurate while fov/2 ≫ τ_b).
+        tau = jnp.maximum(sensor.visibility_temperature, 0.0)
+        std = jnp.sqrt(std**2 + (8.0 / jnp.pi) * tau**2)
     log_in_range = log_ndtr((sensor.max_range - rb[0]) / std[0])
     half = 0.5 * sensor.fov
     p_bearing = ndtr((half - rb[1]) / std[1]) - ndtr((-half - rb[1]) / std[1])
-    return log_in_range + jnp.log(jnp.maximum(p_bearing, 0.0))
+    positive = p_bearing > 0.0
+    # Double where: log(0) = -inf must not turn into a NaN gradient.
+    return log_in_range + jnp.where(positive, jnp.log(jnp.where(positive, p_bearing, 1.0)), -jnp.inf)
 
 
 def linearized_log_likelihood(
@@ -224,8 +240,8 @@ def _child_evidence(sensor, detections, eps, max_steps, mean, cov, assign, slot_
     def measurement(y):
         x, objs = y[:3], y[3:].reshape(-1, 3)  # objs[j]: the object of slot j (Eq. 17 layout)
         r, log_norm = slot_residuals(sensor, x, objs, detections.geo, detections.scores, assign, slot_class)
-        seen = jax.vmap(in_view, (None, None, 0))(sensor, x, objs)
-        return r, log_norm, jnp.sum(jnp.where((assign >= 0) & ~seen, -jnp.inf, 0.0))
+        log_view = jax.vmap(log_visibility, (None, None, 0))(sensor, x, objs)
+        return r, log_norm, jnp.sum(jnp.where(assign >= 0, log_view, 0.0))
 
     ev = laplace_is(measurement, m_mean, m_cov, eps, max_steps, difference)
     return ev.log_evidence, ev.log_evidence_free, ev.ess, ev.solver_result == optx.RESULTS.successful
