@@ -24,18 +24,22 @@ import dataclasses
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import optimistix as optx
 from jax.scipy.special import logsumexp
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
 from . import geometry, se2
 from .belief import Belief, Detections
 from .metrics import association_entropy
+from .model import with_smooth_visibility
 from .step import _step
 
 PLAN_AXIS = "candidates"
 
 
-def prepare(belief: Belief, horizon: int, capacity: int | None = None, **settings) -> Belief:
+def prepare(
+    belief: Belief, horizon: int, capacity: int | None = None, visibility_temperature: float | None = None, **settings
+) -> Belief:
     """A copy of ``belief`` ready for :func:`score_candidates`.
 
     Keeps the ``capacity`` best components (slots are sorted by weight; the kept weights are
@@ -43,7 +47,9 @@ def prepare(belief: Belief, horizon: int, capacity: int | None = None, **setting
     ``settings`` replace other :class:`~hybridslam.belief.Config` fields for the predicted
     updates, e.g. ``weights="linearized"`` or ``gn_max_steps=2`` (an iterated-EKF update: cheaper,
     and plenty for predictions). Host-side (shapes change): call it once per planning round,
-    outside ``jit``.
+    outside ``jit``. ``visibility_temperature`` (metres; see
+    :func:`hybridslam.model.with_smooth_visibility`) switches the predicted updates to the smooth
+    object observation model, which :func:`refine_actions` needs for a useful gradient.
     """
     cfg = belief.config
     keep = cfg.capacity if capacity is None else min(capacity, cfg.capacity)
@@ -54,8 +60,9 @@ def prepare(belief: Belief, horizon: int, capacity: int | None = None, **setting
     history = belief.history[:keep]
     history = jnp.concatenate([history, jnp.full((keep, horizon) + history.shape[2:], -1, history.dtype)], axis=1)
     config = dataclasses.replace(cfg, capacity=keep, max_steps=history.shape[1], batch_axis=PLAN_AXIS, **settings)
+    model = belief.model if visibility_temperature is None else with_smooth_visibility(belief.model, visibility_temperature)
     return Belief(log_w, belief.mean[:keep], belief.cov[:keep], belief.classes[:keep], history, belief.k,
-                  belief.model, config)
+                  model, config)
 
 
 class World(eqx.Module):
@@ -211,3 +218,96 @@ def arc_candidates(
                                                            maxval=max_turn)])
     forward = jnp.full(turns.shape, step_length)
     return jnp.stack([forward, jnp.zeros_like(turns), turns], axis=-1)
+
+
+# --------------------------------------------------------------------------- #
+# Gradient-based refinement of one action sequence
+# --------------------------------------------------------------------------- #
+
+
+def turn_actions(params: Float[Array, " H"], step_length, max_turn) -> Float[Array, "H 3"]:
+    """Actions ``[step_length, 0, max_turn · tanh(p_t)]``: any real ``params`` give a feasible turn."""
+    turns = max_turn * jnp.tanh(params)
+    return jnp.stack([jnp.full_like(turns, step_length), jnp.zeros_like(turns), turns], axis=-1)
+
+
+def expected_objective(belief: Belief, actions: Float[Array, "H 3"], keys: PRNGKeyArray, logdet_weight=0.0):
+    """Mean :func:`objective` over the observation draws ``keys`` (vmapped; a smooth function of
+    ``actions`` for a fixed set of detected objects when the sensor uses the smooth visibility)."""
+
+    def one_draw(key):
+        k_pred, k_step = jax.random.split(key)
+        odometry, detections = predict_observations(belief, actions, k_pred)
+        return objective(rollout(belief, odometry, detections, k_step), logdet_weight)
+
+    return jnp.mean(jax.vmap(one_draw, axis_name=PLAN_AXIS)(keys))
+
+
+class Refined(eqx.Module):
+    """What :func:`refine_actions` returns."""
+
+    actions: Float[Array, "H 3"]  # the refined sequence
+    initial: Float[Array, ""]  # expected objective of the start sequence (on the same draws)
+    final: Float[Array, ""]  # ... and of the refined one
+    steps: Int[Array, ""]  # optimizer iterations taken
+    result: optx.RESULTS  # the solver's verdict (a failed line search keeps the best point reached)
+
+
+@eqx.filter_jit
+def _refine(belief, params0, keys, step_length, max_turn, logdet_weight, max_steps: int):
+    def fn(params, _):
+        return expected_objective(belief, turn_actions(params, step_length, max_turn), keys, logdet_weight)
+
+    solver = optx.BFGS(rtol=1e-4, atol=1e-4)
+    sol = optx.minimise(fn, solver, params0, max_steps=max_steps, throw=False)
+    # Both ends in one mapped call: one more copy of the rollout in the program, not two.
+    initial, final = jax.lax.map(lambda p: fn(p, None), jnp.stack([params0, sol.value]))
+    # BFGS only accepts descent steps, but a capped run can stop anywhere: never return worse.
+    params = jnp.where(final <= initial, sol.value, params0)
+    return Refined(turn_actions(params, step_length, max_turn), initial, jnp.minimum(final, initial),
+                   sol.stats["num_steps"], sol.result)
+
+
+def refine_actions(
+    belief: Belief,
+    turns: Float[Array, " H"],
+    key: PRNGKeyArray,
+    *,
+    step_length: float = 1.0,
+    max_turn: float = 0.6,
+    num_draws: int = 4,
+    logdet_weight: float = 0.0,
+    max_steps: int = 20,
+) -> Refined:
+    """Refine the turn rates of one action sequence by gradient descent on the expected objective.
+
+    The actions are ``[step_length, 0, turn_t]`` with ``|turn_t| < max_turn`` (a ``tanh``
+    parameterization keeps them feasible). The objective is the mean of :func:`objective` (``H(w)
+    + λ log det Σ``) over ``num_draws`` predicted worlds and noise draws, fixed for the whole run
+    (common random numbers), so it is a deterministic function of the turns; it is minimized by
+    :class:`optimistix.BFGS` with exact reverse-mode gradients through the predicted observations,
+    the ``H`` belief updates (Gauss-Newton by implicit differentiation) and the weights.
+
+    ``belief`` must come from :func:`prepare` with a ``visibility_temperature``: under the
+    paper's 0/1 visibility the weights are piecewise constant in the pose and the gradient says
+    little. What stays discrete (and is not differentiated): which objects the predicted robot
+    detects, pruning and top-K (``docs/gradients.md``). Start from the best scored candidate of
+    :func:`score_candidates` to combine global search with local refinement.
+    """
+    if belief.config.batch_axis != PLAN_AXIS:
+        raise ValueError("refine_actions: pass a belief from hybridslam.planning.prepare(belief, horizon, ...)")
+    if belief.model.sensor.visibility_temperature is None:
+        raise ValueError(
+            "refine_actions: the belief uses the hard 0/1 visibility, whose gradient is zero almost everywhere; "
+            "call prepare(belief, horizon, visibility_temperature=...) (e.g. 0.5 m)"
+        )
+    turns = jnp.asarray(turns, dtype=belief.mean.dtype)
+    if turns.ndim != 1 or int(belief.k) + turns.shape[0] > belief.config.max_steps:
+        raise ValueError(f"refine_actions: expected turns of shape (H,) with H <= "
+                         f"{belief.config.max_steps - int(belief.k)}, got shape {turns.shape}")
+    if not 0.0 < max_turn:
+        raise ValueError(f"refine_actions: max_turn must be positive, got {max_turn}")
+    params0 = jnp.arctanh(jnp.clip(turns / max_turn, -0.999, 0.999))
+    keys = jax.random.split(key, num_draws)
+    f = lambda v: jnp.asarray(v, dtype=belief.mean.dtype)  # noqa: E731
+    return _refine(belief, params0, keys, f(step_length), f(max_turn), f(logdet_weight), max_steps)
