@@ -7,6 +7,8 @@ square-root information of every class (``class_sqrt_informations``, shape ``(M,
 log-likelihoods for the weights, samples for simulation — is derived from those two, so a new
 model (e.g. a learned one) implements just them. The viewpoint is passed as the unit vector
 ``(cos θ, sin θ)`` of the angle θ of SCENARIO_FORMAT.md (continuous across ±π, no ``atan2``).
+The categorical :class:`Confusion` model (thesis Eq. 2.14) is not Gaussian: it overrides
+``residuals`` and ``sample`` instead.
 
 Parameters (``alpha``, ``K``) are array leaves: changing them never recompiles.
 """
@@ -147,15 +149,60 @@ class NoClassifier(ClassifierModel):
         return jnp.zeros((m, m), scores.dtype), jnp.zeros((m,), scores.dtype)
 
 
-MODELS = ("mirror", "independent", "none", "learned")
+class Confusion(ClassifierModel):
+    """The detector's confusion matrix (thesis Eq. 2.14-2.15): ``P(label = i | class = c) = matrix[i, c]``.
+
+    The detection's predicted label is ``argmax(scores)`` (ties: the lowest index), so
+    ``log P(scores | c) = log matrix[argmax(scores), c]`` for every viewpoint. There is no Gaussian
+    semantic part: :meth:`residuals` gives zero whitened residuals, so the Gauss-Newton update
+    (Eq. 9) sees only the geometry, and the log normalizers carry the whole categorical likelihood,
+    so :meth:`log_likelihood` and every weight method work unchanged.
+
+    ``class_means`` row ``c`` is the expected one-hot score vector under class ``c`` (column ``c`` of
+    the matrix); ``class_sqrt_informations`` is zero (no Gaussian factor, as in :class:`NoClassifier`),
+    so draw scores with :meth:`sample`, which returns the one-hot vector of a label drawn from
+    column ``c``. ``matrix`` is a traced leaf: a sweep over accuracies never recompiles.
+    """
+
+    matrix: Float[Array, "M M"]  # matrix[label, class]; columns sum to 1
+
+    def __init__(self, matrix: Float[Array, "M M"] | list):
+        m = jnp.asarray(matrix, dtype=float)
+        if m.ndim != 2 or m.shape[0] != m.shape[1]:
+            raise ValueError(f"classifier.matrix: expected a square matrix, got shape {m.shape}")
+        self.num_classes = int(m.shape[0])
+        self.matrix = m
+
+    def class_means(self, viewpoint):
+        return self.matrix.T
+
+    def class_sqrt_informations(self, viewpoint):
+        return jnp.zeros((self.num_classes,) * 3, self.matrix.dtype)
+
+    def residuals(self, scores, viewpoint):
+        """Zero residuals and ``log matrix[argmax(scores), c]`` per class ``c`` (Eq. 2.14)."""
+        m = self.num_classes
+        label = jnp.argmax(scores) == jnp.arange(m)  # one-hot select: no gather under vmap
+        log_norm = jnp.sum(jnp.where(label[:, None], jnp.log(self.matrix), 0.0), axis=0)
+        return jnp.zeros((m, m), scores.dtype), log_norm
+
+    def sample(self, key, c, viewpoint):
+        """The one-hot score vector of a label drawn from ``Cat(matrix[:, c])`` (Eq. 2.14)."""
+        label = jax.random.categorical(key, jnp.log(self.matrix[:, c]))
+        return jax.nn.one_hot(label, self.num_classes, dtype=self.matrix.dtype)
+
+
+MODELS = ("mirror", "independent", "none", "learned", "confusion")
 
 
 def make_classifier(
-    name: str, num_classes: int, alpha: float | None = None, K: float | None = None, *, path: str | None = None
+    name: str, num_classes: int, alpha: float | None = None, K: float | None = None, *, path: str | None = None,
+    matrix: Float[Array, "M M"] | None = None,
 ) -> ClassifierModel:
     """Build a classifier model by its scenario-file name (``classifier.model``).
 
-    ``"learned"`` loads the model file at ``path`` (:func:`hybridslam.learned.load_classifier`).
+    ``"learned"`` loads the model file at ``path`` (:func:`hybridslam.learned.load_classifier`);
+    ``"confusion"`` takes the ``num_classes`` × ``num_classes`` ``matrix`` (``matrix[label, class]``).
     """
     if name == "mirror":
         return Mirror(alpha, K)
@@ -178,8 +225,10 @@ def make_classifier(
             )
         return model
     if name == "confusion":
-        raise ValueError(
-            "classifier.model: 'confusion' is valid in scenario files but not supported by the hybrid "
-            f"estimator yet (supported: {', '.join(MODELS)}); pass another --classifier to run this file"
-        )
+        if matrix is None:
+            raise ValueError("classifier.matrix: the 'confusion' model needs its confusion matrix")
+        model = Confusion(matrix)
+        if model.num_classes != num_classes:
+            raise ValueError(f"classifier.matrix: a {model.num_classes}-class matrix, expected {num_classes} classes")
+        return model
     raise ValueError(f"classifier.model: unknown model {name!r} (known: {', '.join(MODELS)})")

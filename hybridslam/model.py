@@ -60,7 +60,8 @@ def model_from_scenario(
     """Read the model from a scenario; ``classifier`` overrides ``scenario.classifier.model``.
 
     A name (``"mirror"``, ``"independent"``, ``"none"``) takes ``alpha`` and ``K`` from the file;
-    ``"learned"`` loads the model file named by ``classifier.path``. ``visibility_temperature``
+    ``"learned"`` loads the model file named by ``classifier.path``; ``"confusion"`` takes
+    ``classifier.matrix`` (thesis Eq. 2.14-2.15). ``visibility_temperature``
     ``τ_r`` or ``(τ_r, τ_b)`` (metres, radians) selects the smooth object observation model
     (:func:`with_smooth_visibility`); ``None`` keeps the paper's 0/1 footprint.
     """
@@ -78,7 +79,10 @@ def model_from_scenario(
             )
         if name == "learned" and spec.path is None:
             raise ValueError(f"classifier 'learned' needs a model file, but the scenario's model is {spec.model!r}")
-        classifier = make_classifier(name, scenario.num_classes, spec.alpha, spec.K, path=spec.path)
+        if name == "confusion" and spec.matrix is None:
+            raise ValueError(f"classifier 'confusion' needs a matrix, but the scenario's model is {spec.model!r}")
+        classifier = make_classifier(name, scenario.num_classes, spec.alpha, spec.K, path=spec.path,
+                                     matrix=spec.matrix)
     if classifier.num_classes != scenario.num_classes:
         raise ValueError(
             f"classifier has {classifier.num_classes} classes, scenario has {scenario.num_classes}"

@@ -94,8 +94,7 @@ def test_features_of_later_estimators_are_refused_clearly():
 
     scenario = hs.simulate(0, steps=1)
     confusion = scenario.replace(classifier=Classifier("confusion", matrix=np.eye(2)))
-    with pytest.raises(ValueError, match="'confusion' is valid in scenario files but not supported"):
-        hs.model_from_scenario(confusion)
+    hs.model_from_scenario(confusion)  # supported since issue 4 (tests/test_classifier_confusion.py)
     hs.model_from_scenario(confusion, "none")  # an explicit override still runs the file
     unknown_map = scenario.replace(discovery=Discovery(10, -4.0, 9.87))
     with pytest.raises(ValueError, match="discovery: unknown maps"):
