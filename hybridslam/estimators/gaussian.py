@@ -1,0 +1,439 @@
+"""What the single-Gaussian association strategies (``ml``, ``gpda``, ``max-mixture``) share.
+
+All three are filters over one joint Gaussian ``[x_k, o_0, ..., o_{Nmax-1}]`` (``D = 3 + 3 Nmax``):
+propagate it through the motion model, compute the step's association probabilities from it, then
+update it by Gauss-Newton with the propagated Gaussian as a prior factor. They differ only in how
+the probabilities shape the measurement factors (:mod:`.ml`, :mod:`.gpda`, :mod:`.maxmix`).
+
+Association (:func:`associate`), thesis Sec. 3.2-3.3 and 4.2:
+
+* **Gating** (Sec. 3.2.1): per detection, the Mahalanobis distance of its range-bearing innovation
+  against every created object, ``d² = rᵀ S⁻¹ r`` with ``S = H Σ Hᵀ + Γ`` (Eq. 4.15); the ``G``
+  nearest objects inside the chi-square gate (2 degrees of freedom) are its candidates.
+* **Null hypothesis**: with a ``discovery`` section a detection may also be a new object (Sec. 3.2.1,
+  the summary's Eq. 13), of log density ``new_object_log_density`` times the semantic evidence under
+  the class prior. The ``i``-th new detection of an assignment (slot order) creates slot
+  ``num_created + i``; beyond the capacity ``Nmax`` it is left unassociated (*skipped*). Without
+  discovery a null entry is always a skip.
+* **Joint assignments**: every injective assignment of the occupied detection slots to their
+  candidates or the null option, enumerated once in numpy (``(G+1)^Dmax`` rows, invalid ones masked).
+  An assignment's log weight is the joint linearized marginal likelihood of its associated
+  detections (Eq. 4.14-4.15, all of them at once: the shared robot pose correlates them, which is
+  joint compatibility), times each one's semantic term ``Σ_c P(z^s | c) P(c | Z⁻)`` (Eq. 4.13 with
+  Eq. 2.14), times the null terms. Only the assignments that skip the fewest detections compete
+  (a skip is a last resort: an empty gate, two detections of one object, no free slot).
+  Normalized by logsumexp they are ``P(d_k | Z⁻)``; per-detection marginals are their sums.
+
+The semantic likelihood enters the association weights and the class posteriors only; the
+Gauss-Newton factors are geometric (Doherty's factorization, Eq. 4.13: with classes marginalized,
+the semantic term is a scalar per association). Viewpoint-dependent models are evaluated at the
+propagated mean (a new object's viewpoint at its back-projected position, orientation 0).
+Classifier models enter only through ``ClassifierModel.residuals``, so ``mirror``, ``none`` and
+``confusion`` all work.
+
+Class posteriors (Eq. 4.17 with Eq. 2.14): per object, normalized ``log P(c | Z)``; a detection
+associated to object ``n`` with probability ``p`` multiplies it by ``p P(z^s|c) / P(z^s) + (1 − p)``.
+Prior objects start from the scenario's class prior, new ones from a uniform prior.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import itertools
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.scipy.linalg as jsl
+import numpy as np
+import optimistix as optx
+from jax.scipy.special import logsumexp
+from jaxtyping import Array, Bool, Float, Int
+
+from .. import __version__, discovery, geometry
+from ..belief import Detections
+from ..model import Model, model_from_scenario
+from ..motion import propagate
+from ..scenario import Scenario
+from ..update import gauss_newton, wrap_angles
+from .base import Mixture, Settings
+
+_LOG_2PI = math.log(2.0 * math.pi)
+DEFAULT_CANDIDATES = 3  # G: objects per detection after gating (Settings option "candidates")
+DEFAULT_GATE = 0.999  # chi-square gate probability (Settings option "gate_probability")
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Static settings: each fixes a shape or a code path."""
+
+    discovery: bool  # the null hypothesis creates objects (scenario has a "discovery" section)
+    num_candidates: int  # G
+    gn_max_steps: int
+
+
+class Params(eqx.Module):
+    """Traced association parameters (changing them never recompiles)."""
+
+    gate: Float[Array, ""]  # chi-square threshold on d² (2 degrees of freedom)
+    new_object_log_density: Float[Array, ""]
+    new_object_orientation_var: Float[Array, ""]
+    new_class_log_prior: Float[Array, " M"]  # uniform: a new object's class prior
+
+
+class GaussianState(eqx.Module):
+    """The belief of a single-Gaussian estimator after ``k`` steps."""
+
+    mean: Float[Array, " D"]  # [x_k, o_0, ..., o_{Nmax-1}]; uncreated slots: mean 0, cov I
+    cov: Float[Array, "D D"]
+    num_created: Int[Array, ""]  # prior objects plus discovered ones
+    class_log_post: Float[Array, "Nmax M"]  # normalized log P(c_n | Z) (Eq. 4.17)
+    observed: Bool[Array, " Nmax"]  # some detection has been assigned to the object
+    history: Int[Array, "T Dmax"]  # assigned object of each detection, -1 = empty slot
+    k: Int[Array, ""]
+    model: Model
+    params: Params
+    config: Config = eqx.field(static=True)
+
+    @property
+    def max_objects(self) -> int:
+        return self.class_log_post.shape[0]
+
+
+class StepInfo(eqx.Module):
+    """Diagnostics of one step."""
+
+    k: Int[Array, ""]  # the step just taken
+    skipped: Int[Array, ""]  # detections left unassociated (empty gate of a known map, no free slot)
+    rejected: Int[Array, ""]  # detections whose null component is active at the solution (max-mixture)
+    num_created: Int[Array, ""]
+    solver_result: optx.RESULTS
+
+
+class Association(eqx.Module):
+    """The step's association hypotheses (see the module docstring)."""
+
+    candidates: Int[Array, "Dmax G"]  # object of each candidate (nearest first)
+    candidate_ok: Bool[Array, "Dmax G"]  # created, inside the gate, detection present
+    options: Int[Array, "R Dmax"]  # candidate index per slot, G = null (static table)
+    log_prob: Float[Array, " R"]  # log P(d_k | Z⁻); -inf for invalid rows
+    new: Bool[Array, "R Dmax"]  # the slot's null entry creates an object
+    skip: Bool[Array, "R Dmax"]  # the slot's null entry leaves the detection unassociated
+    marginals: Float[Array, "Dmax G1"]  # P(d_k^j = candidate g), last column the null option
+    class_loglik: Float[Array, "Dmax Nmax M"]  # log P(z^s_j | c) seen from each object
+    new_class_loglik: Float[Array, "Dmax M"]  # ... from the object the detection would create
+
+    @property
+    def num_candidates(self) -> int:
+        return self.candidates.shape[1]
+
+
+# --------------------------------------------------------------------------- #
+# Init and view
+# --------------------------------------------------------------------------- #
+
+
+def chi2_gate(probability: float) -> float:
+    """The chi-square quantile of 2 degrees of freedom: ``−2 log(1 − p)`` (closed form)."""
+    if not 0.0 < probability < 1.0:
+        raise ValueError(f"gate_probability: expected a number in (0, 1), got {probability!r}")
+    return -2.0 * math.log1p(-probability)
+
+
+def init_state(scenario: Scenario, settings: Settings) -> GaussianState:
+    """The belief before step 1: the priors of the scenario's objects, then uncreated slots."""
+    disc = scenario.discovery
+    n, m = scenario.num_objects, scenario.num_classes
+    n_max = n if disc is None else disc.max_objects
+    if n_max < 1:
+        raise ValueError("objects: the scenario has no objects and no discovery section to create any")
+    g = settings.option("candidates", DEFAULT_CANDIDATES)
+    if not (isinstance(g, int) and g >= 1):
+        raise ValueError(f"candidates: expected a positive int, got {g!r}")
+    model = model_from_scenario(scenario.replace(discovery=None), settings.classifier)
+    dim = 3 + 3 * n_max
+    mean = np.zeros(dim)
+    cov = np.eye(dim)
+    mean[:3], cov[:3, :3] = scenario.robot_prior_mean, scenario.robot_prior_cov
+    for i in range(n):  # host-side, once
+        mean[3 + 3 * i : 6 + 3 * i] = scenario.object_prior_means[i]
+        cov[3 + 3 * i : 6 + 3 * i, 3 + 3 * i : 6 + 3 * i] = scenario.object_prior_covs[i]
+    uniform = np.full(m, -math.log(m))
+    class_log_post = np.tile(uniform, (n_max, 1))
+    class_log_post[:n] = np.log(scenario.class_prior)
+    f = lambda a: jnp.asarray(a, dtype=float)  # noqa: E731
+    params = Params(
+        gate=f(chi2_gate(settings.option("gate_probability", DEFAULT_GATE))),
+        new_object_log_density=f(0.0 if disc is None else disc.new_object_log_density),
+        new_object_orientation_var=f(1.0 if disc is None else disc.new_object_orientation_var),
+        new_class_log_prior=f(uniform),
+    )
+    return GaussianState(
+        mean=f(mean), cov=f(cov), num_created=jnp.asarray(n, dtype=jnp.int32),
+        class_log_post=f(class_log_post), observed=jnp.zeros(n_max, dtype=bool),
+        history=jnp.full((settings.max_steps, settings.max_detections), -1, dtype=jnp.int32),
+        k=jnp.zeros((), dtype=jnp.int32), model=model, params=params,
+        config=Config(disc is not None, min(g, n_max), settings.gn_max_steps),
+    )
+
+
+def view(state: GaussianState) -> Mixture:
+    """The belief as a one-component :class:`~.base.Mixture` (classes: MAP of Eq. 4.17, -1 if unobserved)."""
+    classes = jnp.where(state.observed, jnp.argmax(state.class_log_post, axis=-1), -1).astype(jnp.int32)
+    return Mixture(
+        log_weights=jnp.zeros(1, state.mean.dtype), mean=state.mean[None, :3], cov=state.cov[None, :3, :3],
+        classes=classes[None], history=state.history[None], k=state.k,
+    )
+
+
+def describe(name: str, reference: str, settings: Settings) -> str:
+    return (
+        f"hybridslam {__version__} {name} ({reference}); classifier={settings.classifier or 'scenario'}, "
+        f"candidates={settings.option('candidates', DEFAULT_CANDIDATES)}, "
+        f"gate_probability={settings.option('gate_probability', DEFAULT_GATE):g}, gn_max_steps={settings.gn_max_steps}"
+    )
+
+
+def warnings(info: StepInfo) -> list[str]:
+    """One line per problem of a step: unassociated detections, rejected ones, a failed solve."""
+    k, out = int(info.k), []
+    if int(info.skipped):
+        out.append(f"step {k}: {int(info.skipped)} detection(s) left unassociated (no object inside the gate "
+                   "of a known map, or no free object slot: raise discovery.max_objects)")
+    if int(info.rejected):
+        out.append(f"step {k}: {int(info.rejected)} detection(s) explained by the null hypothesis at the solution "
+                   "(treated as outliers)")
+    if not bool(info.solver_result == optx.RESULTS.successful):
+        out.append(f"step {k}: the Gauss-Newton update did not converge")
+    return out
+
+
+# --------------------------------------------------------------------------- #
+# Association probabilities
+# --------------------------------------------------------------------------- #
+
+
+@functools.lru_cache(maxsize=None)
+def option_table(max_detections: int, num_candidates: int) -> np.ndarray:
+    """Every tuple of per-slot options ``0..G`` (``G`` = null), shape ``((G+1)^Dmax, Dmax)``."""
+    rows = list(itertools.product(range(num_candidates + 1), repeat=max_detections))
+    return np.asarray(rows, dtype=np.int32).reshape(-1, max_detections)
+
+
+def _objects(mean: Float[Array, " D"]) -> Float[Array, "Nmax 3"]:
+    return mean[3:].reshape(-1, 3)
+
+
+def _innovation(x, obj, geo):
+    """``z − h(x, o)`` (bearing wrapped) and its Jacobians wrt ``x`` and ``o``."""
+    e = lambda x_, o_: geometry.geometric_residual(geo, geometry.range_bearing(x_, o_))  # noqa: E731
+    jx, jo = jax.jacfwd(e, argnums=(0, 1))(x, obj)
+    return e(x, obj), -jx, -jo  # Jacobians of h = z − e
+
+
+def _class_loglik(classifier, scores, x, obj):
+    """``log P(z^s | c, viewpoint)`` for every class (Eq. 2 / Eq. 2.14)."""
+    r, log_norm = classifier.residuals(scores, geometry.viewpoint(x, obj))
+    return log_norm - 0.5 * jnp.sum(r**2, axis=-1)
+
+
+def _marginal_cov_blocks(cov, n_max):
+    """Per object: ``Σ_xx``, ``Σ_xo`` and ``Σ_oo`` blocks, shapes (3, 3), (Nmax, 3, 3), (Nmax, 3, 3)."""
+    sxo = cov[:3, 3:].reshape(3, n_max, 3).transpose(1, 0, 2)
+    soo = cov[3:, 3:].reshape(n_max, 3, n_max, 3)
+    soo = soo[jnp.arange(n_max), :, jnp.arange(n_max), :]
+    return cov[:3, :3], sxo, soo
+
+
+def _joint_log_likelihood(obj, used, innov, hx, ho, cov, geometric_cov):
+    """Joint linearized ``log p(z_used | d, Z⁻)`` (Eq. 4.14-4.15 stacked over the used slots).
+
+    ``S = H Σ Hᵀ + I⊗Γ`` over ``[x_k, o_{obj_1}, ..., o_{obj_Dmax}]``; unused slots are masked to
+    unit rows and contribute nothing.
+    """
+    dmax = obj.shape[0]
+    slots = jnp.arange(dmax)
+    r = jnp.where(used[:, None], innov[slots, obj], 0.0).reshape(-1)
+    h_x, h_o = hx[slots, obj], ho[slots, obj]  # (Dmax, 2, 3)
+    h_o = (h_o[:, :, None, :] * jnp.eye(dmax, dtype=cov.dtype)[:, None, :, None]).reshape(dmax, 2, 3 * dmax)
+    h = jnp.concatenate([h_x, h_o], axis=-1).reshape(2 * dmax, 3 + 3 * dmax)
+    idx = jnp.concatenate([jnp.arange(3), (3 + 3 * obj[:, None] + jnp.arange(3)[None, :]).reshape(-1)])
+    s = h @ cov[idx][:, idx] @ h.T + jnp.kron(jnp.eye(dmax, dtype=cov.dtype), geometric_cov)
+    rows = jnp.repeat(used, 2)
+    s = jnp.where(rows[:, None] & rows[None, :], s, jnp.eye(2 * dmax, dtype=cov.dtype))
+    chol = jnp.linalg.cholesky(s)
+    white = jsl.solve_triangular(chol, r, lower=True)
+    log_det = jnp.sum(jnp.log(jnp.diagonal(chol)))  # ½ log|S|; the unit rows add 0
+    return -0.5 * jnp.sum(white**2) - log_det - jnp.sum(used) * _LOG_2PI
+
+
+def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, "D D"],
+              detections: Detections) -> Association:
+    """Gating, joint assignment probabilities and per-detection marginals at the propagated belief."""
+    cfg, params, sensor = state.config, state.params, state.model.sensor
+    n_max, g = state.max_objects, cfg.num_candidates
+    dmax = detections.mask.shape[0]
+    x, objs = mean[:3], _objects(mean)
+    gamma = sensor.geometric_cov
+
+    # Per (detection, object): innovation, Jacobians, Mahalanobis distance (gating, Sec. 3.2.1).
+    per_obj = jax.vmap(_innovation, (None, 0, None))
+    innov, hx, ho = jax.vmap(per_obj, (None, None, 0))(x, objs, detections.geo)  # (Dmax, Nmax, ...)
+    sxx, sxo, soo = _marginal_cov_blocks(cov, n_max)
+    s = (hx @ sxx @ jnp.swapaxes(hx, -1, -2) + hx @ sxo @ jnp.swapaxes(ho, -1, -2)
+         + ho @ jnp.swapaxes(sxo, -1, -2) @ jnp.swapaxes(hx, -1, -2) + ho @ soo @ jnp.swapaxes(ho, -1, -2) + gamma)
+    d2 = jnp.einsum("dni,dni->dn", innov, jnp.linalg.solve(s, innov[..., None])[..., 0])
+    created = jnp.arange(n_max) < state.num_created
+    d2 = jnp.where(created[None, :], d2, jnp.inf)
+    neg_d2, candidates = jax.lax.top_k(-d2, g)
+    candidate_ok = (-neg_d2 <= params.gate) & detections.mask[:, None]
+
+    # Semantic terms (Eq. 4.13 / 2.14): per object, and under the null hypothesis.
+    classifier = sensor.classifier
+    per_class = jax.vmap(jax.vmap(_class_loglik, (None, None, None, 0)), (None, 0, None, None))
+    class_loglik = per_class(classifier, detections.scores, x, objs)  # (Dmax, Nmax, M)
+    new_pos = jax.vmap(discovery.back_project, (None, 0))(x, detections.geo)
+    new_objs = jnp.concatenate([new_pos, jnp.zeros((dmax, 1), mean.dtype)], axis=-1)
+    new_class_loglik = jax.vmap(_class_loglik, (None, 0, None, 0))(classifier, detections.scores, x, new_objs)
+    sem = logsumexp(state.class_log_post[None] + class_loglik, axis=-1)  # (Dmax, Nmax)
+    slots = jnp.arange(dmax)
+    sem_cand = sem[slots[:, None], candidates]  # (Dmax, G)
+    null_w = params.new_object_log_density + logsumexp(params.new_class_log_prior + new_class_loglik, axis=-1)
+
+    options = jnp.asarray(option_table(dmax, g))
+
+    def row(opts):
+        occupied = detections.mask
+        used = occupied & (opts < g)
+        pick = jnp.minimum(opts, g - 1)
+        obj = candidates[slots, pick]
+        ok = jnp.all(jnp.where(used, candidate_ok[slots, pick], occupied | (opts == g)))
+        twice = (obj[:, None] == obj[None, :]) & used[:, None] & used[None, :] & ~jnp.eye(dmax, dtype=bool)
+        ok &= ~jnp.any(twice)
+        null = occupied & (opts == g)
+        order = jnp.cumsum(null) - 1
+        new = null & (state.num_created + order < n_max) if cfg.discovery else jnp.zeros_like(null)
+        log_w = (_joint_log_likelihood(obj, used, innov, hx, ho, cov, gamma)
+                 + jnp.sum(jnp.where(used, sem_cand[slots, pick], 0.0)) + jnp.sum(jnp.where(new, null_w, 0.0)))
+        return ok, new, null & ~new, log_w
+
+    ok, new, skip, log_w = jax.vmap(row)(options)
+    num_skip = jnp.sum(skip, axis=-1)
+    ok &= num_skip == jnp.min(jnp.where(ok, num_skip, dmax + 1))  # the all-null row is always ok
+    log_w = jnp.where(ok, log_w, -jnp.inf)
+    log_prob = log_w - logsumexp(log_w)
+    onehot = options[:, :, None] == jnp.arange(g + 1)[None, None, :]  # (R, Dmax, G+1)
+    marginals = jnp.einsum("r,rdo->do", jnp.exp(log_prob), onehot.astype(mean.dtype))
+    return Association(candidates, candidate_ok, options, log_prob, new, skip, marginals,
+                       class_loglik, new_class_loglik)
+
+
+# --------------------------------------------------------------------------- #
+# Pieces of a step
+# --------------------------------------------------------------------------- #
+
+
+def predict(state: GaussianState, odometry: Float[Array, "3"]) -> tuple[Float[Array, " D"], Float[Array, "D D"]]:
+    """Propagate the joint Gaussian through the motion model (thesis Eq. 2.3; the paper's Eq. 11)."""
+    return propagate(state.mean, state.cov, odometry, state.model.motion_cov)
+
+
+def new_slots(state: GaussianState, new: Bool[Array, " Dmax"]) -> Int[Array, " Dmax"]:
+    """The slot each new detection creates (slot order), -1 elsewhere."""
+    return jnp.where(new, state.num_created + jnp.cumsum(new) - 1, -1)
+
+
+def fits(state: GaussianState, new: Bool[Array, " Dmax"]) -> Bool[Array, " Dmax"]:
+    """``new`` without the detections that would exceed the capacity of object slots."""
+    return new & (state.num_created + jnp.cumsum(new) - 1 < state.max_objects)
+
+
+def create_objects(state: GaussianState, mean, cov, slots: Int[Array, " Dmax"], detections: Detections):
+    """Initialize every slot ``slots[j] >= 0`` from detection ``j`` (:func:`hybridslam.discovery.create_object`).
+
+    Sequential (a scan over the detection slots): each new object correlates with the ones before.
+    """
+
+    def one(carry, item):
+        m, c = carry
+        slot, geo = item
+        m2, c2 = discovery.create_object(m, c, jnp.maximum(slot, 0), geo, state.model.sensor.geometric_cov,
+                                         state.params.new_object_orientation_var)
+        keep = slot >= 0
+        return (jnp.where(keep, m2, m), jnp.where(keep, c2, c)), None
+
+    (mean, cov), _ = jax.lax.scan(one, (mean, cov), (slots, detections.geo))
+    return mean, cov
+
+
+def prior_residual(y, mean, chol):
+    """The propagated Gaussian as a whitened prior factor ``L⁻¹ (y ⊖ μ)``."""
+    return jsl.solve_triangular(chol, wrap_angles(y - mean), lower=True)
+
+
+def geometric_residual(sensor, y, obj, geo):
+    """Whitened ``W (z − h(x_k, o_obj))`` of one detection (the paper's Eq. 10, geometric part)."""
+    w, _ = sensor.geometric_sqrt_information()
+    return w @ geometry.geometric_residual(geo, geometry.range_bearing(y[:3], _objects(y)[obj]))
+
+
+def _weighted_residuals(y, args):
+    sensor, mean, chol, obj, geo, weight = args
+    r = jax.vmap(geometric_residual, (None, None, 0, 0))(sensor, y, obj, geo)
+    return jnp.concatenate([prior_residual(y, mean, chol), (jnp.sqrt(weight)[:, None] * r).reshape(-1)])
+
+
+def weighted_update(state: GaussianState, mean, cov, obj: Int[Array, " F"], geo: Float[Array, "F 2"],
+                    weight: Float[Array, " F"]):
+    """Gauss-Newton with factors ``√w_f W (z_f − h(x_k, o_{obj_f}))`` (``w_f = 0``: no factor).
+
+    ``w = 1`` is an ordinary factor (ML); fractional weights scale its information (GPDA, Eq. 3.7).
+    """
+    args = (state.model.sensor, mean, jnp.linalg.cholesky(cov), jnp.maximum(obj, 0), geo, weight)
+    value, new_cov, result = gauss_newton(_weighted_residuals, mean, args, state.config.gn_max_steps)
+    return wrap_angles(value), new_cov, result
+
+
+def update_classes(state: GaussianState, assoc: Association, prob: Float[Array, "Dmax Nmax"],
+                   created: Int[Array, " Dmax"]) -> Float[Array, "Nmax M"]:
+    """Class posteriors after the step (Eq. 4.17 with Eq. 2.14).
+
+    ``prob[j, n]``: the probability that detection ``j`` is of existing object ``n``; each
+    multiplies ``P(c_n | Z)`` by ``p P(z^s|c)/P(z^s) + (1 − p)``. A created object ``created[j]``
+    starts from the uniform prior times its detection's likelihood.
+    """
+    post = state.class_log_post  # (Nmax, M)
+    lik = assoc.class_loglik - logsumexp(post[None] + assoc.class_loglik, axis=-1, keepdims=True)  # P(z|c)/P(z)
+    p = prob[..., None]
+    log_p = jnp.log(jnp.where(p > 0, p, 1.0))
+    factor = jnp.where(p > 0, jnp.logaddexp(log_p + lik, jnp.log1p(-jnp.minimum(p, 1.0))), 0.0)
+    post = post + jnp.sum(factor, axis=0)
+    fresh = state.params.new_class_log_prior[None] + assoc.new_class_loglik  # (Dmax, M)
+    hit = created[:, None] == jnp.arange(state.max_objects)[None, :]  # (Dmax, Nmax)
+    post = jnp.where(jnp.any(hit, axis=0)[:, None], jnp.einsum("dn,dm->nm", hit.astype(post.dtype), fresh), post)
+    return post - logsumexp(post, axis=-1, keepdims=True)
+
+
+def commit(state: GaussianState, mean, cov, class_log_post, assigned: Int[Array, " Dmax"],
+           used: Bool[Array, " Dmax"], detections: Detections, num_new, info: dict) -> tuple[GaussianState, StepInfo]:
+    """Write the step's results into the state.
+
+    ``assigned`` is the object recorded per detection in the history (a result file needs one for
+    every detection, so a skipped one records its nearest object); ``used`` marks the detections that
+    really were associated (their objects count as observed).
+    """
+    assigned = jnp.where(detections.mask, assigned, -1).astype(jnp.int32)
+    hit = (assigned[:, None] == jnp.arange(state.max_objects)[None, :]) & (used & detections.mask)[:, None]
+    observed = state.observed | jnp.any(hit, axis=0)
+    num_created = (state.num_created + num_new).astype(jnp.int32)
+    new_state = dataclasses.replace(
+        state, mean=mean, cov=0.5 * (cov + cov.T), num_created=num_created, class_log_post=class_log_post,
+        observed=observed, history=state.history.at[state.k].set(assigned), k=state.k + 1,
+    )
+    zero = jnp.zeros((), jnp.int32)
+    step_info = StepInfo(k=state.k + 1, skipped=info.get("skipped", zero).astype(jnp.int32),
+                         rejected=info.get("rejected", zero).astype(jnp.int32), num_created=num_created,
+                         solver_result=info["solver_result"])
+    return new_state, step_info

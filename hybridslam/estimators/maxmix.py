@@ -1,0 +1,122 @@
+"""Max-mixtures semantic SLAM (Doherty's thesis Ch. 4, Eq. 4.11-4.17; the summary's Eq. 13).
+
+Association probabilities ``w_jg = P(d_j = g | Z⁻)`` from the linearized marginal likelihood
+(Eq. 4.14-4.15) times the semantic term (Eq. 4.13), by :func:`.gaussian.associate`. Each detection
+then contributes one max-mixture factor (Eq. 4.16)
+
+    f_j(x_k, ℓ) = max_g  w_jg · p(z_j | x_k, ℓ_g),   g over its gated candidates and the null hypothesis,
+
+inside Gauss-Newton: at every iterate the residual function picks the active component
+``g* = argmin_g ½‖r_g(y)‖² − log w_jg − log η_g`` (``η`` the normalizer of ``p``; no gradient
+through the choice, as in Olson & Agarwal's max-mixtures) and returns that component's whitened
+residual. It also returns the constant ``√(2 (κ_g* − κ_min))`` with ``κ_g = −log w_jg − log η_g``:
+it has no Jacobian, so it does not change the Gauss-Newton step, but it makes the solver's
+objective ``½‖r‖²`` the factor's negative log (up to a constant), so the convergence test compares
+like with like across a switch of component. The null component (a new object's constant density
+``new_object_log_density``) contributes no residual: a detection whose null component is active at
+the solution is an outlier and moves nothing (counted in ``StepInfo.rejected``).
+
+New objects: a detection whose most probable option is the null hypothesis creates one (initialized
+from it) and gets no factor. Class estimates: Eq. 4.17, from the association probabilities (the
+"component weights of the max-mixture factors"). The history records the component active at the
+solution (the likeliest object where the null component is). Options as in :mod:`.ml`.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int
+
+from ..belief import Detections
+from . import gaussian
+from .gaussian import GaussianState, StepInfo
+from .base import Settings
+
+NAME = "max-mixture"
+
+
+def init(scenario, settings: Settings) -> GaussianState:
+    return gaussian.init_state(scenario, settings)
+
+
+def component_costs(sensor, y, obj: Int[Array, " G"], geo: Float[Array, "2"], log_w: Float[Array, " G1"],
+                    valid: Bool[Array, " G1"], null_log_density: Float[Array, ""]):
+    """Per component of one max-mixture factor: whitened residuals ``(G, 2)``, constants ``κ`` and
+    costs ``−log(w_g p(z | y, ℓ_g)) = ½‖r_g‖² + κ_g`` (``+inf`` for invalid components; the last is the null)."""
+    r = jax.vmap(gaussian.geometric_residual, (None, None, 0, None))(sensor, y, obj, geo)
+    _, geo_norm = sensor.geometric_sqrt_information()
+    log_eta = jnp.concatenate([jnp.broadcast_to(geo_norm, obj.shape), null_log_density[None]])
+    kappa = jnp.where(valid, -log_w - log_eta, 0.0)
+    quad = jnp.concatenate([0.5 * jnp.sum(r**2, axis=-1), jnp.zeros(1, r.dtype)])
+    return r, kappa, jnp.where(valid, quad + kappa, jnp.inf)
+
+
+def max_mixture_residual(sensor, y, obj, geo, log_w, valid, null_log_density):
+    """The max-mixture factor of one detection (Eq. 4.16): the active component's whitened residual
+    and the constant residual of its weight; ``(3,)`` and the active component's index."""
+    _, kappa, cost = component_costs(sensor, jax.lax.stop_gradient(y), obj, geo, log_w, valid, null_log_density)
+    active = jnp.argmin(cost)
+    live = jnp.any(valid)
+    g = obj.shape[0]
+    r = gaussian.geometric_residual(sensor, y, obj[jnp.minimum(active, g - 1)], geo)
+    r = jnp.where(live & (active < g), r, 0.0)
+    kappa_min = jnp.min(jnp.where(valid, kappa, jnp.inf))
+    extra = jnp.sqrt(jnp.maximum(2.0 * (kappa[active] - jnp.where(live, kappa_min, 0.0)), 0.0))
+    return jnp.concatenate([r, jnp.where(live, extra, 0.0)[None]]), active
+
+
+def _residuals(y, args):
+    sensor, mean, chol, obj, geo, log_w, valid, null_log_density = args
+    rows, _ = jax.vmap(max_mixture_residual, (None, None, 0, 0, 0, 0, None))(
+        sensor, y, obj, geo, log_w, valid, null_log_density)
+    return jnp.concatenate([gaussian.prior_residual(y, mean, chol), rows.reshape(-1)])
+
+
+@jax.jit
+def step(state: GaussianState, odometry: Float[Array, "3"], detections: Detections,
+         key: jax.Array) -> tuple[GaussianState, StepInfo]:
+    """One filter step; ``key`` is unused (the estimator is deterministic)."""
+    del key
+    mean, cov = gaussian.predict(state, odometry)
+    assoc = gaussian.associate(state, mean, cov, detections)
+    g = assoc.num_candidates
+    best = jnp.argmax(assoc.marginals, axis=-1)
+    wants_new = detections.mask & (best == g) if state.config.discovery else jnp.zeros_like(detections.mask)
+    new = gaussian.fits(state, wants_new)
+    created = gaussian.new_slots(state, new)
+    mean, cov = gaussian.create_objects(state, mean, cov, created, detections)
+
+    w = assoc.marginals
+    null_ok = jnp.full((w.shape[0], 1), state.config.discovery)
+    valid = jnp.concatenate([assoc.candidate_ok, null_ok], axis=-1) & (w > 0) & ~new[:, None] & detections.mask[:, None]
+    log_w = jnp.log(jnp.where(valid, w, 1.0))
+    null_ld = state.params.new_object_log_density
+    args = (state.model.sensor, mean, jnp.linalg.cholesky(cov), assoc.candidates, detections.geo, log_w, valid, null_ld)
+    value, cov, result = gaussian.gauss_newton(_residuals, mean, args, state.config.gn_max_steps)
+    mean = gaussian.wrap_angles(value)
+
+    _, active = jax.vmap(max_mixture_residual, (None, None, 0, 0, 0, 0, None))(
+        state.model.sensor, mean, assoc.candidates, detections.geo, log_w, valid, null_ld)
+    live = jnp.any(valid, axis=-1)
+    on_object = live & (active < g)
+    slots = jnp.arange(w.shape[0])
+    likeliest = jnp.argmax(jnp.where(valid[:, :g], w[:, :g], -1.0), axis=-1)
+    chosen = jnp.where(on_object, jnp.minimum(active, g - 1), likeliest)
+    assigned = jnp.where(new, created, assoc.candidates[slots, chosen])
+
+    p = jnp.where(valid[:, :g], w[:, :g], 0.0)
+    onehot = assoc.candidates[..., None] == jnp.arange(state.max_objects)
+    prob = jnp.einsum("dg,dgn->dn", p, onehot.astype(p.dtype))
+    classes = gaussian.update_classes(state, assoc, prob, created)
+    info = {"skipped": jnp.sum(detections.mask & ~live & ~new),
+            "rejected": jnp.sum(live & ~on_object), "solver_result": result}
+    return gaussian.commit(state, mean, cov, classes, assigned, on_object | new, detections, jnp.sum(new), info)
+
+
+view = gaussian.view
+warnings = gaussian.warnings
+
+
+def describe(settings: Settings) -> str:
+    return gaussian.describe("max-mixtures semantic SLAM", "Doherty thesis Ch. 4, Eq. 4.16", settings)
