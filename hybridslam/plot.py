@@ -15,7 +15,7 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
-from .result import StepRecord
+from .result import Result, StepRecord
 from .scenario import Scenario
 
 # (column of metrics.csv, panel title, log-scale y axis)
@@ -260,3 +260,61 @@ def plot_alpha_sweep(rows: Iterable[Mapping[str, object]], path: str | os.PathLi
     if title:
         fig.suptitle(title, fontsize=11)
     fig.savefig(path, dpi=120)
+
+
+def _true_landmarks(scenario: Scenario) -> tuple[np.ndarray, np.ndarray] | None:
+    """True landmark positions (N, 2) and classes (N,): ``true_objects`` of an unknown map, else the objects'."""
+    if scenario.true_objects is not None:
+        return (np.array([p[:2] for p, _ in scenario.true_objects]).reshape(-1, 2),
+                np.array([c for _, c in scenario.true_objects], dtype=int))
+    if scenario.true_object_poses is not None and scenario.true_classes is not None:
+        return np.asarray(scenario.true_object_poses)[:, :2], np.asarray(scenario.true_classes, dtype=int)
+    return None
+
+
+def plot_trajectory(ax_or_path: Axes | str | os.PathLike, scenario: Scenario, result: Result | None = None,
+                    title: str | None = None, *, landmarks: tuple[np.ndarray, np.ndarray] | None = None,
+                    label: str = "estimate") -> None:
+    """A trajectory panel like the thesis's Fig. 5-3a-c, on an ``Axes`` or saved to a file path.
+
+    Ground truth dashed black, the estimate (the highest-weight component's pose after each step,
+    :func:`hybridslam.trajectory.trajectory_from_result`) solid, true landmarks as filled circles and
+    estimated ``landmarks`` (positions ``(L, 2)``, classes ``(L,)``, class -1 = unknown: grey), when
+    given, as rings, both colored by class. ``result=None`` draws the scenario alone.
+    """
+    from .trajectory import trajectory_from_result
+
+    if isinstance(ax_or_path, Axes):
+        ax, fig = ax_or_path, None
+    else:
+        fig = Figure(figsize=(8.0, 5.0), layout="constrained")
+        ax = fig.subplots()
+    color = lambda c: "0.55" if c < 0 else f"C{c}"  # noqa: E731
+    truth = _true_landmarks(scenario)
+    if truth is not None:
+        for c in np.unique(truth[1]):
+            pts = truth[0][truth[1] == c]
+            ax.plot(pts[:, 0], pts[:, 1], "o", color=color(c), ms=6, label=f"landmark, class {c}")
+    if landmarks is not None:
+        pos, cls = np.asarray(landmarks[0], dtype=float).reshape(-1, 2), np.asarray(landmarks[1], dtype=int)
+        for c in np.unique(cls):
+            pts = pos[cls == c]
+            ax.plot(pts[:, 0], pts[:, 1], "o", mfc="none", mec=color(c), mew=1.5, ms=10,
+                    label=f"estimated landmark, class {c}" if c >= 0 else "estimated landmark, class open")
+    if scenario.true_robot_poses is not None:
+        poses = np.asarray(scenario.true_robot_poses)
+        ax.plot(poses[:, 0], poses[:, 1], "--", color="k", lw=1.2, label="ground truth")
+    if result is not None and result.steps:
+        _, est = trajectory_from_result(result)
+        start = np.asarray(scenario.robot_prior_mean)[None, :2]
+        est = np.concatenate([start, est[:, :2]])
+        ax.plot(est[:, 0], est[:, 1], "-", color="C3", lw=1.5, label=label)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(True, alpha=0.3)
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    if title:
+        ax.set_title(title, fontsize=10)
+    if fig is not None:
+        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
+        fig.savefig(ax_or_path, dpi=120)
