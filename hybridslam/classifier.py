@@ -196,8 +196,8 @@ MODELS = ("mirror", "independent", "none", "learned", "confusion")
 
 
 def make_classifier(
-    name: str, num_classes: int, alpha: float | None = None, K: float | None = None, *, path: str | None = None,
-    matrix: Float[Array, "M M"] | None = None,
+    name: str, num_classes: int, alpha: float | None = None, K: float | None = None, *,
+    path: str | None = None, matrix: Float[Array, "M M"] | None = None,
 ) -> ClassifierModel:
     """Build a classifier model by its scenario-file name (``classifier.model``).
 
@@ -229,6 +229,7 @@ def make_classifier(
             raise ValueError("classifier.matrix: the 'confusion' model needs its confusion matrix")
         model = Confusion(matrix)
         if model.num_classes != num_classes:
-            raise ValueError(f"classifier.matrix: a {model.num_classes}-class matrix, expected {num_classes} classes")
+            raise ValueError(
+                f"classifier.matrix: a {model.num_classes}-class matrix, expected {num_classes} classes")
         return model
     raise ValueError(f"classifier.model: unknown model {name!r} (known: {', '.join(MODELS)})")

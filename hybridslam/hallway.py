@@ -212,7 +212,8 @@ def hallway(
                         class_prior=np.full((n, m), 1.0 / m), true_object_poses=objects,
                         true_classes=classes, **common)
     return Scenario(
-        object_prior_means=np.zeros((0, 3)), object_prior_covs=np.zeros((0, 3, 3)), class_prior=np.zeros((0, m)),
+        object_prior_means=np.zeros((0, 3)), object_prior_covs=np.zeros((0, 3, 3)),
+        class_prior=np.zeros((0, m)),
         discovery=Discovery(n + setup.discovery_margin, setup.new_object_log_density,
                             setup.new_object_orientation_var),
         true_objects=tuple((p, int(c)) for p, c in zip(objects, classes)), **common,

@@ -4,8 +4,8 @@ The definitions are evo's (``evo.core.metrics``, the metrics of the thesis's Tab
 poses ``[x, y, theta]`` embedded in SE(3) with ``z = 0`` and a rotation about ``z``:
 
 * APE (absolute pose error) of pose ``i``: ``E_i = P_ref,i⁻¹ P_est,i``; its translation part is
-  ``‖t_est,i − t_ref,i‖`` (m), its rotation part the angle of ``E_i``'s rotation, ``|wrap(θ_est,i − θ_ref,i)|``
-  (rad, in ``[0, π]``, evo's ``rotation_angle_rad``).
+  ``‖t_est,i − t_ref,i‖`` (m), its rotation part the angle of ``E_i``'s rotation,
+  ``|wrap(θ_est,i − θ_ref,i)|`` (rad, in ``[0, π]``, evo's ``rotation_angle_rad``).
 * RPE (relative pose error) over ``delta`` frames: ``E_i = (Q_i⁻¹ Q_{i+δ})⁻¹ (P_i⁻¹ P_{i+δ})`` with ``Q``
   the reference and ``P`` the estimate (TUM RGB-D benchmark, Sturm et al. 2012, Eq. 2); translation
   ``‖t(E_i)‖``, rotation ``|θ(E_i)|``.
@@ -104,7 +104,9 @@ def rpe(reference: Float[Array, "T 3"], estimate: Float[Array, "T 3"], delta: in
     return _error(_between(q_rel, p_rel))
 
 
-def trajectory_errors(reference: Float[Array, "T 3"], estimate: Float[Array, "T 3"]) -> dict[str, dict[str, float]]:
+def trajectory_errors(
+    reference: Float[Array, "T 3"], estimate: Float[Array, "T 3"]
+) -> dict[str, dict[str, float]]:
     """All of Table 4.1 for both metrics: keys ``ape_translation``, ``ape_rotation``, ``rpe_translation``,
     ``rpe_rotation`` (RPE over 1 frame; absent for a one-pose trajectory), each ``{stat: value}``."""
     out = {f"ape_{part}": s for part, s in ape(reference, estimate).statistics().items()}
@@ -135,7 +137,7 @@ def trajectory_from_scenario(scenario: Scenario) -> tuple[np.ndarray, np.ndarray
 
 
 def write_tum(path: str | os.PathLike, timestamps: np.ndarray, poses: Float[Array, "T 3"]) -> None:
-    """Write SE(2) ``poses`` as a TUM trajectory file, one ``t tx ty tz qx qy qz qw`` line each (exact floats)."""
+    """Write SE(2) ``poses`` as a TUM trajectory file: a ``t tx ty tz qx qy qz qw`` line each, exact floats."""
     p = np.asarray(_poses(poses, "poses"))
     t = np.asarray(timestamps, dtype=float)
     if t.shape != (p.shape[0],):
@@ -165,7 +167,8 @@ def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
             except ValueError:
                 raise ValueError(f"{os.fspath(path)}:{n}: not a list of numbers") from None
             if len(values) != 8:
-                raise ValueError(f"{os.fspath(path)}:{n}: expected 8 numbers (t tx ty tz qx qy qz qw), got {len(values)}")
+                raise ValueError(
+                    f"{os.fspath(path)}:{n}: expected 8 numbers (t tx ty tz qx qy qz qw), got {len(values)}")
             t, x, y, z, qx, qy, qz, qw = values
             norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
             if norm == 0.0 or max(abs(z), abs(qx) / norm, abs(qy) / norm) > _PLANAR_TOL:

@@ -86,7 +86,8 @@ def test_the_track_closes_the_loop_and_seeds_reproduce():
     np.testing.assert_allclose(poses[-1], poses[0], atol=1e-12)
     assert np.ptp(poses[:, 0]) == pytest.approx(20.0) and np.ptp(poses[:, 1]) == pytest.approx(10.0)
     # The start is seen again at the end: a loop closure.
-    first, last = {d.true_object for d in s.steps[0].detections}, {d.true_object for d in s.steps[-1].detections}
+    first = {d.true_object for d in s.steps[0].detections}
+    last = {d.true_object for d in s.steps[-1].detections}
     assert last and last <= first
     assert hallway(0, LEVELS[0]) == s and hallway(1, LEVELS[0]) != s
     # Levels of one seed share their detections and scale the same odometry errors.
@@ -100,7 +101,8 @@ def test_the_track_closes_the_loop_and_seeds_reproduce():
 
 def test_cli_writes_one_file_per_level_and_seed(tmp_path, capsys):
     out = tmp_path / "hw"
-    assert cli.main(["hallway", "-o", str(out), "--levels", "0.005,0.05", "--seeds", "2", "--steps", "8"]) == 0
+    args = ["hallway", "-o", str(out), "--levels", "0.005,0.05", "--seeds", "2", "--steps", "8"]
+    assert cli.main(args) == 0
     names = sorted(p.name for p in out.iterdir())
     assert names == [f"hallway_tr{v}_seed{s}.json" for v in ("0.0050", "0.0500") for s in (0, 1)]
     s = load_scenario(out / "hallway_tr0.0500_seed1.json")

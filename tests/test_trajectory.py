@@ -46,7 +46,8 @@ def test_ape_and_rpe_equal_evo_on_tum_files(tmp_path, seed):
         ("RPE", "t"): tj.rpe(ref_read, est_read).statistics()["translation"],
         ("RPE", "r"): tj.rpe(ref_read, est_read).statistics()["rotation"],
     }
-    relations = {"t": evo_metrics.PoseRelation.translation_part, "r": evo_metrics.PoseRelation.rotation_angle_rad}
+    rel = evo_metrics.PoseRelation
+    relations = {"t": rel.translation_part, "r": rel.rotation_angle_rad}
     classes = {"APE": evo_metrics.APE, "RPE": evo_metrics.RPE}
     for (metric, part), stats in ours.items():
         theirs = _evo(tmp_path / "ref.txt", tmp_path / "est.txt", classes[metric], relations[part])
