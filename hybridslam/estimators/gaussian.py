@@ -153,6 +153,11 @@ def init_state(scenario: Scenario, settings: Settings) -> GaussianState:
     if not (isinstance(g, int) and g >= 1):
         raise ValueError(f"candidates: expected a positive int, got {g!r}")
     model = model_from_scenario(scenario.replace(discovery=None), settings.classifier)
+    uniform = np.full(m, -math.log(m))
+    class_log_post = np.tile(uniform, (n_max, 1))
+    class_log_post[:n] = np.log(scenario.class_prior)
+    # One class prior row per slot, so the state's shapes depend on the capacity alone.
+    model = eqx.tree_at(lambda mod: mod.class_prior, model, jnp.asarray(np.exp(class_log_post)))
     dim = 3 + 3 * n_max
     mean = np.zeros(dim)
     cov = np.eye(dim)
@@ -160,9 +165,6 @@ def init_state(scenario: Scenario, settings: Settings) -> GaussianState:
     for i in range(n):  # host-side, once
         mean[3 + 3 * i : 6 + 3 * i] = scenario.object_prior_means[i]
         cov[3 + 3 * i : 6 + 3 * i, 3 + 3 * i : 6 + 3 * i] = scenario.object_prior_covs[i]
-    uniform = np.full(m, -math.log(m))
-    class_log_post = np.tile(uniform, (n_max, 1))
-    class_log_post[:n] = np.log(scenario.class_prior)
     f = lambda a: jnp.asarray(a, dtype=float)  # noqa: E731
     params = Params(
         gate=f(chi2_gate(settings.option("gate_probability", DEFAULT_GATE))),
@@ -283,7 +285,7 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
     innov, hx, ho = jax.vmap(per_obj, (None, None, 0))(x, objs, detections.geo)  # (Dmax, Nmax, ...)
     sxx, sxo, soo = _marginal_cov_blocks(cov, n_max)
     s = (hx @ sxx @ jnp.swapaxes(hx, -1, -2) + hx @ sxo @ jnp.swapaxes(ho, -1, -2)
-         + ho @ jnp.swapaxes(sxo, -1, -2) @ jnp.swapaxes(hx, -1, -2) + ho @ soo @ jnp.swapaxes(ho, -1, -2) + gamma)
+         + ho @ jnp.swapaxes(sxo, -1, -2) @ jnp.swapaxes(hx, -1, -2) + ho @ soo @ jnp.swapaxes(ho, -1, -2) + gamma[None, None])
     d2 = jnp.einsum("dni,dni->dn", innov, jnp.linalg.solve(s, innov[..., None])[..., 0])
     created = jnp.arange(n_max) < state.num_created
     d2 = jnp.where(created[None, :], d2, jnp.inf)
@@ -300,7 +302,7 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
     sem = logsumexp(state.class_log_post[None] + class_loglik, axis=-1)  # (Dmax, Nmax)
     slots = jnp.arange(dmax)
     sem_cand = sem[slots[:, None], candidates]  # (Dmax, G)
-    null_w = params.new_object_log_density + logsumexp(params.new_class_log_prior + new_class_loglik, axis=-1)
+    null_w = params.new_object_log_density + logsumexp(params.new_class_log_prior[None] + new_class_loglik, axis=-1)
 
     options = jnp.asarray(option_table(dmax, g))
 

@@ -48,7 +48,7 @@ def step(state: GaussianState, odometry: Float[Array, "3"], detections: Detectio
     geo = jnp.broadcast_to(detections.geo[:, None, :], (*p.shape, 2))
     mean, cov, result = gaussian.weighted_update(state, mean, cov, assoc.candidates.reshape(-1),
                                                  geo.reshape(-1, 2), p.reshape(-1))
-    onehot = assoc.candidates[..., None] == jnp.arange(state.max_objects)  # (Dmax, G, Nmax)
+    onehot = assoc.candidates[..., None] == jnp.arange(state.max_objects)[None, None, :]  # (Dmax, G, Nmax)
     prob = jnp.einsum("dg,dgn->dn", p, onehot.astype(p.dtype))
     classes = gaussian.update_classes(state, assoc, prob, created)
     used = jnp.any(p > 0, axis=-1)

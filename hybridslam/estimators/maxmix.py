@@ -106,7 +106,7 @@ def step(state: GaussianState, odometry: Float[Array, "3"], detections: Detectio
     assigned = jnp.where(new, created, assoc.candidates[slots, chosen])
 
     p = jnp.where(valid[:, :g], w[:, :g], 0.0)
-    onehot = assoc.candidates[..., None] == jnp.arange(state.max_objects)
+    onehot = assoc.candidates[..., None] == jnp.arange(state.max_objects)[None, None, :]
     prob = jnp.einsum("dg,dgn->dn", p, onehot.astype(p.dtype))
     classes = gaussian.update_classes(state, assoc, prob, created)
     info = {"skipped": jnp.sum(detections.mask & ~live & ~new),
