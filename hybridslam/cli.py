@@ -7,6 +7,7 @@
     hybridslam sweep [--alphas 0,0.25,0.5] [--models mirror,independent,none] [--tracks 8] -o runs/sweep
     hybridslam sweep --scenarios 'logs/*.json' [--models ...] -o runs/logs
     hybridslam plot runs/sweep
+    hybridslam hallway -o runs/hallway [--levels 0.005,0.01625,...] [--seeds 5] [--steps 60] [--known-map]
 
 Every user error (bad option, missing or malformed file, invalid setting, unwritable output)
 ends with exit status 2 and one line ``hybridslam: error: <message>`` on stderr.
@@ -528,6 +529,40 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------- #
+# hybridslam hallway
+# --------------------------------------------------------------------------- #
+
+
+def cmd_hallway(args: argparse.Namespace) -> int:
+    """Write the hallway study's scenarios (thesis Sec. 5.4.1): one file per (noise level, seed)."""
+    from . import hallway
+
+    levels = hallway.LEVELS if args.levels is None else tuple(_floats(args.levels, "--levels"))
+    if not all(v > 0 for v in levels):
+        raise CLIError(f"--levels: expected positive traces of the odometry covariance, got {args.levels!r}")
+    if args.seeds < 1:
+        raise CLIError(f"--seeds: expected a positive number, got {args.seeds}")
+    if args.steps is not None and args.steps < 1:
+        raise CLIError(f"--steps: expected a positive number of steps, got {args.steps}")
+    if os.path.exists(args.output) and not os.path.isdir(args.output):
+        raise CLIError(f"-o {args.output!r}: exists and is not a folder")
+    names = [hallway.scenario_name(v, 0) for v in levels]
+    if len(set(names)) != len(names):
+        raise CLIError(f"--levels: two levels share a file name (4 decimals): {args.levels!r}")
+    os.makedirs(args.output, exist_ok=True)
+    for level in levels:
+        for seed in range(args.seeds):
+            scenario = hallway.hallway(seed, level, steps=args.steps, known_map=args.known_map)
+            save_scenario(scenario, os.path.join(args.output, hallway.scenario_name(level, seed)))
+    num_det = sum(len(s.detections) for s in scenario.steps)
+    landmarks = scenario.num_objects if args.known_map else len(scenario.true_objects or ())
+    print(f"wrote {len(levels) * args.seeds} scenario files to {args.output}: tr(Lambda_t) in "
+          f"{', '.join(f'{v:g}' for v in levels)} x seeds 0..{args.seeds - 1}; {scenario.num_steps} steps, "
+          f"{landmarks} landmarks ({'known' if args.known_map else 'unknown'} map), ~{num_det} detections each")
+    return 0
+
+
+# --------------------------------------------------------------------------- #
 # Parser and entry point
 # --------------------------------------------------------------------------- #
 
@@ -547,7 +582,7 @@ def _add_estimator_options(p: argparse.ArgumentParser, seed_help: str = "PRNG se
 
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog=PROG, description="Semantic SLAM with ambiguous data association (hybrid belief).")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="{simulate,run,demo,sweep,plot}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{simulate,run,demo,sweep,plot,hallway}")
 
     p = sub.add_parser("simulate", help="write a paper-setup scenario file (Sec. V)")
     p.add_argument("--seed", type=int, default=0, help="track and measurement seed")
@@ -595,6 +630,16 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("plot", help="redraw a study's plots from its table.csv")
     p.add_argument("folder", help="the study's output folder")
     p.set_defaults(func=cmd_plot)
+
+    p = sub.add_parser("hallway", help="write the hallway study's scenario files (thesis Sec. 5.4.1)")
+    p.add_argument("-o", "--output", required=True, help="folder for hallway_tr<level>_seed<s>.json")
+    p.add_argument("--levels", default=None,
+                   help="traces of the odometry covariance, comma-separated (default: 0.005 to 0.05 in 5 steps)")
+    p.add_argument("--seeds", type=int, default=1, help="seeds 0..N-1 per level")
+    p.add_argument("--steps", type=int, default=None, help="steps per run (default: one loop, 60)")
+    p.add_argument("--known-map", action="store_true",
+                   help="list every landmark as a prior object (no discovery section)")
+    p.set_defaults(func=cmd_hallway)
     return parser
 
 
