@@ -8,6 +8,11 @@ class realization of object ``n`` or ``-1`` while the component has not associat
 realizations, Sec. IV-D). ``history[i, j]`` is ``β_{j+1}`` (object index per detection slot,
 ``-1`` for an empty slot).
 
+Unknown maps (``model.discovery`` set): ``N`` is the object capacity; ``num_created[i]`` objects
+exist in component ``i`` (the prior ones first, then those its detections created, in creation
+order); the other slots are placeholders (mean 0, covariance I, uncorrelated,
+:mod:`hybridslam.discovery`) whose class stays ``-1``.
+
 Capacity ``K``, the history length and the detection slots are array shapes: static. How many
 components are alive is traced (``log_weights > -inf``), so one compiled step serves a whole run.
 """
@@ -43,6 +48,10 @@ class Config:
     is_screen_nats: float = 30.0
     weights: WeightMethod = "laplace-is"  # "sampled" is the paper's Eq. 16 estimator (README, Weights)
     gn_max_steps: int = 20  # Gauss-Newton iteration budget of the update (Eq. 9)
+    # Association gating (thesis Sec. 3.2.1): each detection may only be associated with the G
+    # objects of lowest Mahalanobis distance of its innovation (per component), or a new object.
+    # Children outside the gate get weight 0. None: every object (the exact enumeration).
+    gate_candidates: int | None = None
     # Name of an enclosing jax.vmap axis over beliefs (set by hybridslam.sweep): lets the step skip
     # work on component slots that are empty in every belief of the batch (batching.map_live).
     batch_axis: str | None = None
@@ -56,6 +65,8 @@ class Config:
             raise ValueError(f"Config.is_screen_nats: expected a positive number, got {self.is_screen_nats!r}")
         if self.weights not in WEIGHT_METHODS:
             raise ValueError(f"Config.weights: expected one of {WEIGHT_METHODS}, got {self.weights!r}")
+        if self.gate_candidates is not None and not (isinstance(self.gate_candidates, int) and self.gate_candidates >= 1):
+            raise ValueError(f"Config.gate_candidates: expected a positive int or None, got {self.gate_candidates!r}")
         if self.batch_axis is not None and not isinstance(self.batch_axis, str):
             raise ValueError(f"Config.batch_axis: expected a vmap axis name (str) or None, got {self.batch_axis!r}")
 
@@ -75,6 +86,8 @@ class Priors(eqx.Module):
     robot_cov: Float[Array, "3 3"]
     object_means: Float[Array, "N 3"]
     object_covs: Float[Array, "N 3 3"]
+    # Unknown maps: how many of the N slots hold prior objects (the rest are uncreated placeholders).
+    num_known: Int[Array, ""] | None = None
 
 
 class Belief(eqx.Module):
@@ -88,6 +101,7 @@ class Belief(eqx.Module):
     k: Int[Array, ""]  # steps taken so far
     model: Model
     config: Config = eqx.field(static=True)
+    num_created: Int[Array, " K"] | None = None  # objects that exist per component (unknown maps only)
 
     @property
     def alive(self) -> Bool[Array, " K"]:
@@ -103,18 +117,24 @@ class Belief(eqx.Module):
 
 
 def priors_from_scenario(scenario: Scenario) -> Priors:
+    """The priors of Eq. 3; with ``discovery``, padded to ``max_objects`` slots by uncreated placeholders."""
     f = lambda a: jnp.asarray(a, dtype=float)  # noqa: E731
-    return Priors(
-        f(scenario.robot_prior_mean), f(scenario.robot_prior_cov),
-        f(scenario.object_prior_means), f(scenario.object_prior_covs),
-    )
+    means, covs = f(scenario.object_prior_means), f(scenario.object_prior_covs)
+    if scenario.discovery is None:
+        return Priors(f(scenario.robot_prior_mean), f(scenario.robot_prior_cov), means, covs)
+    extra = scenario.discovery.max_objects - scenario.num_objects
+    means = jnp.concatenate([means, jnp.zeros((extra, 3))])
+    covs = jnp.concatenate([covs, jnp.broadcast_to(jnp.eye(3), (extra, 3, 3))])
+    return Priors(f(scenario.robot_prior_mean), f(scenario.robot_prior_cov), means, covs,
+                  jnp.asarray(scenario.num_objects, dtype=jnp.int32))
 
 
 def init_belief(priors: Priors, model: Model, config: Config = Config()) -> Belief:
     """The belief before any step: one component of weight 1, every class open (Eq. 3).
 
     Empty slots hold copies of that component with ``log_weight = -inf`` so that the batched
-    computations on them stay finite.
+    computations on them stay finite. With ``model.discovery`` the components start with
+    ``priors.num_known`` objects (all ``N`` if it is ``None``).
     """
     n = priors.object_means.shape[0]
     if model.class_prior.shape[0] != n:
@@ -135,6 +155,8 @@ def init_belief(priors: Priors, model: Model, config: Config = Config()) -> Beli
         k=jnp.zeros((), dtype=jnp.int32),
         model=model,
         config=config,
+        num_created=None if model.discovery is None else jnp.full(
+            (k,), n if priors.num_known is None else priors.num_known, dtype=jnp.int32),
     )
 
 

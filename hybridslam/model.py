@@ -17,13 +17,25 @@ from .measurement import SensorModel
 from .scenario import Scenario
 
 
+class NewObjects(eqx.Module):
+    """The null / new-landmark hypothesis of an unknown map (thesis Sec. 3.2.1; SCENARIO_FORMAT.md)."""
+
+    log_density: Float[Array, ""]  # log density of a detection's geometry under "new object"
+    orientation_var: Float[Array, ""]  # variance of a new object's unobserved orientation
+
+
 class Model(eqx.Module):
-    """Everything the inference step needs besides the belief and the data."""
+    """Everything the inference step needs besides the belief and the data.
+
+    ``discovery`` is ``None`` for a known map; otherwise detections may create objects up to the
+    object capacity ``N`` (``class_prior`` then has a row per slot, uniform for uncreated ones).
+    """
 
     motion_cov: Float[Array, "3 3"]  # Σ_w (Sec. III)
     sensor: SensorModel  # Σ_v, classifier h_c / Σ_c (Eq. 2), field of view
     class_prior: Float[Array, "N M"]  # P(c_n), Eq. 3
     prune_ratio: Float[Array, ""]  # drop components below w_max / prune_ratio (Sec. V: 150)
+    discovery: NewObjects | None = None
 
     @property
     def num_classes(self) -> int:
@@ -66,11 +78,6 @@ def model_from_scenario(
     (:func:`with_smooth_visibility`); ``None`` keeps the paper's 0/1 footprint.
     """
     spec = scenario.classifier
-    if scenario.discovery is not None:
-        raise ValueError(
-            "discovery: unknown maps (new objects) are not supported by the hybrid estimator yet; "
-            "only scenarios whose objects are all mapped can be run"
-        )
     if classifier is None or isinstance(classifier, str):
         name = spec.model if classifier is None else classifier
         if name in ("mirror", "independent") and (spec.alpha is None or spec.K is None):
@@ -92,9 +99,21 @@ def model_from_scenario(
     f = lambda a: jnp.asarray(a, dtype=float)  # noqa: E731
     sensor = SensorModel(f(scenario.geometric_cov), classifier, f(scenario.max_range), f(scenario.fov))
     model = Model(f(scenario.motion_cov), sensor, f(scenario.class_prior), f(prune_ratio))
+    if scenario.discovery is not None:
+        model = _with_discovery(model, scenario)
     if visibility_temperature is None:
         return model
     tau = jnp.atleast_1d(jnp.asarray(visibility_temperature, dtype=float))
     if tau.shape not in ((1,), (2,)):
         raise ValueError(f"visibility_temperature: expected tau_r or (tau_r, tau_b), got {visibility_temperature!r}")
     return with_smooth_visibility(model, *tau)
+
+
+def _with_discovery(model: Model, scenario: Scenario) -> Model:
+    """Object slots up to ``discovery.max_objects``; a new object's class prior is uniform (no information)."""
+    d = scenario.discovery
+    m = scenario.num_classes
+    extra = jnp.full((d.max_objects - scenario.num_objects, m), 1.0 / m)
+    prior = jnp.concatenate([model.class_prior, extra])
+    new = NewObjects(jnp.asarray(d.new_object_log_density, dtype=float), jnp.asarray(d.new_object_orientation_var, dtype=float))
+    return Model(model.motion_cov, model.sensor, prior, model.prune_ratio, new)

@@ -73,6 +73,7 @@ def describe(config: Config, classifier: str, prune_ratio: float, seed: int) -> 
         f"hybridslam {__version__} hybrid belief (Tchuiev et al. 2019, Alg. 1); classifier={classifier}, "
         f"weights={config.weights}, samples={samples_of(config)}, capacity={config.capacity}, "
         f"prune_ratio={prune_ratio:g}, seed={seed}"
+        + ("" if config.gate_candidates is None else f", gate_candidates={config.gate_candidates}")
     )
 
 

@@ -3,8 +3,16 @@
 ``step(belief, odometry, detections, key)`` is pure; ``jax.vmap`` it over a leading axis of
 beliefs to run many tracks (or many parameter settings: the model lives in the belief) at once.
 Compiles once per (capacity, history length, detection slots, objects, classes, weight method,
-classifier type, hard or smooth visibility); model parameters are traced. Differentiable in every
-continuous input (``docs/gradients.md``).
+classifier type, hard or smooth visibility, known or unknown map, gating); model parameters are
+traced. Differentiable in every continuous input (``docs/gradients.md``).
+
+Unknown maps (``model.discovery``): a child may give a detection a new object (the null /
+new-landmark hypothesis, thesis Sec. 3.2.1). Its weight gets that detection's
+:func:`~hybridslam.weights.new_object_log_likelihood`; its Gaussian gets the object from
+:func:`~hybridslam.discovery.create_object` *before* the Gauss-Newton update, in which that
+detection is then no factor: the back-projection already used it, and using it again would count
+it twice. (The detection's scores are not used on the new object's orientation either, a small
+loss of information: the weight integrates them over the unknown viewpoint instead.)
 """
 
 from __future__ import annotations
@@ -20,11 +28,18 @@ from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from .batching import map_live
 from .belief import Belief, Detections
+from .discovery import create_object
+from .gating import gate
 from .hypotheses import Children, HypothesisTable, children, hypothesis_table
 from .motion import propagate
 from .prune import PruneStats, prune
 from .update import gauss_newton_update
-from .weights import laplace_is_log_likelihood, linearized_log_likelihood, sampled_log_likelihood
+from .weights import (
+    laplace_is_log_likelihood,
+    linearized_log_likelihood,
+    new_object_log_likelihood,
+    sampled_log_likelihood,
+)
 
 
 class StepInfo(eqx.Module):
@@ -44,6 +59,27 @@ def _realize(classes: Int[Array, " N"], assign: Int[Array, " Dmax"], slot_class:
     """Write the classes of newly associated objects (Sec. IV-D); all others are unchanged."""
     target = jnp.where(new, assign, classes.shape[0])  # out of bounds -> dropped
     return classes.at[target].set(slot_class, mode="drop")
+
+
+def _create_and_update(sensor, discovery, mean, cov, assign, creates, slot_class, detections: Detections, max_steps):
+    """Write the objects a child creates into its Gaussian (:func:`~hybridslam.discovery.create_object`),
+    then update it with the detections of its other slots (Eq. 9-10)."""
+    for j in range(assign.shape[0]):  # detection slots (static, a few)
+        made = create_object(mean, cov, jnp.maximum(assign[j], 0), detections.geo[j], sensor.geometric_cov,
+                             discovery.orientation_var)
+        mean, cov = (jnp.where(creates[j], new, old) for new, old in zip(made, (mean, cov)))
+    return gauss_newton_update(sensor, mean, cov, jnp.where(creates, -1, assign), slot_class, detections, max_steps)
+
+
+def _new_object_terms(belief: Belief, mean, cov, detections: Detections, kids: Children) -> Float[Array, "K A Mc"]:
+    """Σ over a child's creating slots of :func:`~hybridslam.weights.new_object_log_likelihood`."""
+    sensor = belief.model.sensor
+    lik = jax.vmap(new_object_log_likelihood, (None, 0, 0, None, None))(
+        sensor, mean[:, :3], cov[:, :3, :3], detections, belief.model.discovery
+    )  # (K, Dmax, M)
+    pick = kids.slot_class[..., None] == jnp.arange(lik.shape[-1]).reshape(1, 1, 1, 1, -1)  # (K, A, Mc, Dmax, M)
+    picked = jnp.sum(jnp.where(pick, lik[:, None, None], 0.0), axis=-1)
+    return jnp.sum(jnp.where(kids.creates[:, :, None, :], picked, 0.0), axis=-1)
 
 
 # A child whose objects are (almost surely) out of view still ranks by its likelihood when the
@@ -86,8 +122,14 @@ def _step(
 ) -> tuple[Belief, StepInfo]:
     cfg, model = belief.config, belief.model
     realize = model.sensor.classifier.uses_scores
+    discovery = model.discovery is not None
+    if discovery and belief.num_created is None:
+        raise ValueError("belief.num_created: a model with discovery needs a belief built by init_belief with it")
+    gated = cfg.gate_candidates is not None
+    num_candidates = min(cfg.gate_candidates or 1, belief.num_objects)
     # Without semantics no class is ever realized: one (dummy) class combination suffices.
-    table = hypothesis_table(belief.num_objects, cfg.max_detections, model.num_classes if realize else 1)
+    table = hypothesis_table(num_candidates if gated else belief.num_objects, cfg.max_detections,
+                             model.num_classes if realize else 1, discovery, gated)
     k = eqx.error_if(
         belief.k, belief.k >= cfg.max_steps,
         "belief history is full: build the belief with Config(max_steps=...) >= the number of steps",
@@ -97,12 +139,20 @@ def _step(
     mean, cov = jax.vmap(propagate, (0, 0, None, None))(belief.mean, belief.cov, odometry, model.motion_cov)
 
     # Line 2 of PROPWEIGHTS: split each parent into (β_k, new class realizations).
-    kids = jax.vmap(children, (None, 0, None, None, None))(
-        table, belief.classes, detections.mask, model.class_prior, realize
+    candidates = None
+    if gated:
+        candidates = jax.vmap(gate, (None, 0, 0, None, 0, None))(
+            model.sensor, mean, cov, detections, belief.num_created, num_candidates
+        )
+    kids = jax.vmap(children, (None, 0, None, None, None, 0, 0))(
+        table, belief.classes, detections.mask, model.class_prior, realize, belief.num_created, candidates
     )
 
-    # Line 5: PropWeights, Eq. 16.
+    # Line 5: PropWeights, Eq. 16. `prior` holds every factor of a child's weight that does not
+    # depend on the objects' Gaussian (so the laplace-is screen ranks by it too).
     prior = belief.log_weights[:, None, None] + kids.log_prior
+    if discovery:
+        prior = prior + _new_object_terms(belief, mean, cov, detections, kids)
     log_lik, log_lik_free, ess, is_converged = _weigh_children(belief, mean, cov, detections, table, kids, prior, key)
     possible = kids.valid & belief.alive[:, None, None]
     # `where`, not `+`: empty slots may carry non-finite likelihoods that must not leak.
@@ -115,15 +165,19 @@ def _step(
     # Line 7: PruneAndNormalize.
     index, new_log_w, stats = prune(log_w.reshape(-1), cfg.capacity, model.prune_ratio)
     parent, a, m = jnp.unravel_index(index, log_w.shape)
-    assign = jnp.asarray(table.assign)[a]
+    assign, creates = kids.assign[parent, a], kids.creates[parent, a]
     slot_class = kids.slot_class[parent, a, m]
 
     # Line 11: update every kept child with its measurement factors (Eq. 9-10).
     alive = new_log_w > -jnp.inf
-    update = partial(gauss_newton_update, model.sensor, detections=detections, max_steps=cfg.gn_max_steps)
-    new_mean, new_cov, result = map_live(
-        update, alive, mean[parent], cov[parent], assign, slot_class, axis_name=cfg.batch_axis
-    )
+    if discovery:
+        update = partial(_create_and_update, model.sensor, model.discovery, detections=detections,
+                         max_steps=cfg.gn_max_steps)
+        args = (mean[parent], cov[parent], assign, creates, slot_class)
+    else:
+        update = partial(gauss_newton_update, model.sensor, detections=detections, max_steps=cfg.gn_max_steps)
+        args = (mean[parent], cov[parent], assign, slot_class)
+    new_mean, new_cov, result = map_live(update, alive, *args, axis_name=cfg.batch_axis)
     # Empty slots copy the best component so later batched math on them stays finite.
     new_mean = jnp.where(alive[:, None], new_mean, new_mean[:1])
     new_cov = jnp.where(alive[:, None, None], new_cov, new_cov[:1])
@@ -137,6 +191,7 @@ def _step(
         k=k + 1,
         model=model,
         config=cfg,
+        num_created=None if not discovery else belief.num_created[parent] + jnp.sum(creates, axis=-1, dtype=jnp.int32),
     )
     info = StepInfo(
         logsumexp(log_w), stats, jnp.sum(alive), parent, result, visibility_ignored,

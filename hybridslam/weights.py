@@ -23,6 +23,11 @@ the paper's 0/1 footprint by default, or its smooth relaxation, which makes ever
 function of the belief and the model (``docs/gradients.md``). With fixed draws ``eps`` (from the
 step's key) the Monte-Carlo estimates are smooth too: the samples are reparameterized.
 
+Unknown maps: a detection that creates a new object is no factor of the integral (its object is
+not in ``b⁻``); its whole contribution is :func:`new_object_log_likelihood`, a term of the child's
+weight that does not depend on the Gaussian, the same for every estimator. A new object is in view
+by construction, so it adds no visibility factor either.
+
 Each returns ``(log ψ, log ψ ignoring visibility, ESS)`` (laplace-is adds whether each mode search
 converged). The second is a fallback for a step
 whose detections no hypothesis can explain (every child needs an object out of view: a model
@@ -35,6 +40,8 @@ from __future__ import annotations
 import math
 from functools import partial
 
+import numpy as np
+
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
@@ -46,23 +53,41 @@ from . import se2
 from .batching import map_live
 from .belief import Detections
 from .geometry import range_bearing
-from .hypotheses import Children, HypothesisTable
+from .hypotheses import NEW, Children, HypothesisTable
 from .laplace import laplace_is
 from .measurement import SensorModel, detection_residual, detection_residuals, log_visibility, slot_residuals
+from .model import NewObjects
 
 
 def _split(state: Float[Array, " D"]) -> tuple[Float[Array, "3"], Float[Array, "N 3"]]:
     return state[:3], state[3:].reshape(-1, 3)
 
 
-def _slot_codes(table: HypothesisTable, kids: Children, num_classes: int) -> Int[Array, "A Mc Dmax"]:
-    """Code ``n·M + c`` of each child slot's (object, class); 0 for an empty slot.
+def _child_log_means(t: Float[Array, "S Dmax N M"], table: HypothesisTable, kids: Children) -> Float[Array, "A Mc"]:
+    """``log (1/S) Σ_s exp(Σ_j t[s, j, n_j, c_j])`` for every child, from one :func:`log_mean_exp_outer`.
 
-    Empty slots are the step's masked detections, the same for every valid child, so their table
-    rows are set to 0 and any code reads the same value.
+    A slot reads column ``n·M + c`` of its (object, class); empty slots are the step's masked
+    detections, the same for every valid child, so their rows are 0 and any code reads the same
+    value. Gated, a slot's columns are its candidates' only (rank ``r`` for object ``n``). A slot
+    that creates a new object is no factor: it reads an extra column holding one constant ``c_j``
+    in every sample, subtracted afterwards; ``c_j`` is the slot's largest entry, so that no real
+    entry is pushed into underflow by the shift of :func:`log_mean_exp_outer`.
     """
-    assign = jnp.asarray(table.assign)[:, None, :]
-    return jnp.where(assign >= 0, assign * num_classes + kids.slot_class, 0)
+    s, dmax, _, m = t.shape
+    rank = jnp.asarray(table.assign)[:, None, :]
+    if kids.candidates is not None:
+        t = jnp.take_along_axis(t, kids.candidates[None, :, :, None], axis=2)
+    flat = t.reshape(s, dmax, -1)
+    codes = jnp.where(rank >= 0, rank * m + kids.slot_class, 0)
+    shift = None
+    if np.any(table.assign == NEW):
+        top = jnp.max(flat, axis=(0, 2))
+        c = jax.lax.stop_gradient(jnp.where(jnp.isfinite(top), top, 0.0))  # the result does not depend on it
+        flat = jnp.concatenate([flat, jnp.broadcast_to(c[None, :, None], (s, dmax, 1))], axis=-1)
+        codes = jnp.where(rank == NEW, flat.shape[-1] - 1, codes)
+        shift = jnp.sum(jnp.where(rank == NEW, c[None, None, :], 0.0), axis=-1)
+    out = log_mean_exp_outer(flat)[tuple(codes[..., j] for j in range(dmax))]
+    return out if shift is None else out - shift
 
 
 def _detection_log_likelihoods(sensor, x, obj, z_geo, scores):
@@ -127,16 +152,12 @@ def sampled_log_likelihood(
     """
     samples = mean[None, :] + eps @ jnp.linalg.cholesky(cov).T  # reparameterized: smooth in mean and cov
     lik, log_view = jax.vmap(log_likelihood_table, (None, 0, None))(sensor, samples, detections)
-    s, dmax = lik.shape[:2]
-    m = sensor.classifier.num_classes
     occupied = detections.mask[None, :, None, None]
     with_view = jnp.where(occupied, lik + log_view[:, None, :, None], 0.0)
     without_view = jnp.where(occupied, lik, 0.0)
-    codes = _slot_codes(table, kids, m)
-    index = tuple(codes[..., j] for j in range(dmax))
-    log_psi, log_psi_free = (log_mean_exp_outer(t.reshape(s, dmax, -1))[index] for t in (with_view, without_view))
+    log_psi, log_psi_free = (_child_log_means(t, table, kids) for t in (with_view, without_view))
     # ESS / n_s of the Monte-Carlo terms: (Σ w)² / (n_s Σ w²) = exp(2 log mean w − log mean w²).
-    log_mean_sq = log_mean_exp_outer(2.0 * with_view.reshape(s, dmax, -1))[index]
+    log_mean_sq = _child_log_means(2.0 * with_view, table, kids)
     ess = jnp.where(log_psi > -jnp.inf, jnp.exp(2.0 * log_psi - log_mean_sq), 0.0)
     return log_psi, log_psi_free, ess
 
@@ -194,7 +215,7 @@ def linearized_log_likelihood(
     gram = jac @ cov @ jac.T  # (N M R, N M R)
     log_vis = jax.vmap(_log_visibility_probability, (None, None, None, 0))(sensor, mean, cov, objs)
 
-    assign = jnp.asarray(table.assign)
+    assign = kids.measured
     occupied = assign >= 0
 
     def one_child(a, slot_class):
@@ -276,7 +297,7 @@ def laplace_is_log_likelihood(
     top, flat = jax.lax.top_k(screen.reshape(-1), min(num_candidates, screen.size))
     parent, a, m = jnp.unravel_index(flat, shape)
     one = partial(_child_evidence, sensor, detections, eps, max_steps)
-    assign = jnp.asarray(table.assign)[a]
+    assign = kids.measured[parent, a]
     live = top > -jnp.inf
     *packed, converged = map_live(one, live, mean[parent], cov[parent], assign, kids.slot_class[parent, a, m], chunk=4,
                                     axis_name=axis_name)
@@ -285,3 +306,43 @@ def laplace_is_log_likelihood(
         jnp.full(screen.size, f, v.dtype).at[flat].set(jnp.where(live, v, f)).reshape(shape)
         for v, f in zip((*packed, converged), fill)
     )
+
+
+# Quadrature nodes of the viewpoint integral of a new object's semantic likelihood.
+_VIEWPOINT_NODES = 64
+
+
+def new_object_log_likelihood(
+    sensor: SensorModel, robot_mean: Float[Array, "3"], robot_cov: Float[Array, "3 3"], detections: Detections,
+    new: NewObjects,
+) -> Float[Array, "Dmax M"]:
+    """``log P(z_j | new object of class c)`` for every detection and class (unknown maps).
+
+    The null / new-landmark hypothesis (thesis Sec. 3.2.1): the geometric part is the scenario's
+    ``new_object_log_density``; the semantic part is Eq. 2 integrated over the unknown viewpoint,
+    ``∫ P(z^sem | c, v) p(v) dv``. The viewpoint of a new object (SCENARIO_FORMAT.md) is
+    ``v = θ_x + b + π − θ_o``: with the new object's orientation ``θ_o ~ N(0, orientation_var)``
+    independent of the robot heading ``θ_x`` and of the bearing noise, ``v`` is Gaussian (wrapped)
+    around ``θ̄_x + b + π`` with variance ``orientation_var + P_θθ + Σ_v[1, 1]``. The integral is
+    a midpoint rule on ±6 standard deviations (the whole circle when that is wider, where the
+    periodic midpoint rule converges fastest) with wrapped-normal weights, normalized.
+
+    The class of the new object is a fresh realization, like a first association (Sec. IV-D): the
+    step splits the child per class with prior ``P(c)``, so summed over classes the semantic term
+    is the marginal over the class prior.
+    """
+    std = jnp.sqrt(new.orientation_var + robot_cov[2, 2] + sensor.geometric_cov[1, 1])
+    half = jnp.minimum(jnp.pi, 6.0 * std)
+    t = half * ((2.0 * jnp.arange(_VIEWPOINT_NODES) + 1.0) / _VIEWPOINT_NODES - 1.0)
+    wraps = 2.0 * jnp.pi * jnp.arange(-4, 5)
+    log_w = logsumexp(-0.5 * ((t[:, None] + wraps[None, :]) / std) ** 2, axis=1)
+    log_w = log_w - logsumexp(log_w)
+    v = robot_mean[2] + detections.geo[:, 1, None] + jnp.pi + t[None, :]  # (Dmax, Q)
+    views = jnp.stack([jnp.cos(v), jnp.sin(v)], axis=-1)
+
+    def semantic(scores, view):
+        r, log_norm = sensor.classifier.residuals(scores, view)
+        return log_norm - 0.5 * jnp.sum(r**2, axis=-1)
+
+    ll = jax.vmap(jax.vmap(semantic, (None, 0)), (0, 0))(detections.scores, views)  # (Dmax, Q, M)
+    return new.log_density + logsumexp(ll + log_w[None, :, None], axis=1)

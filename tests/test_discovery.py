@@ -1,0 +1,166 @@
+"""Unknown maps in the hybrid belief: new-object hypotheses, object creation, gating.
+
+One tiny scenario (three objects passed in a row, at most two detections per step, an object
+capacity of 5) and one compiled step per structure: the runs are module-scoped fixtures.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import hybridslam as hs
+from hybridslam.classifier import make_classifier
+from hybridslam.discovery import back_project, create_object
+from hybridslam.hypotheses import NEW, children, hypothesis_table
+from hybridslam.scenario import Classifier, Discovery, Step
+from hybridslam.simulate import PaperSetup, _between, _compose, observe
+from hybridslam.weights import linearized_log_likelihood, sampled_log_likelihood
+
+TRUTH = np.array([[3.0, 1.5, 0.3], [5.5, -1.5, 2.0], [8.0, 1.5, -1.0]])
+CAPACITY = 5  # object slots
+RUN = {"capacity": 8, "max_detections": 2, "weights": "linearized"}
+
+
+def _world(steps: int = 8) -> hs.Scenario:
+    """A clean pass along a row of three objects: small noise, a tight robot prior, no prior objects."""
+    setup = PaperSetup(geometric_cov=(0.01, 0.003), max_range=4.0, motion_cov=(1e-4, 1e-4, 1e-5))
+    rng = np.random.default_rng(0)
+    classifier = make_classifier("mirror", 2, 0.25, 15.0)
+    poses = [np.zeros(3)]
+    for _ in range(steps):
+        poses.append(_compose(poses[-1], np.array([1.0, 0.0, 0.0])))
+    scenario_steps = tuple(
+        Step(_between(poses[k - 1], poses[k]), observe(rng, poses[k], TRUTH, classifier, setup))
+        for k in range(1, steps + 1)
+    )
+    return hs.Scenario(
+        num_classes=2, object_prior_means=np.zeros((0, 3)), object_prior_covs=np.zeros((0, 3, 3)),
+        class_prior=np.zeros((0, 2)), robot_prior_mean=poses[0], robot_prior_cov=np.diag([1e-4, 1e-4, 1e-5]),
+        motion_cov=np.diag(setup.motion_cov), geometric_cov=np.diag(setup.geometric_cov),
+        classifier=Classifier("mirror", alpha=0.25, K=15.0), max_range=setup.max_range, fov=setup.fov,
+        steps=scenario_steps, true_robot_poses=np.stack(poses),
+        discovery=Discovery(CAPACITY, -2.0, 9.87), true_objects=tuple((o, 0) for o in TRUTH),
+    )
+
+
+@pytest.fixture(scope="module")
+def world() -> hs.Scenario:
+    return _world()
+
+
+@pytest.fixture(scope="module")
+def exact(world):
+    return hs.run_scenario(world, **RUN)
+
+
+@pytest.fixture(scope="module")
+def known_map(world):
+    """The same sequence with all three objects mapped (priors at the truth)."""
+    return world.replace(
+        object_prior_means=TRUTH, object_prior_covs=np.broadcast_to(np.diag([0.05, 0.05, 0.5e-3]), (3, 3, 3)).copy(),
+        class_prior=np.full((3, 2), 0.5), discovery=None, true_objects=None,
+    )
+
+
+def _true_objects(scenario):
+    return [[d.true_object for d in s.detections] for s in scenario.steps]
+
+
+def test_unknown_map_creates_each_true_object_once(world, exact):
+    """A clean sequence past three objects from an empty map: the top component creates each true
+    object exactly once (in the order first seen) and associates every later detection with it."""
+    top = exact.result.steps[-1].components[0]
+    assert top.weight > 0.9
+    assert top.associations == _true_objects(world)  # first seen 0, 1, 2: created in that order
+    belief = exact.belief
+    assert int(belief.num_created[jnp.argmax(belief.log_weights)]) == 3
+    assert top.classes[:3] == [0, 0, 0] and top.classes[3:] == [-1, -1]  # true class 0; uncreated: -1
+    # The created objects sit where the truth is (the robot prior anchors the frame).
+    best = int(jnp.argmax(belief.log_weights))
+    positions = np.asarray(belief.mean[best, 3:12]).reshape(3, 3)[:, :2]
+    np.testing.assert_allclose(positions, TRUTH[:, :2], atol=0.3)
+    for record in exact.result.steps:  # records index objects in creation order
+        for c in record.components:
+            seen = {o for step in c.associations for o in step}
+            assert seen <= set(range(CAPACITY))
+
+
+def test_gating_with_all_objects_equals_exact_enumeration(world, exact):
+    """G ≥ N candidates per detection: the gate keeps every hypothesis, so the belief is the same."""
+    gated = hs.run_scenario(world, gate_candidates=CAPACITY, **RUN)
+    assert "gate_candidates=5" in gated.result.estimator
+    for a, b in zip(exact.result.steps, gated.result.steps):
+        ca, cb = _components_of(a), _components_of(b)
+        assert ca.keys() == cb.keys()
+        np.testing.assert_allclose([ca[k] for k in ca], [cb[k] for k in ca], rtol=1e-9)
+
+
+def _components_of(record):
+    return {(str(c.associations), str(c.classes)): c.weight for c in record.components}
+
+
+def test_known_map_is_unchanged_by_discovery(known_map):
+    """Mapped objects and an implausible new object (log density −1000): discovery changes nothing."""
+    plain = hs.run_scenario(known_map, **RUN)
+    open_map = hs.run_scenario(known_map.replace(discovery=Discovery(CAPACITY, -1000.0, 9.87)), **RUN)
+    for a, b in zip(plain.result.steps, open_map.result.steps):
+        assert len(a.components) == len(b.components)
+        for ca, cb in zip(a.components, b.components):
+            assert ca.associations == cb.associations
+            assert ca.classes == cb.classes[:3] and cb.classes[3:] == [-1, -1]
+            np.testing.assert_allclose(ca.weight, cb.weight, rtol=1e-9)
+            np.testing.assert_allclose(ca.pose_mean, cb.pose_mean, rtol=1e-9, atol=1e-12)
+    alive = np.asarray(plain.belief.alive)
+    np.testing.assert_allclose(open_map.belief.mean[alive, :12], plain.belief.mean[alive], rtol=1e-9, atol=1e-12)
+    assert np.all(np.asarray(open_map.belief.num_created)[alive] == 3)
+
+
+def test_new_slot_is_no_factor_of_the_weight():
+    """A child whose second detection creates a new object has the likelihood of the child with that
+    detection left out (sampled and linearized weights), plus nothing from the Gaussian."""
+    sensor = hs.SensorModel(jnp.diag(jnp.array([0.1, 0.05])), make_classifier("mirror", 2, 0.25, 15.0),
+                            jnp.asarray(10.0), jnp.asarray(2.0))
+    mean = jnp.array([0.0, 0.0, 0.1, 3.0, 1.0, 0.2, 4.0, -1.0, 0.0, 0.0, 0.0, 0.0])  # objects 0, 1; slot 2 uncreated
+    cov = jnp.diag(jnp.array([0.05, 0.05, 0.01, 0.05, 0.05, 0.01, 0.05, 0.05, 0.01, 1.0, 1.0, 1.0]))
+    geo = jnp.array([[3.1, 0.22], [4.0, -0.3]])
+    scores = jnp.array([[0.8, 0.2], [0.3, 0.7]])
+    both = hs.Detections(geo, scores, jnp.array([True, True]))
+    first = hs.Detections(geo, scores, jnp.array([True, False]))
+    classes, prior = jnp.array([0, -1, -1]), jnp.full((3, 2), 0.5)
+    open_table, known_table = hypothesis_table(3, 2, 2, new_objects=True), hypothesis_table(3, 2, 2)
+    kids_new = children(open_table, classes, both.mask, prior, num_created=jnp.asarray(2))
+    kids_one = children(known_table, classes, first.mask, prior)
+    row_new = int(np.flatnonzero((open_table.assign == [[0, NEW]]).all(axis=1))[0])
+    row_one = int(np.flatnonzero((known_table.assign == [[0, -1]]).all(axis=1))[0])
+    assert bool(kids_new.valid[row_new, 0]) and int(kids_new.assign[row_new, 1]) == 2  # the next slot
+    eps = jax.random.normal(jax.random.PRNGKey(0), (400, 12))
+    for weigh, extra in ((sampled_log_likelihood, (eps,)), (linearized_log_likelihood, ())):
+        with_new = weigh(sensor, mean, cov, both, *extra, open_table, kids_new)[0][row_new, 0]
+        without = weigh(sensor, mean, cov, first, *extra, known_table, kids_one)[0][row_one, 0]
+        np.testing.assert_allclose(with_new, without, rtol=1e-10)
+
+
+def test_create_object_covariance_matches_monte_carlo():
+    """create_object's linearized covariance against samples of the back-projection (small noise)."""
+    rng = np.random.default_rng(1)
+    dim = 3 + 3 * 3
+    a = rng.normal(size=(dim, dim)) * 0.02
+    cov = a @ a.T + np.diag(np.r_[0.01, 0.01, 0.002, 0.02, 0.02, 0.01, np.ones(3), np.ones(3)])
+    cov[6:9, :] = cov[:, 6:9] = 0.0  # slot 1: to be created; slot 2 stays an uncreated placeholder
+    cov[9:, :] = cov[:, 9:] = 0.0
+    cov[6:, 6:] = np.eye(6)
+    mean = np.r_[1.0, 2.0, 0.4, 3.0, 1.0, 0.2, np.zeros(6)]
+    geo, geometric_cov, var = np.array([2.0, 0.3]), np.diag([0.01, 0.004]), 9.87
+    new_mean, new_cov = create_object(jnp.asarray(mean), jnp.asarray(cov), jnp.asarray(1), jnp.asarray(geo),
+                                      jnp.asarray(geometric_cov), jnp.asarray(var))
+    n = 200_000
+    y = rng.multivariate_normal(mean, cov, n)
+    z = geo + rng.multivariate_normal(np.zeros(2), geometric_cov, n)
+    p = np.asarray(jax.vmap(back_project)(jnp.asarray(y[:, :3]), jnp.asarray(z)))
+    y[:, 6:8], y[:, 8] = p, rng.normal(0.0, np.sqrt(var), n)
+    np.testing.assert_allclose(new_mean[6:8], y[:, 6:8].mean(0), atol=0.03)  # linearization bias ~ r·var(θ)/2
+    sample_cov = np.cov(y.T)
+    scale = np.sqrt(np.outer(np.diag(sample_cov), np.diag(sample_cov)))
+    np.testing.assert_allclose(np.asarray(new_cov) / scale, sample_cov / scale, atol=0.03)
+    np.testing.assert_array_equal(np.asarray(new_cov)[9:, 9:], np.eye(3))  # the placeholder is untouched
