@@ -1,0 +1,774 @@
+"""Multimodal (sum-mixture, non-Gaussian) semantic SLAM: Doherty's thesis Ch. 5 as a filter.
+
+The thesis marginalizes each step's association out of the factor graph (Eq. 5.3-5.7) and keeps
+the resulting *sum*-mixture factors (Eq. 5.11), weighted by association probabilities that are
+estimated by Monte Carlo over pose samples with joint compatibility (Eq. 5.9-5.10); mm-iSAM then
+solves the non-Gaussian factor graph with nonparametric belief propagation.
+
+Representation (why a Gaussian sum, not evenly weighted kernels). Like every estimator of this
+library we filter: the belief is a fixed-capacity mixture of ``K`` weighted joint Gaussians over
+``[x_k, o_0, ..., o_{Nmax-1}]`` (object slots and their creation as in :mod:`hybridslam.discovery`),
+each with its own association history ``β_1:k``, number of created objects and per-object class
+posterior. Given the prior mixture ``Σ_i w_i N_i`` and the step's sum-mixture factor
+``f = Σ_j p_j ρ_j`` (Eq. 5.11) the posterior is exactly ``Σ_ij w_i p_j N_i ρ_j``: a child per
+(component ``i``, joint assignment ``j``) with weight ``w_i p_j L_ij``, ``L_ij = ∫ N_i ρ_j``, and
+Gaussian ``∝ N_i ρ_j`` found by Gauss-Newton (:func:`hybridslam.update.gauss_newton`). A Gaussian
+sum represents a mode with one component however unlikely it is, whereas evenly weighted kernels
+(Fig. 5-2) or resampled particles (a Rao-Blackwellized particle filter) represent a mode of weight
+``w`` by about ``w·K`` kernels, so a mode below ``1/K`` is lost by sampling noise alone — exactly the
+late-mode failure Sec. 5.2.1 warns about. We keep the weights explicit instead.
+
+Reduction without pruning. ``K·A`` children are reduced back to ``K`` by greedy moment-matching
+merging (:func:`merge`): the heaviest unclaimed child becomes a centre and claims every child within
+a squared Mahalanobis distance ``merge_threshold`` that has the same number of created objects;
+``K`` rounds; children left over are merged into their nearest centre. No mass is ever dropped
+there, and two separated modes stay two components as long as there are fewer than ``K`` of them.
+Only the ``children`` heaviest children (a static count) get a Gauss-Newton update: the mass of
+the rest is reported in ``Info.dropped_mass`` and as a warning (never silently).
+
+Association probabilities (Eq. 5.9-5.10). Per component we draw ``S`` joint samples of the pose and
+the map by reparameterization (the same standard-normal draws for every component: common random
+numbers make the components' estimates comparable) and evaluate every joint assignment on every
+sample: geometric range-bearing likelihood times the object observation model (0/1 footprint), and
+the semantic term marginalized over the object's class posterior, ``Σ_c P(z^s | c, viewpoint)
+p(c | Z^-)`` (the bracket of Eq. 5.10; the viewpoint comes from the sample, so viewpoint-dependent
+classifiers are handled exactly). A "new object" choice scores ``new_object_log_density`` (the null
+hypothesis of Sec. 3.2.1) times the semantic term under a uniform class prior, with the new object's
+unobserved orientation drawn from ``N(0, new_object_orientation_var)``. Joint compatibility: the
+detections of one assignment are scored on the *same* sample before averaging, ``L_ij =
+mean_s Π_k p(z_k | sample_s, j)`` (log-mean-exp). ``p_j`` (Eq. 5.9) is the total mass
+``Σ w_i L_ij`` of all children that name the same object tuple, normalized over all joint-compatible
+children of all components (with one component: ``L_j / Σ L``).
+
+Eq. 5.9 uses the step's detections to compute ``p_j``, and the factor of Eq. 5.11 multiplies the
+likelihood ``ρ_j`` once more: the thesis's factor counts the detections twice, which sharpens the
+association weights (``association_prior="mc"``, the default, follows the thesis). With
+``association_prior="uniform"`` the children are weighted ``w_i L_ij``, the exact Bayes posterior
+under a uniform prior over joint assignments.
+
+Gating (Sec. 3.2.1): each detection considers the ``candidates`` created objects nearest in the
+linearized Mahalanobis distance of the component's mean, plus the null / new-object hypothesis;
+joint assignments are all injective tuples of those choices, enumerated once in numpy.
+
+The continuous update uses the geometric part only: the class-marginalized semantic factor is a
+mixture over classes, not a Gaussian; it enters the weights (above) and each object's class
+posterior, which is updated with ``P(z^s | c, viewpoint)`` at the child's posterior mean (new
+objects: averaged over their sampled orientations). ``view`` reports per component the argmax class
+of every object the component has associated, ``-1`` otherwise.
+
+Options (``Settings.option``): ``candidates`` (3), ``children`` (``2·capacity``),
+``merge_threshold`` (4.0, squared Mahalanobis distance over the whole state), ``association_prior``
+(``"mc"`` or ``"uniform"``). ``Settings.num_samples`` defaults to 256.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import itertools
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.scipy.linalg as jsl
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Bool, Float, Int
+
+from .. import discovery, geometry, motion
+from ..belief import Detections
+from ..classifier import ClassifierModel
+from ..measurement import SensorModel, log_visibility
+from ..model import Model, model_from_scenario
+from ..scenario import Scenario
+from ..update import gauss_newton, wrap_angles
+from .base import Mixture, Settings
+
+NAME = "multimodal"
+
+DEFAULT_SAMPLES = 256
+DEFAULT_CANDIDATES = 3
+DEFAULT_MERGE_THRESHOLD = 4.0
+ASSOCIATION_PRIORS = ("mc", "uniform")
+PROPOSALS = ("posterior", "prior")
+RELEVANT_NATS = 30.0  # e^-30 ≈ 1e-13: hypotheses further below the best do not raise warnings
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Static settings: each fixes a shape or a code path."""
+
+    capacity: int  # K components
+    max_objects: int  # Nmax object slots
+    max_detections: int  # Dmax detection slots per step
+    max_steps: int  # T, length of the association history
+    num_samples: int  # S Monte Carlo draws per component (Eq. 5.10)
+    candidates: int  # G gated objects per detection (plus the null hypothesis)
+    children: int  # C children that get a Gauss-Newton update
+    gn_max_steps: int
+    discovery: bool  # whether the null / new-object hypothesis exists
+    association_prior: str  # "mc" (thesis Eq. 5.11) or "uniform"
+    proposal: str  # "posterior" (importance sampling) or "prior" (Eq. 5.10 as written)
+
+
+class Params(eqx.Module):
+    """Traced parameters: changing them never recompiles."""
+
+    new_object_log_density: Float[Array, ""]
+    orientation_var: Float[Array, ""]
+    merge_threshold: Float[Array, ""]
+
+
+class State(eqx.Module):
+    """The mixture of joint Gaussians over ``[x_k, o_0..o_{Nmax-1}]`` (see the module docstring)."""
+
+    log_weights: Float[Array, " K"]  # -inf marks an empty slot
+    mean: Float[Array, "K D"]
+    cov: Float[Array, "K D D"]
+    class_log_probs: Float[Array, "K Nmax M"]  # log p(c_n | Z), normalized per object
+    observed: Bool[Array, "K Nmax"]  # associated at least once in this component
+    num_created: Int[Array, " K"]  # object slots in use (prior objects included)
+    history: Int[Array, "K T Dmax"]
+    k: Int[Array, ""]
+    model: Model
+    params: Params
+    config: Config = eqx.field(static=True)
+
+
+class Info(eqx.Module):
+    """Diagnostics of one step, over the ``C`` children that were updated."""
+
+    parent: Int[Array, " C"]  # the component each child came from
+    assoc_objects: Int[Array, "C Dmax"]  # object of each detection; -1 for an empty slot
+    assoc_log_probs: Float[Array, " C"]  # log p_j of Eq. 5.9 for that object tuple; -inf infeasible
+    dropped_mass: Float[Array, ""]  # linearized mass of children beyond the ``children`` budget
+    solver_failures: Int[Array, ""]  # relevant children whose Gauss-Newton solve did not succeed
+    overflow: Bool[Array, ""]  # a relevant component had no room for a new object, or no child survived
+    num_components: Int[Array, ""]
+
+
+# --------------------------------------------------------------------------- #
+# Joint assignments and gating
+# --------------------------------------------------------------------------- #
+
+
+@functools.cache
+def joint_assignments(candidates: int, slots: int) -> np.ndarray:
+    """All choice tuples ``(A, Dmax)`` over ``{0..G-1}`` (gated candidate rank) and ``G`` (new / empty).
+
+    Injectivity depends on the traced candidate ids and is checked in :func:`assignment_objects`.
+    """
+    return np.array(list(itertools.product(range(candidates + 1), repeat=slots)), dtype=np.int32).reshape(-1, slots)
+
+
+class Predictions(eqx.Module):
+    """Linearized range-bearing predictions of every detection under every object of one component."""
+
+    residual: Float[Array, "Dmax Nmax 2"]  # z − h(x̄, ō_n), bearing wrapped
+    jacobian: Float[Array, "Dmax Nmax 2 6"]  # ∂h / ∂(x_k, o_n) at the mean
+    d2: Float[Array, "Dmax Nmax"]  # Mahalanobis distance rᵀ (J Σ Jᵀ + Σ_v)⁻¹ r
+
+
+def _pair_block(cov: Float[Array, "D D"], n: Int[Array, ""]) -> Float[Array, "6 6"]:
+    idx = jnp.concatenate([jnp.arange(3), 3 + 3 * n + jnp.arange(3)])
+    return cov[idx][:, idx]
+
+
+def predict(sensor: SensorModel, mean: Float[Array, " D"], cov: Float[Array, "D D"], detections: Detections) -> Predictions:
+    """Residuals, Jacobians and Mahalanobis distances of every (detection, object) pair (Sec. 3.2.1)."""
+    x, objs = mean[:3], mean[3:].reshape(-1, 3)
+    jac = jax.jacfwd(lambda xo: geometry.range_bearing(xo[:3], xo[3:]))
+
+    def one(n, z):
+        j = jac(jnp.concatenate([x, objs[n]]))
+        s = j @ _pair_block(cov, n) @ j.T + sensor.geometric_cov
+        r = geometry.geometric_residual(z, geometry.range_bearing(x, objs[n]))
+        return r, j, r @ jnp.linalg.solve(s, r)
+
+    r, j, d2 = jax.vmap(jax.vmap(one, (0, None)), (None, 0))(jnp.arange(objs.shape[0]), detections.geo)
+    return Predictions(r, j, d2)
+
+
+def gate(d2: Float[Array, "Dmax Nmax"], num_created: Int[Array, ""], candidates: int) -> Int[Array, "Dmax G"]:
+    """The ``G`` created objects nearest each detection in Mahalanobis distance (gating, Sec. 3.2.1);
+    ranks with no created object left hold ``-1``."""
+    created = jnp.arange(d2.shape[1])[None, :] < num_created
+    score, ids = jax.lax.top_k(jnp.where(created, -d2, -jnp.inf), candidates)
+    return jnp.where(score > -jnp.inf, ids, -1)
+
+
+def assignment_objects(
+    choices: Int[Array, "A Dmax"],
+    cand: Int[Array, "Dmax G"],
+    mask: Bool[Array, " Dmax"],
+    num_created: Int[Array, ""],
+    n_max: int,
+    allow_new: bool,
+) -> tuple[Int[Array, "A Dmax"], Bool[Array, "A Dmax"], Bool[Array, " A"]]:
+    """Object of every detection under every joint assignment, which detections create an object,
+    and which assignments are joint-compatible (injective, within the object capacity).
+
+    Several "new" detections create their own slots in slot order: ``num_created, num_created+1, ...``.
+    """
+    g = cand.shape[1]
+    slots = jnp.arange(mask.shape[0])
+    known = (choices < g) & mask[None, :]
+    new = (choices == g) & mask[None, :]
+    cand_id = cand[slots[None, :], jnp.minimum(choices, g - 1)]
+    new_id = num_created + jnp.cumsum(new, axis=1) - 1
+    objects = jnp.where(known, cand_id, jnp.where(new, new_id, -1)).astype(jnp.int32)
+    same = (objects[:, :, None] == objects[:, None, :]) & known[:, :, None] & known[:, None, :]
+    distinct = ~jnp.any(same & ~jnp.eye(mask.shape[0], dtype=bool)[None], axis=(1, 2))
+    padded_ok = jnp.all(mask[None, :] | (choices == g), axis=1)
+    fits = num_created + jnp.sum(new, axis=1) <= n_max
+    feasible = distinct & padded_ok & fits & ~jnp.any(known & (cand_id < 0), axis=1)
+    if not allow_new:
+        feasible = feasible & ~jnp.any(new, axis=1)
+    return objects, new, feasible
+
+
+# --------------------------------------------------------------------------- #
+# Likelihoods of a joint assignment (Eq. 5.9-5.10)
+# --------------------------------------------------------------------------- #
+
+
+def class_log_likelihoods(
+    classifier: ClassifierModel, scores: Float[Array, " M"], viewpoint: Float[Array, "2"]
+) -> Float[Array, " M"]:
+    """``log P(z^s | c, viewpoint)`` for every class ``c`` (Eq. 2; thesis Eq. 2.14 for confusion)."""
+    r, log_norm = classifier.residuals(scores, viewpoint)
+    return log_norm - 0.5 * jnp.sum(r**2, axis=-1)
+
+
+def semantic_log_marginal(
+    classifier: ClassifierModel, scores: Float[Array, " M"], viewpoint: Float[Array, "2"],
+    class_log_probs: Float[Array, " M"],
+) -> Float[Array, ""]:
+    """``log Σ_c P(z^s | c, viewpoint) p(c | Z^-)``: the semantic bracket of Eq. 5.10."""
+    return jax.nn.logsumexp(class_log_likelihoods(classifier, scores, viewpoint) + class_log_probs)
+
+
+def _new_object(x: Float[Array, "3"], geo: Float[Array, "2"], theta: Float[Array, ""]) -> Float[Array, "3"]:
+    return jnp.concatenate([discovery.back_project(x, geo), theta[None]])
+
+
+def _uniform(m: int) -> Float[Array, " M"]:
+    return jnp.full((m,), -math.log(m))
+
+
+def joint_log_likelihood(
+    sensor: SensorModel,
+    params: Params,
+    x: Float[Array, "3"],
+    slot_objects: Float[Array, "Dmax 3"],
+    known: Bool[Array, " Dmax"],
+    new: Bool[Array, " Dmax"],
+    slot_class_log_probs: Float[Array, "Dmax M"],
+    detections: Detections,
+    theta: Float[Array, " Dmax"],
+) -> Float[Array, ""]:
+    """``log Π_k p(z_k | x, objects, d_k)`` of one joint assignment at one sample (Eq. 5.10's integrand).
+
+    A detection of an object: range-bearing density, object observation model (footprint) and the
+    class-marginal semantic term. A new object (the null hypothesis, Sec. 3.2.1):
+    ``new_object_log_density`` and the semantic term under a uniform class prior, seen from an object
+    back-projected from the detection with orientation ``theta``.
+    """
+    w, geo_norm = sensor.geometric_sqrt_information()
+    m = sensor.classifier.num_classes
+
+    def of_object(obj, geo, scores, class_lp):
+        r = w @ geometry.geometric_residual(geo, geometry.range_bearing(x, obj))
+        sem = semantic_log_marginal(sensor.classifier, scores, geometry.viewpoint(x, obj), class_lp)
+        return geo_norm - 0.5 * r @ r + log_visibility(sensor, x, obj) + sem
+
+    def of_new(geo, scores, th):
+        sem = semantic_log_marginal(sensor.classifier, scores, geometry.viewpoint(x, _new_object(x, geo, th)), _uniform(m))
+        return params.new_object_log_density + sem
+
+    per_obj = jax.vmap(of_object)(slot_objects, detections.geo, detections.scores, slot_class_log_probs)
+    per_new = jax.vmap(of_new)(detections.geo, detections.scores, theta)
+    return jnp.sum(jnp.where(known, per_obj, 0.0)) + jnp.sum(jnp.where(new, per_new, 0.0))
+
+
+def _sub_indices(objects: Int[Array, " Dmax"], known: Bool[Array, " Dmax"]) -> tuple[Int[Array, " P"], Bool[Array, " P"]]:
+    """State indices of ``[x_k, o_{d_1}, ..., o_{d_Dmax}]`` (``P = 3 + 3 Dmax``) and which are placeholders
+    (slots not associated with a created object)."""
+    obj_idx = 3 + 3 * jnp.maximum(objects, 0)[:, None] + jnp.arange(3)[None, :]
+    idx = jnp.concatenate([jnp.arange(3), obj_idx.reshape(-1)])
+    dummy = jnp.concatenate([jnp.zeros(3, bool), jnp.repeat(~known, 3)])
+    return idx, dummy
+
+
+def sub_gaussian(
+    mean: Float[Array, " D"], cov: Float[Array, "D D"], idx: Int[Array, " P"], dummy: Bool[Array, " P"]
+) -> tuple[Float[Array, " P"], Float[Array, "P P"]]:
+    """The marginal over ``[x_k, associated objects]``; placeholder entries are ``N(0, 1)`` and
+    uncorrelated, so they cancel between any two such Gaussians."""
+    m = jnp.where(dummy, 0.0, mean[idx])
+    c = jnp.where(dummy[:, None] | dummy[None, :], 0.0, cov[idx][:, idx])
+    return m, c + jnp.diag(dummy.astype(c.dtype))
+
+
+def screen_log_likelihood(
+    sensor: SensorModel,
+    params: Params,
+    pred: Predictions,
+    mean: Float[Array, " D"],
+    cov: Float[Array, "D D"],
+    class_log_probs: Float[Array, "Nmax M"],
+    objects: Int[Array, " Dmax"],
+    new: Bool[Array, " Dmax"],
+    detections: Detections,
+) -> Float[Array, ""]:
+    """Linearized ``log L_ij``: the joint innovation density ``N(r; 0, H Σ Hᵀ + Σ_v)`` of the detections
+    of created objects, plus the semantic and null terms at the mean. Used only to pick which
+    children get a Gauss-Newton update and an importance-sampled weight."""
+    known = (objects >= 0) & ~new
+    idx, dummy = _sub_indices(objects, known)
+    _, sub_cov = sub_gaussian(mean, cov, idx, dummy)
+    slots = jnp.arange(objects.shape[0])
+    obj = jnp.maximum(objects, 0)
+    r = jnp.where(known[:, None], pred.residual[slots, obj], 0.0).reshape(-1)
+    j = jnp.where(known[:, None, None], pred.jacobian[slots, obj], 0.0)  # (Dmax, 2, 6)
+    h = jnp.zeros((objects.shape[0], 2, sub_cov.shape[0]), cov.dtype)
+    h = h.at[:, :, :3].set(j[:, :, :3])
+    h = jax.vmap(lambda hk, jk, k: jax.lax.dynamic_update_slice(hk, jk[:, 3:], (0, 3 + 3 * k)))(h, j, slots)
+    h = h.reshape(-1, sub_cov.shape[0])
+    s = h @ sub_cov @ h.T + jnp.kron(jnp.eye(objects.shape[0], dtype=cov.dtype), sensor.geometric_cov)
+    chol = jnp.linalg.cholesky(s)
+    u = jsl.solve_triangular(chol, r, lower=True)
+    _, geo_norm = sensor.geometric_sqrt_information()
+    # Unassociated slots are rows with r = 0 and covariance Σ_v: remove their normalizer.
+    geo = -0.5 * u @ u - jnp.sum(jnp.log(jnp.diagonal(chol))) - objects.shape[0] * math.log(2 * math.pi)
+    geo = geo - geo_norm * jnp.sum(~known)
+    theta = jnp.zeros(objects.shape, cov.dtype)
+    x, objs = mean[:3], mean[3:].reshape(-1, 3)
+    rest = joint_log_likelihood(sensor, params, x, objs[obj], jnp.zeros_like(known), new,
+                                class_log_probs[obj], detections, theta)
+    known_sem = jax.vmap(lambda o, sc, lp: semantic_log_marginal(sensor.classifier, sc, geometry.viewpoint(x, o), lp))(
+        objs[obj], detections.scores, class_log_probs[obj])
+    return geo + rest + jnp.sum(jnp.where(known, known_sem, 0.0))
+
+
+def sampled_log_likelihood(
+    sensor: SensorModel,
+    params: Params,
+    prior: tuple[Float[Array, " P"], Float[Array, "P P"]],
+    proposal: tuple[Float[Array, " P"], Float[Array, "P P"]],
+    class_log_probs: Float[Array, "Dmax M"],
+    objects: Int[Array, " Dmax"],
+    new: Bool[Array, " Dmax"],
+    detections: Detections,
+    eps: Float[Array, "S P"],
+    theta: Float[Array, "S Dmax"],
+) -> Float[Array, ""]:
+    """Monte Carlo ``log L_ij = log ∫ N_i(y) Π_k p(z_k | y, d_k) dy`` over ``y = [x_k, associated objects]``
+    (Eq. 5.10, joint compatibility: every detection is scored on the same sample).
+
+    Samples ``y_s = μ_q + L_q ε_s`` from ``proposal`` ``q``, weighted by ``N_i(y_s) / q(y_s)``: with
+    ``q`` the prior marginal this is Eq. 5.10 as written (pose and landmark samples from the belief);
+    with ``q`` the child's Laplace posterior it is the same integral by importance sampling, whose
+    variance stays small when the measurement is much sharper than the prior (a loop closure).
+    """
+    known = (objects >= 0) & ~new
+    (mu_p, cov_p), (mu_q, cov_q) = prior, proposal
+    chol_p, chol_q = jnp.linalg.cholesky(cov_p), jnp.linalg.cholesky(cov_q)
+    y = mu_q[None, :] + eps @ chol_q.T
+    _, dummy = _sub_indices(objects, known)
+    # Placeholder entries are N(0, 1) in both densities; wrapping them as headings would break that.
+    diff = y - mu_p[None, :]
+    diff = jnp.where(dummy[None, :], diff, jax.vmap(wrap_angles)(diff))
+    u = jsl.solve_triangular(chol_p, diff.T, lower=True)
+    log_ratio = (-0.5 * jnp.sum(u**2, axis=0) - jnp.sum(jnp.log(jnp.diagonal(chol_p)))
+                 + 0.5 * jnp.sum(eps**2, axis=1) + jnp.sum(jnp.log(jnp.diagonal(chol_q))))
+
+    def one(ys, th):
+        return joint_log_likelihood(sensor, params, ys[:3], ys[3:].reshape(-1, 3), known, new,
+                                    class_log_probs, detections, th)
+
+    log_lik = jax.vmap(one)(y, theta)
+    return jax.nn.logsumexp(log_lik + log_ratio) - math.log(eps.shape[0])
+
+
+def draws(key: jax.Array, cfg: Config, params: Params) -> tuple[Float[Array, "S P"], Float[Array, "S Dmax"]]:
+    """Standard-normal draws for the joint samples, and new objects' orientations ``~ N(0, var)``
+    (fixed by ``key``; shared by every child: common random numbers make their weights comparable)."""
+    k_state, k_orient = jax.random.split(key)
+    dtype = params.orientation_var.dtype
+    eps = jax.random.normal(k_state, (cfg.num_samples, 3 + 3 * cfg.max_detections), dtype=dtype)
+    theta = jax.random.normal(k_orient, (cfg.num_samples, cfg.max_detections), dtype=dtype)
+    return eps, jnp.sqrt(params.orientation_var) * theta
+
+
+def _segment_logsumexp(values: Float[Array, " n"], ids: Int[Array, " n"], n: int) -> Float[Array, " n"]:
+    top = jax.ops.segment_max(values, ids, num_segments=n)
+    top = jnp.where(jnp.isfinite(top), top, 0.0)
+    return top + jnp.log(jax.ops.segment_sum(jnp.exp(values - top[ids]), ids, num_segments=n))
+
+
+def tuple_log_probs(objects: Int[Array, "C Dmax"], log_mass: Float[Array, " C"], n_max: int) -> Float[Array, " C"]:
+    """``log p_j`` (Eq. 5.9): each child's share of the total mass of the children naming its object tuple.
+
+    Children of different components that associate the detections with the same objects are the
+    same association hypothesis. ``-inf`` for children of zero mass.
+    """
+    powers = jnp.asarray((n_max + 1) ** np.arange(objects.shape[-1], dtype=np.int64))
+    codes = jnp.sum((objects.astype(jnp.int64) + 1) * powers[None, :], axis=-1)
+    _, ids = jnp.unique(codes, return_inverse=True, size=codes.size, fill_value=-1)
+    ids = ids.reshape(-1)
+    out = _segment_logsumexp(log_mass, ids, codes.size)[ids] - jax.nn.logsumexp(log_mass)
+    return jnp.where(log_mass > -jnp.inf, out, -jnp.inf)
+
+
+# --------------------------------------------------------------------------- #
+# Hypotheses: children of (component, joint assignment), weighted by Eq. 5.9-5.11
+# --------------------------------------------------------------------------- #
+
+
+class Children(eqx.Module):
+    """The ``C`` children that get a Gauss-Newton update, with their weights."""
+
+    parent: Int[Array, " C"]
+    objects: Int[Array, "C Dmax"]  # object of each detection, -1 for an empty slot
+    new: Bool[Array, "C Dmax"]  # which detections create their object
+    mean: Float[Array, "C D"]  # Gauss-Newton posterior (before new objects are written)
+    cov: Float[Array, "C D D"]
+    result: optx.RESULTS
+    log_lik: Float[Array, " C"]  # Monte Carlo log L_ij (Eq. 5.10)
+    log_prob: Float[Array, " C"]  # log p_j (Eq. 5.9)
+    log_weight: Float[Array, " C"]  # log w_i + log L_ij (+ log p_j with association_prior="mc")
+    dropped_mass: Float[Array, ""]  # linearized mass of the children not selected
+
+
+def _residuals(y, args):
+    sensor, mean, chol, objects, known, geo = args
+    prior = jsl.solve_triangular(chol, wrap_angles(y - mean), lower=True)
+    x, objs = y[:3], y[3:].reshape(-1, 3)
+    w, _ = sensor.geometric_sqrt_information()
+
+    def one(obj, z):
+        return w @ geometry.geometric_residual(z, geometry.range_bearing(x, obj))
+
+    meas = jax.vmap(one)(objs[jnp.maximum(objects, 0)], geo)
+    return jnp.concatenate([prior, jnp.where(known[:, None], meas, 0.0).reshape(-1)])
+
+
+def gauss_newton_child(state: State, mean, cov, objects, new, detections: Detections):
+    """The Gaussian ``∝ N_i ρ_j`` of one child: Gauss-Newton on the prior and the geometric factors of
+    the detections associated with created objects (Eq. 5.11 times one component)."""
+    known = (objects >= 0) & ~new
+    args = (state.model.sensor, mean, jnp.linalg.cholesky(cov), objects, known, detections.geo)
+    value, cov, result = gauss_newton(_residuals, mean, args, state.config.gn_max_steps)
+    return wrap_angles(value), cov, result
+
+
+def hypotheses(
+    state: State, mean: Float[Array, "K D"], cov: Float[Array, "K D D"], detections: Detections, key: jax.Array
+) -> Children:
+    """Gate, enumerate joint assignments, screen them by linearized likelihood, update the ``C``
+    best by Gauss-Newton and weigh them by Monte Carlo (Eq. 5.9-5.11). ``mean`` / ``cov`` are the
+    components at the current pose (after propagation)."""
+    cfg, sensor, params = state.config, state.model.sensor, state.params
+    choices = jnp.asarray(joint_assignments(cfg.candidates, cfg.max_detections))
+
+    def per_component(m, c, class_lp, created):
+        pred = predict(sensor, m, c, detections)
+        cand = gate(pred.d2, created, cfg.candidates)
+        objects, new, feasible = assignment_objects(choices, cand, detections.mask, created, cfg.max_objects, cfg.discovery)
+        screen = jax.vmap(screen_log_likelihood, (None, None, None, None, None, None, 0, 0, None))(
+            sensor, params, pred, m, c, class_lp, objects, new, detections)
+        return objects, new, jnp.where(feasible, screen, -jnp.inf)
+
+    objects, new, screen = jax.vmap(per_component)(mean, cov, state.class_log_probs, state.num_created)
+    num_assign = choices.shape[0]
+    screen_w = (state.log_weights[:, None] + screen).reshape(-1)
+    sel_w, sel = jax.lax.top_k(screen_w, cfg.children)
+    parent, a = sel // num_assign, sel % num_assign
+    objects, new = objects[parent, a], new[parent, a]
+    post_mean, post_cov, result = jax.vmap(gauss_newton_child, (None, 0, 0, 0, 0, None))(
+        state, mean[parent], cov[parent], objects, new, detections)
+
+    eps, theta = draws(key, cfg, params)
+
+    def weigh(pm, pc, qm, qc, class_lp, obj, nw):
+        idx, dummy = _sub_indices(obj, (obj >= 0) & ~nw)
+        prior = sub_gaussian(pm, pc, idx, dummy)
+        proposal = sub_gaussian(qm, qc, idx, dummy) if cfg.proposal == "posterior" else prior
+        return sampled_log_likelihood(sensor, params, prior, proposal, class_lp[jnp.maximum(obj, 0)], obj, nw,
+                                      detections, eps, theta)
+
+    log_lik = jax.vmap(weigh)(mean[parent], cov[parent], post_mean, post_cov, state.class_log_probs[parent], objects, new)
+    log_lik = jnp.where(sel_w > -jnp.inf, log_lik, -jnp.inf)
+    log_mass = state.log_weights[parent] + log_lik
+    log_prob = tuple_log_probs(objects, log_mass, cfg.max_objects)
+    log_weight = log_mass + log_prob if cfg.association_prior == "mc" else log_mass
+    dropped = jnp.maximum(-jnp.expm1(jax.nn.logsumexp(sel_w) - jax.nn.logsumexp(screen_w)), 0.0)
+    return Children(parent, objects, new, post_mean, post_cov, result, log_lik, log_prob, log_weight, dropped)
+
+
+@jax.jit
+def association_log_probabilities(state: State, detections: Detections, key: jax.Array) -> Children:
+    """The weighed hypotheses of ``detections`` taken at the state's current pose (no propagation)."""
+    return hypotheses(state, state.mean, state.cov, detections, key)
+
+
+# --------------------------------------------------------------------------- #
+# Finishing a child: new objects (Sec. 3.2.1) and class posteriors
+# --------------------------------------------------------------------------- #
+
+
+def _create_objects(mean, cov, objects, new, geo, sensor, params):
+    """Initialize every new object from its detection (:func:`hybridslam.discovery.create_object`)."""
+
+    def one(carry, slot):
+        m, c = carry
+        obj, is_new, z = slot
+        m2, c2 = discovery.create_object(m, c, jnp.maximum(obj, 0), z, sensor.geometric_cov, params.orientation_var)
+        return (jnp.where(is_new, m2, m), jnp.where(is_new, c2, c)), None
+
+    (mean, cov), _ = jax.lax.scan(one, (mean, cov), (objects, new, geo))
+    return mean, cov
+
+
+def _class_update(sensor, mean, class_log_probs, observed, objects, new, detections, theta):
+    """Bayes' rule on each associated object's class (the semantic term of Eq. 5.10; thesis Eq. 4.17).
+
+    A new object's class starts uniform; its orientation is unobserved, so its evidence averages the
+    classifier over the sampled orientations.
+    """
+    x, objs = mean[:3], mean[3:].reshape(-1, 3)
+    n_max, m = class_log_probs.shape
+    at_mean = jax.vmap(lambda o, s: class_log_likelihoods(sensor.classifier, s, geometry.viewpoint(x, o)))(
+        objs[jnp.maximum(objects, 0)], detections.scores)
+
+    def averaged(geo, scores, th):  # th: (S,)
+        obj = jax.vmap(lambda t: _new_object(x, geo, t))(th)
+        ll = jax.vmap(lambda o: class_log_likelihoods(sensor.classifier, scores, geometry.viewpoint(x, o)))(obj)
+        return jax.nn.logsumexp(ll, axis=0) - math.log(th.shape[0])
+
+    over_orient = jax.vmap(averaged)(detections.geo, detections.scores, theta.T)
+    evidence = jnp.where(new[:, None], over_orient, at_mean)  # (Dmax, M)
+    hit = (objects[:, None] == jnp.arange(n_max)[None, :]) & (objects[:, None] >= 0)  # (Dmax, Nmax)
+    fresh = jnp.any(hit & new[:, None], axis=0)
+    prior = jnp.where(fresh[:, None], -math.log(m), class_log_probs)
+    post = prior + jnp.sum(jnp.where(hit[:, :, None], evidence[:, None, :], 0.0), axis=0)
+    return jax.nn.log_softmax(post, axis=-1), observed | jnp.any(hit, axis=0)
+
+
+def finish_child(state: State, mean, cov, class_log_probs, observed, num_created, objects, new, detections, theta):
+    """Write the child's new objects into their slots and update its class posteriors."""
+    sensor = state.model.sensor
+    mean, cov = _create_objects(mean, cov, objects, new, detections.geo, sensor, state.params)
+    class_log_probs, observed = _class_update(sensor, mean, class_log_probs, observed, objects, new, detections, theta)
+    return mean, cov, class_log_probs, observed, (num_created + jnp.sum(new)).astype(num_created.dtype)
+
+
+# --------------------------------------------------------------------------- #
+# Reduction: greedy moment-matching merging (no mode is dropped)
+# --------------------------------------------------------------------------- #
+
+
+def _mahalanobis2(chol: Float[Array, "D D"], centre: Float[Array, " D"], means: Float[Array, "C D"]) -> Float[Array, " C"]:
+    diff = jax.vmap(wrap_angles)(means - centre[None, :])
+    z = jsl.solve_triangular(chol, diff.T, lower=True)
+    return jnp.sum(z**2, axis=0)
+
+
+def merge(
+    log_w: Float[Array, " C"],
+    mean: Float[Array, "C D"],
+    cov: Float[Array, "C D D"],
+    num_created: Int[Array, " C"],
+    threshold: Float[Array, ""],
+    capacity: int,
+) -> tuple[Int[Array, " K"], Float[Array, " K"], Float[Array, "K C"], Float[Array, "K D"], Float[Array, "K D D"]]:
+    """Reduce ``C`` weighted Gaussians to ``K`` without dropping mass.
+
+    ``K`` rounds: the heaviest unclaimed child becomes a centre and claims every unclaimed child with
+    the same number of created objects within squared Mahalanobis distance ``threshold`` (centre's
+    metric). Leftovers join the nearest centre: moment-matched when their object slots are
+    comparable (same number created), by weight only otherwise. Returns the centres, merged log
+    weights (``-inf`` for unused slots), moment weights ``(K, C)``, and merged means and covariances.
+    """
+    live = log_w > -jnp.inf
+    chol = jax.vmap(jnp.linalg.cholesky)(cov)
+    pose_chol = jax.vmap(jnp.linalg.cholesky)(cov[:, :3, :3])
+
+    def round_(owner, r):
+        free = (owner < 0) & live
+        c = jnp.argmax(jnp.where(free, log_w, -jnp.inf))
+        close = free & (num_created == num_created[c]) & (_mahalanobis2(chol[c], mean[c], mean) <= threshold)
+        close = close | (jnp.arange(owner.shape[0]) == c)
+        return jnp.where(close & jnp.any(free), r, owner), (c, jnp.any(free))
+
+    owner, (centres, used) = jax.lax.scan(round_, jnp.full(log_w.shape, -1), jnp.arange(capacity))
+    full_d2 = jax.vmap(_mahalanobis2, (0, 0, None))(chol[centres], mean[centres], mean)  # (K, C)
+    pose_d2 = jax.vmap(_mahalanobis2, (0, 0, None))(pose_chol[centres], mean[centres, :3], mean[:, :3])
+    comparable = used[:, None] & (num_created[centres][:, None] == num_created[None, :])
+    has_full = jnp.any(comparable, axis=0)
+    nearest = jnp.where(has_full, jnp.argmin(jnp.where(comparable, full_d2, jnp.inf), axis=0),
+                        jnp.argmin(jnp.where(used[:, None], pose_d2, jnp.inf), axis=0))
+    left = (owner < 0) & live
+    owner = jnp.where(left, nearest, owner)
+    member = (owner[None, :] == jnp.arange(capacity)[:, None]) & live[None, :]  # (K, C)
+    log_weights = jax.nn.logsumexp(jnp.where(member, log_w[None, :], -jnp.inf), axis=1)
+    moment = member & ~(left & ~has_full)[None, :]
+    centre_hot = jnp.arange(log_w.shape[0])[None, :] == centres[:, None]
+    wn = jax.nn.softmax(jnp.where(moment, log_w[None, :], -jnp.inf), axis=1)
+    wn = jnp.where(jnp.any(moment, axis=1, keepdims=True), wn, centre_hot.astype(wn.dtype))
+    delta = jax.vmap(jax.vmap(wrap_angles))(mean[None, :, :] - mean[centres][:, None, :])  # (K, C, D)
+    shift = jnp.einsum("kc,kcd->kd", wn, delta)
+    dev = delta - shift[:, None, :]
+    new_cov = jnp.einsum("kc,cde->kde", wn, cov) + jnp.einsum("kc,kcd,kce->kde", wn, dev, dev)
+    new_mean = jax.vmap(wrap_angles)(mean[centres] + shift)
+    return centres, log_weights, wn, new_mean, 0.5 * (new_cov + jnp.swapaxes(new_cov, 1, 2))
+
+
+# --------------------------------------------------------------------------- #
+# The estimator contract
+# --------------------------------------------------------------------------- #
+
+
+def _config(scenario: Scenario, settings: Settings) -> Config:
+    n_max = scenario.discovery.max_objects if scenario.discovery is not None else scenario.num_objects
+    if n_max < 1:
+        raise ValueError("multimodal: the scenario has no objects and no discovery section (nothing to associate)")
+    capacity = settings.capacity
+    samples = DEFAULT_SAMPLES if settings.num_samples is None else settings.num_samples
+    candidates = min(int(settings.option("candidates", DEFAULT_CANDIDATES)), n_max)
+    prior = settings.option("association_prior", "mc")
+    if prior not in ASSOCIATION_PRIORS:
+        raise ValueError(f"multimodal: association_prior must be one of {ASSOCIATION_PRIORS}, got {prior!r}")
+    proposal = settings.option("proposal", "posterior")
+    if proposal not in PROPOSALS:
+        raise ValueError(f"multimodal: proposal must be one of {PROPOSALS}, got {proposal!r}")
+    assignments = (candidates + 1) ** settings.max_detections
+    children = min(int(settings.option("children", 2 * capacity)), capacity * assignments)
+    for name, value in (("capacity", capacity), ("num_samples", samples), ("candidates", candidates),
+                        ("children", children)):
+        if value < 1:
+            raise ValueError(f"multimodal: {name} must be at least 1, got {value}")
+    if (n_max + 1) ** settings.max_detections >= 2**62:
+        raise ValueError(f"multimodal: {settings.max_detections} detection slots over {n_max} objects "
+                         "overflow the int64 association codes")
+    return Config(capacity, n_max, settings.max_detections, settings.max_steps, samples, candidates, children,
+                  settings.gn_max_steps, scenario.discovery is not None, prior, proposal)
+
+
+def init(scenario: Scenario, settings: Settings) -> State:
+    """One component of weight 1: the robot and object priors, uncreated slots ``N(0, I)`` (Eq. 3)."""
+    cfg = _config(scenario, settings)
+    model = model_from_scenario(scenario.replace(discovery=None), settings.classifier)
+    n, n_max, m = scenario.num_objects, cfg.max_objects, scenario.num_classes
+    dim = 3 + 3 * n_max
+    mean = np.zeros(dim)
+    mean[:3] = scenario.robot_prior_mean
+    mean[3:3 + 3 * n] = np.asarray(scenario.object_prior_means).reshape(-1)
+    cov = np.eye(dim)
+    cov[:3, :3] = scenario.robot_prior_cov
+    for i in range(n):  # once, at init
+        cov[3 + 3 * i:6 + 3 * i, 3 + 3 * i:6 + 3 * i] = scenario.object_prior_covs[i]
+    class_lp = np.full((n_max, m), -math.log(m))
+    with np.errstate(divide="ignore"):
+        class_lp[:n] = np.log(scenario.class_prior)
+    disc = scenario.discovery
+    params = Params(
+        jnp.asarray(disc.new_object_log_density if disc else -jnp.inf, dtype=float),
+        jnp.asarray(disc.new_object_orientation_var if disc else 1.0, dtype=float),
+        jnp.asarray(float(settings.option("merge_threshold", DEFAULT_MERGE_THRESHOLD)), dtype=float),
+    )
+    # The class prior padded to Nmax rows: runs with the same capacities share one compiled step.
+    model = eqx.tree_at(lambda mo: mo.class_prior, model, jnp.asarray(np.exp(class_lp)))
+    k = cfg.capacity
+    return State(
+        log_weights=jnp.full((k,), -jnp.inf).at[0].set(0.0),
+        mean=jnp.broadcast_to(jnp.asarray(mean), (k, dim)),
+        cov=jnp.broadcast_to(jnp.asarray(cov), (k, dim, dim)),
+        class_log_probs=jnp.broadcast_to(jnp.asarray(class_lp), (k, n_max, m)),
+        observed=jnp.zeros((k, n_max), dtype=bool),
+        num_created=jnp.full((k,), n, dtype=jnp.int32),
+        history=jnp.full((k, cfg.max_steps, cfg.max_detections), -1, dtype=jnp.int32),
+        k=jnp.zeros((), dtype=jnp.int32),
+        model=model,
+        params=params,
+        config=cfg,
+    )
+
+
+@jax.jit
+def step(state: State, odometry: Float[Array, "3"], detections: Detections, key: jax.Array) -> tuple[State, Info]:
+    """Propagate (Eq. 5.7's odometry factor), weigh the (component, joint assignment) children by
+    Eq. 5.9-5.11, update them and merge them back to ``K`` components."""
+    cfg = state.config
+    mean, cov = jax.vmap(motion.propagate, (0, 0, None, None))(state.mean, state.cov, odometry, state.model.motion_cov)
+    ch = hypotheses(state, mean, cov, detections, key)
+    _, theta = draws(key, cfg, state.params)
+    finish = jax.vmap(finish_child, (None, 0, 0, 0, 0, 0, 0, 0, None, None))
+    c_mean, c_cov, c_class, c_obs, c_created = finish(
+        state, ch.mean, ch.cov, state.class_log_probs[ch.parent], state.observed[ch.parent],
+        state.num_created[ch.parent], ch.objects, ch.new, detections, theta)
+    c_hist = state.history[ch.parent].at[:, state.k].set(jnp.where(detections.mask[None, :], ch.objects, -1))
+    centres, log_w, wn, m_mean, m_cov = merge(ch.log_weight, c_mean, c_cov, c_created, state.params.merge_threshold,
+                                              cfg.capacity)
+    # Warnings concern hypotheses within RELEVANT_NATS of the best; the rest carry no visible mass.
+    relevant = state.log_weights > jnp.max(state.log_weights) - RELEVANT_NATS
+    no_room = cfg.discovery & jnp.any(detections.mask) & jnp.any(relevant & (state.num_created >= cfg.max_objects))
+    relevant_child = ch.log_weight > jnp.max(ch.log_weight) - RELEVANT_NATS
+    info = Info(
+        parent=ch.parent,
+        assoc_objects=ch.objects,
+        assoc_log_probs=ch.log_prob,
+        dropped_mass=ch.dropped_mass,
+        solver_failures=jnp.sum(relevant_child & (ch.result != optx.RESULTS.successful)),
+        overflow=no_room | ~jnp.any(log_w > -jnp.inf),
+        num_components=jnp.sum(log_w > -jnp.inf),
+    )
+    new_state = dataclasses.replace(
+        state,
+        log_weights=log_w - jax.nn.logsumexp(log_w),
+        mean=m_mean,
+        cov=m_cov,
+        class_log_probs=jnp.log(jnp.einsum("kc,cnm->knm", wn, jnp.exp(c_class))),
+        observed=jnp.any((wn > 0)[:, :, None] & c_obs[None, :, :], axis=1),
+        num_created=c_created[centres],
+        history=c_hist[centres],
+        k=state.k + 1,
+    )
+    return new_state, info
+
+
+def view(state: State) -> Mixture:
+    """The robot-pose mixture, per-component argmax classes of associated objects (else -1), histories."""
+    classes = jnp.where(state.observed, jnp.argmax(state.class_log_probs, axis=-1), -1).astype(jnp.int32)
+    # Kept in the state, but a weight that underflows to 0 is no component of the reported belief.
+    log_w = jnp.where(jnp.exp(state.log_weights) > 0, state.log_weights, -jnp.inf)
+    return Mixture(log_w, state.mean[:, :3], state.cov[:, :3, :3], classes, state.history, state.k)
+
+
+def describe(settings: Settings) -> str:
+    samples = DEFAULT_SAMPLES if settings.num_samples is None else settings.num_samples
+    return (
+        f"multimodal (sum-mixture semantic SLAM, Doherty thesis Ch. 5, Eq. 5.9-5.11; hybridslam): "
+        f"capacity={settings.capacity}, num_samples={samples}, "
+        f"candidates={settings.option('candidates', DEFAULT_CANDIDATES)}, "
+        f"children={settings.option('children', 2 * settings.capacity)}, "
+        f"merge_threshold={settings.option('merge_threshold', DEFAULT_MERGE_THRESHOLD)}, "
+        f"association_prior={settings.option('association_prior', 'mc')}, "
+        f"proposal={settings.option('proposal', 'posterior')}, gn_max_steps={settings.gn_max_steps}"
+    )
+
+
+def warnings(info: Info) -> list[str]:
+    """Mass not updated (children beyond the budget), failed solves, object capacity overflow."""
+    out = []
+    if float(info.dropped_mass) > 1e-6:
+        out.append(f"multimodal: {float(info.dropped_mass):.2e} of the posterior mass lay in children beyond "
+                   "the 'children' budget and was dropped (raise children or capacity)")
+    if int(info.solver_failures):
+        out.append(f"multimodal: {int(info.solver_failures)} Gauss-Newton solves did not converge")
+    if bool(info.overflow):
+        out.append("multimodal: object capacity full (or no feasible association): a detection could not "
+                   "create a new object (raise discovery.max_objects)")
+    return out
