@@ -51,3 +51,32 @@ def test_update_without_detections_keeps_the_prior():
     new_mean, new_cov, _ = gauss_newton_update(sensor, mean, cov, jnp.array([-1, -1]), jnp.zeros(2, int), det, 20)
     np.testing.assert_allclose(new_mean, mean, atol=1e-12)
     np.testing.assert_allclose(new_cov, cov, rtol=1e-10, atol=1e-15)
+
+
+def test_kalman_form_gauss_newton_equals_gauss_newton_with_a_prior_factor():
+    """update.prior_gauss_newton (iterated EKF) has the same mode and covariance as update.gauss_newton."""
+    import jax.scipy.linalg as jsl
+
+    from hybridslam import geometry
+    from hybridslam.update import gauss_newton, prior_gauss_newton, wrap_angles
+
+    rng = np.random.default_rng(0)
+    mean = jnp.asarray(rng.normal(size=12)).at[2::3].set(0.3)
+    a = rng.normal(size=(12, 12)) * 0.3
+    cov = jnp.asarray(a @ a.T + 0.05 * np.eye(12))
+    z = jnp.array([[3.0, 0.2], [2.0, -0.4]])
+
+    def measurement(y, _):
+        objs = y[3:].reshape(-1, 3)
+        return jnp.concatenate([geometry.geometric_residual(z[i], geometry.range_bearing(y[:3], objs[i])) / 0.1
+                                for i in range(2)])
+
+    def with_prior(y, _):
+        white = jsl.solve_triangular(jnp.linalg.cholesky(cov), wrap_angles(y - mean), lower=True)
+        return jnp.concatenate([white, measurement(y, None)])
+
+    y1, c1, r1 = prior_gauss_newton(measurement, mean, cov, None, 50)
+    y2, c2, _ = gauss_newton(with_prior, mean, None, 50)
+    assert r1 == optx.RESULTS.successful
+    np.testing.assert_allclose(y1, y2, atol=1e-10)
+    np.testing.assert_allclose(c1, c2, atol=1e-10)

@@ -57,7 +57,7 @@ from ..belief import Detections
 from ..model import Model, model_from_scenario
 from ..motion import propagate
 from ..scenario import Scenario
-from ..update import gauss_newton, wrap_angles
+from ..update import prior_gauss_newton, wrap_angles
 from .base import Mixture, Settings
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -370,11 +370,6 @@ def create_objects(state: GaussianState, mean, cov, slots: Int[Array, " Dmax"], 
     return mean, cov
 
 
-def prior_residual(y, mean, chol):
-    """The propagated Gaussian as a whitened prior factor ``L⁻¹ (y ⊖ μ)``."""
-    return jsl.solve_triangular(chol, wrap_angles(y - mean), lower=True)
-
-
 def geometric_residual(sensor, y, obj, geo):
     """Whitened ``W (z − h(x_k, o_obj))`` of one detection (the paper's Eq. 10, geometric part)."""
     w, _ = sensor.geometric_sqrt_information()
@@ -382,9 +377,9 @@ def geometric_residual(sensor, y, obj, geo):
 
 
 def _weighted_residuals(y, args):
-    sensor, mean, chol, obj, geo, weight = args
+    sensor, obj, geo, weight = args
     r = jax.vmap(geometric_residual, (None, None, 0, 0))(sensor, y, obj, geo)
-    return jnp.concatenate([prior_residual(y, mean, chol), (jnp.sqrt(weight)[:, None] * r).reshape(-1)])
+    return (jnp.sqrt(weight)[:, None] * r).reshape(-1)
 
 
 def weighted_update(state: GaussianState, mean, cov, obj: Int[Array, " F"], geo: Float[Array, "F 2"],
@@ -393,8 +388,9 @@ def weighted_update(state: GaussianState, mean, cov, obj: Int[Array, " F"], geo:
 
     ``w = 1`` is an ordinary factor (ML); fractional weights scale its information (GPDA, Eq. 3.7).
     """
-    args = (state.model.sensor, mean, jnp.linalg.cholesky(cov), jnp.maximum(obj, 0), geo, weight)
-    value, new_cov, result = gauss_newton(_weighted_residuals, mean, args, state.config.gn_max_steps)
+    args = (state.model.sensor, jnp.maximum(obj, 0), geo, weight)
+    # Kalman-form Gauss-Newton: O(D² m) per iterate, not a dense solve over the whole map.
+    value, new_cov, result = prior_gauss_newton(_weighted_residuals, mean, cov, args, state.config.gn_max_steps)
     return wrap_angles(value), new_cov, result
 
 

@@ -67,10 +67,10 @@ def max_mixture_residual(sensor, y, obj, geo, log_w, valid, null_log_density):
 
 
 def _residuals(y, args):
-    sensor, mean, chol, obj, geo, log_w, valid, null_log_density = args
+    sensor, obj, geo, log_w, valid, null_log_density = args
     rows, _ = jax.vmap(max_mixture_residual, (None, None, 0, 0, 0, 0, None))(
         sensor, y, obj, geo, log_w, valid, null_log_density)
-    return jnp.concatenate([gaussian.prior_residual(y, mean, chol), rows.reshape(-1)])
+    return rows.reshape(-1)
 
 
 @jax.jit
@@ -92,8 +92,10 @@ def step(state: GaussianState, odometry: Float[Array, "3"], detections: Detectio
     valid = jnp.concatenate([assoc.candidate_ok, null_ok], axis=-1) & (w > 0) & ~new[:, None] & detections.mask[:, None]
     log_w = jnp.log(jnp.where(valid, w, 1.0))
     null_ld = state.params.new_object_log_density
-    args = (state.model.sensor, mean, jnp.linalg.cholesky(cov), assoc.candidates, detections.geo, log_w, valid, null_ld)
-    value, cov, result = gaussian.gauss_newton(_residuals, mean, args, state.config.gn_max_steps)
+    args = (state.model.sensor, assoc.candidates, detections.geo, log_w, valid, null_ld)
+    # The prior enters in Kalman form (update.prior_gauss_newton); the active components are
+    # re-chosen at every iterate, as in Eq. 4.16.
+    value, cov, result = gaussian.prior_gauss_newton(_residuals, mean, cov, args, state.config.gn_max_steps)
     mean = gaussian.wrap_angles(value)
 
     _, active = jax.vmap(max_mixture_residual, (None, None, 0, 0, 0, 0, None))(
