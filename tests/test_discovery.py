@@ -12,6 +12,7 @@ import pytest
 import hybridslam as hs
 from hybridslam.classifier import make_classifier
 from hybridslam.discovery import back_project, create_object
+from hybridslam.gating import gate
 from hybridslam.hypotheses import NEW, children, hypothesis_table
 from hybridslam.scenario import Classifier, Discovery, Step
 from hybridslam.simulate import PaperSetup, _between, _compose, observe
@@ -86,18 +87,45 @@ def test_unknown_map_creates_each_true_object_once(world, exact):
             assert seen <= set(range(CAPACITY))
 
 
+def _hypotheses(belief, detections, gate_size):
+    """Every valid child of every live component: {(component, β_k, classes): (log prior, linearized log ψ)}."""
+    sensor, n = belief.model.sensor, belief.num_objects
+    table = hypothesis_table(gate_size or n, 2, 2, new_objects=True, gated=gate_size is not None)
+    cands = None
+    if gate_size is not None:
+        cands = jax.vmap(gate, (None, 0, 0, None, 0, None))(sensor, belief.mean, belief.cov, detections,
+                                                          belief.num_created, gate_size)
+    kids = jax.vmap(children, (None, 0, None, None, None, 0, 0))(
+        table, belief.classes, detections.mask, belief.model.class_prior, True, belief.num_created, cands)
+    log_psi = jax.vmap(linearized_log_likelihood, (None, 0, 0, None, None, 0))(
+        sensor, belief.mean, belief.cov, detections, table, kids)[0]
+    return kids, log_psi
+
+
+def _as_dict(kids, log_psi, alive):
+    kids, log_psi = jax.device_get((kids, log_psi))
+    return {
+        (i, tuple(kids.assign[i, a]), tuple(kids.slot_class[i, a, m])): (kids.log_prior[i, a, m], log_psi[i, a, m])
+        for i, a, m in zip(*np.nonzero(kids.valid & alive[:, None, None]))
+    }
+
+
 def test_gating_with_all_objects_equals_exact_enumeration(world, exact):
-    """G ≥ N candidates per detection: the gate keeps every hypothesis, so the belief is the same."""
-    gated = hs.run_scenario(world, gate_candidates=CAPACITY, **RUN)
-    assert "gate_candidates=5" in gated.result.estimator
-    for a, b in zip(exact.result.steps, gated.result.steps):
-        ca, cb = _components_of(a), _components_of(b)
-        assert ca.keys() == cb.keys()
-        np.testing.assert_allclose([ca[k] for k in ca], [cb[k] for k in ca], rtol=1e-9)
-
-
-def _components_of(record):
-    return {(str(c.associations), str(c.classes)): c.weight for c in record.components}
+    """G ≥ N candidates per detection keep every hypothesis of the exact enumeration, with the same
+    weights; G = 1 keeps a subset that holds the best child (each detection: its nearest object or new)."""
+    belief = exact.belief
+    st = hs.stack_steps(world, 2)
+    detections = hs.Detections(jnp.asarray(st.geo[1]), jnp.asarray(st.scores[1]), jnp.asarray(st.mask[1]))
+    alive = np.asarray(belief.alive)
+    assert alive.sum() > 1 and len(set(np.asarray(belief.num_created)[alive])) > 1  # a varied belief
+    run = jax.jit(lambda b: [_hypotheses(b, detections, g) for g in (None, CAPACITY, 1)])
+    exact_kids, all_gated, nearest = (_as_dict(*out, alive) for out in run(belief))
+    assert exact_kids.keys() == all_gated.keys()
+    keys = list(exact_kids)
+    np.testing.assert_allclose([exact_kids[k] for k in keys], [all_gated[k] for k in keys], rtol=1e-12)
+    assert set(nearest) < set(exact_kids)
+    best = max(exact_kids, key=lambda k: sum(exact_kids[k]) + float(belief.log_weights[k[0]]))
+    assert best in nearest
 
 
 def test_known_map_is_unchanged_by_discovery(known_map):
@@ -117,28 +145,32 @@ def test_known_map_is_unchanged_by_discovery(known_map):
 
 
 def test_new_slot_is_no_factor_of_the_weight():
-    """A child whose second detection creates a new object has the likelihood of the child with that
-    detection left out (sampled and linearized weights), plus nothing from the Gaussian."""
+    """Sampled weights (Eq. 16): a child whose second detection creates a new object has the
+    likelihood of the child with that detection left out; the shifted extra column cancels exactly.
+    (The linearized and laplace-is weights simply treat a creating slot as an empty one.)"""
     sensor = hs.SensorModel(jnp.diag(jnp.array([0.1, 0.05])), make_classifier("mirror", 2, 0.25, 15.0),
                             jnp.asarray(10.0), jnp.asarray(2.0))
     mean = jnp.array([0.0, 0.0, 0.1, 3.0, 1.0, 0.2, 4.0, -1.0, 0.0, 0.0, 0.0, 0.0])  # objects 0, 1; slot 2 uncreated
     cov = jnp.diag(jnp.array([0.05, 0.05, 0.01, 0.05, 0.05, 0.01, 0.05, 0.05, 0.01, 1.0, 1.0, 1.0]))
     geo = jnp.array([[3.1, 0.22], [4.0, -0.3]])
     scores = jnp.array([[0.8, 0.2], [0.3, 0.7]])
-    both = hs.Detections(geo, scores, jnp.array([True, True]))
-    first = hs.Detections(geo, scores, jnp.array([True, False]))
-    classes, prior = jnp.array([0, -1, -1]), jnp.full((3, 2), 0.5)
-    open_table, known_table = hypothesis_table(3, 2, 2, new_objects=True), hypothesis_table(3, 2, 2)
-    kids_new = children(open_table, classes, both.mask, prior, num_created=jnp.asarray(2))
-    kids_one = children(known_table, classes, first.mask, prior)
-    row_new = int(np.flatnonzero((open_table.assign == [[0, NEW]]).all(axis=1))[0])
-    row_one = int(np.flatnonzero((known_table.assign == [[0, -1]]).all(axis=1))[0])
-    assert bool(kids_new.valid[row_new, 0]) and int(kids_new.assign[row_new, 1]) == 2  # the next slot
+    table = hypothesis_table(3, 2, 2, new_objects=True)
     eps = jax.random.normal(jax.random.PRNGKey(0), (400, 12))
-    for weigh, extra in ((sampled_log_likelihood, (eps,)), (linearized_log_likelihood, ())):
-        with_new = weigh(sensor, mean, cov, both, *extra, open_table, kids_new)[0][row_new, 0]
-        without = weigh(sensor, mean, cov, first, *extra, known_table, kids_one)[0][row_one, 0]
-        np.testing.assert_allclose(with_new, without, rtol=1e-10)
+
+    @jax.jit
+    def weigh(mask):
+        det = hs.Detections(geo, scores, mask)
+        kids = children(table, jnp.array([0, -1, -1]), mask, jnp.full((3, 2), 0.5), num_created=jnp.asarray(2))
+        return sampled_log_likelihood(sensor, mean, cov, det, eps, table, kids)[0], kids
+
+    with_new, kids = weigh(jnp.array([True, True]))
+    without, _ = weigh(jnp.array([True, False]))
+    row_new = int(np.flatnonzero((table.assign == [[0, NEW]]).all(axis=1))[0])
+    row_one = int(np.flatnonzero((table.assign == [[0, -1]]).all(axis=1))[0])
+    assert bool(kids.valid[row_new, 0]) and int(kids.assign[row_new, 1]) == 2  # the next free slot
+    assert bool(kids.creates[row_new, 1]) and int(kids.measured[row_new, 1]) == -1
+    assert np.isfinite(without[row_one, 0])
+    np.testing.assert_allclose(with_new[row_new, 0], without[row_one, 0], rtol=1e-10)
 
 
 def test_create_object_covariance_matches_monte_carlo():
@@ -152,9 +184,9 @@ def test_create_object_covariance_matches_monte_carlo():
     cov[6:, 6:] = np.eye(6)
     mean = np.r_[1.0, 2.0, 0.4, 3.0, 1.0, 0.2, np.zeros(6)]
     geo, geometric_cov, var = np.array([2.0, 0.3]), np.diag([0.01, 0.004]), 9.87
-    new_mean, new_cov = create_object(jnp.asarray(mean), jnp.asarray(cov), jnp.asarray(1), jnp.asarray(geo),
+    new_mean, new_cov = jax.jit(create_object)(jnp.asarray(mean), jnp.asarray(cov), jnp.asarray(1), jnp.asarray(geo),
                                       jnp.asarray(geometric_cov), jnp.asarray(var))
-    n = 200_000
+    n = 50_000
     y = rng.multivariate_normal(mean, cov, n)
     z = geo + rng.multivariate_normal(np.zeros(2), geometric_cov, n)
     p = np.asarray(jax.vmap(back_project)(jnp.asarray(y[:, :3]), jnp.asarray(z)))
