@@ -186,7 +186,8 @@ def toy_runs():
 
 def test_association_probabilities_converge_to_brute_force(toy_runs):
     """Eq. 5.9-5.10 by Monte Carlo (2048 joint samples per child) against quadrature on a 61×61×31
-    pose grid: every seed within 0.02, and the mean of 6 seeds (12288 samples) within 0.01."""
+    pose grid: every seed within 0.015, and the mean of 6 seeds (12288 samples) within 0.006
+    (measured: at most 0.0044 per seed; the literal prior-sampling proposal: at most 0.0049)."""
     exact = brute_force_probabilities()
     assert sum(exact.values()) == pytest.approx(1.0)
     assert exact[(0, 1)] > 0.5 and exact[(1, 0)] < 1e-3  # joint compatibility rules out the swap
@@ -194,9 +195,9 @@ def test_association_probabilities_converge_to_brute_force(toy_runs):
     estimates = [_estimated_probabilities(run.infos[0]) for run in toy_runs]
     for est in estimates:
         assert set(est) == set(exact)
-        assert max(abs(est[t] - exact[t]) for t in exact) < 0.02
+        assert max(abs(est[t] - exact[t]) for t in exact) < 0.015
     mean = {t: np.mean([est[t] for est in estimates]) for t in exact}
-    assert max(abs(mean[t] - exact[t]) for t in exact) < 0.01
+    assert max(abs(mean[t] - exact[t]) for t in exact) < 0.006
 
 
 def test_joint_assignments_enumerate_every_choice():

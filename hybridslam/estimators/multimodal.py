@@ -10,7 +10,7 @@ library we filter: the belief is a fixed-capacity mixture of ``K`` weighted join
 ``[x_k, o_0, ..., o_{Nmax-1}]`` (object slots and their creation as in :mod:`hybridslam.discovery`),
 each with its own association history ``β_1:k``, number of created objects and per-object class
 posterior. Given the prior mixture ``Σ_i w_i N_i`` and the step's sum-mixture factor
-``f = Σ_j p_j ρ_j`` (Eq. 5.11) the posterior is exactly ``Σ_ij w_i p_j N_i ρ_j``: a child per
+``f = Σ_j p_j ρ_j`` (Eq. 5.11), the posterior is exactly ``Σ_ij w_i p_j N_i ρ_j``: a child per
 (component ``i``, joint assignment ``j``) with weight ``w_i p_j L_ij``, ``L_ij = ∫ N_i ρ_j``, and
 Gaussian ``∝ N_i ρ_j`` found by Gauss-Newton (:func:`hybridslam.update.gauss_newton`). A Gaussian
 sum represents a mode with one component however unlikely it is, whereas evenly weighted kernels
@@ -18,27 +18,36 @@ sum represents a mode with one component however unlikely it is, whereas evenly 
 ``w`` by about ``w·K`` kernels, so a mode below ``1/K`` is lost by sampling noise alone — exactly the
 late-mode failure Sec. 5.2.1 warns about. We keep the weights explicit instead.
 
-Reduction without pruning. ``K·A`` children are reduced back to ``K`` by greedy moment-matching
+Reduction without pruning. The children are reduced back to ``K`` by greedy moment-matching
 merging (:func:`merge`): the heaviest unclaimed child becomes a centre and claims every child within
 a squared Mahalanobis distance ``merge_threshold`` that has the same number of created objects;
 ``K`` rounds; children left over are merged into their nearest centre. No mass is ever dropped
-there, and two separated modes stay two components as long as there are fewer than ``K`` of them.
-Only the ``children`` heaviest children (a static count) get a Gauss-Newton update: the mass of
-the rest is reported in ``Info.dropped_mass`` and as a warning (never silently).
+there, and separated modes stay separate components as long as there are at most ``K`` of them.
+Only the ``children`` best children (a static count, ranked by the linearized likelihood below) get
+a Gauss-Newton update and a Monte Carlo weight: the linearized mass of the rest is reported in
+``Info.dropped_mass`` and as a warning, never silently.
 
-Association probabilities (Eq. 5.9-5.10). Per component we draw ``S`` joint samples of the pose and
-the map by reparameterization (the same standard-normal draws for every component: common random
-numbers make the components' estimates comparable) and evaluate every joint assignment on every
-sample: geometric range-bearing likelihood times the object observation model (0/1 footprint), and
-the semantic term marginalized over the object's class posterior, ``Σ_c P(z^s | c, viewpoint)
+Association probabilities (Eq. 5.9-5.10). ``L_ij`` integrates the joint likelihood of the step's
+detections over the pose and the associated objects, ``y = [x_k, o_{d_1}, ...]``, by Monte Carlo:
+``L_ij ≈ mean_s N_i(y_s) Π_k p(z_k | y_s, d_k) / q(y_s)`` with reparameterized standard-normal
+draws, the same for every child (common random numbers make the children comparable). Joint
+compatibility: every detection of an assignment is scored on the *same* sample. A detection of an
+object scores the range-bearing density, the object observation model (0/1 footprint) and the
+semantic term marginalized over the object's class posterior, ``Σ_c P(z^s | c, viewpoint)
 p(c | Z^-)`` (the bracket of Eq. 5.10; the viewpoint comes from the sample, so viewpoint-dependent
 classifiers are handled exactly). A "new object" choice scores ``new_object_log_density`` (the null
-hypothesis of Sec. 3.2.1) times the semantic term under a uniform class prior, with the new object's
-unobserved orientation drawn from ``N(0, new_object_orientation_var)``. Joint compatibility: the
-detections of one assignment are scored on the *same* sample before averaging, ``L_ij =
-mean_s Π_k p(z_k | sample_s, j)`` (log-mean-exp). ``p_j`` (Eq. 5.9) is the total mass
-``Σ w_i L_ij`` of all children that name the same object tuple, normalized over all joint-compatible
-children of all components (with one component: ``L_j / Σ L``).
+hypothesis of Sec. 3.2.1) times the semantic term under a uniform class prior, the new object's
+unobserved orientation drawn from ``N(0, new_object_orientation_var)``. ``p_j`` (Eq. 5.9) is the
+total mass ``Σ w_i L_ij`` of the children that name the same object tuple, normalized over the
+updated children (with one component and every assignment updated: ``L_j / Σ L``).
+
+The proposal ``q`` (option ``proposal``): ``"prior"`` samples the component's marginal over ``y``,
+which is Eq. 5.10 as written (pose and landmark samples from the belief). Its variance explodes
+when the measurement is much sharper than the prior — a loop closure after drift, or any broad
+prior (a 2 m prior against a 0.1 m measurement leaves ~1 useful sample in 400). The default
+``"posterior"`` samples the child's Gauss-Newton (Laplace) posterior instead and importance-weights
+by ``N_i / q``: the same integral, with weights that stay nearly equal. The tests check it against
+brute-force quadrature.
 
 Eq. 5.9 uses the step's detections to compute ``p_j``, and the factor of Eq. 5.11 multiplies the
 likelihood ``ρ_j`` once more: the thesis's factor counts the detections twice, which sharpens the
@@ -48,7 +57,8 @@ under a uniform prior over joint assignments.
 
 Gating (Sec. 3.2.1): each detection considers the ``candidates`` created objects nearest in the
 linearized Mahalanobis distance of the component's mean, plus the null / new-object hypothesis;
-joint assignments are all injective tuples of those choices, enumerated once in numpy.
+joint assignments are all injective tuples of those choices, enumerated once in numpy, and are
+ranked by their linearized likelihood (joint innovation density at the mean).
 
 The continuous update uses the geometric part only: the class-marginalized semantic factor is a
 mixture over classes, not a Gaussian; it enters the weights (above) and each object's class
@@ -58,7 +68,8 @@ of every object the component has associated, ``-1`` otherwise.
 
 Options (``Settings.option``): ``candidates`` (3), ``children`` (``2·capacity``),
 ``merge_threshold`` (4.0, squared Mahalanobis distance over the whole state), ``association_prior``
-(``"mc"`` or ``"uniform"``). ``Settings.num_samples`` defaults to 256.
+(``"mc"`` or ``"uniform"``), ``proposal`` (``"posterior"`` or ``"prior"``). ``Settings.num_samples``
+(draws per child) defaults to 256.
 """
 
 from __future__ import annotations
@@ -93,6 +104,17 @@ DEFAULT_MERGE_THRESHOLD = 4.0
 ASSOCIATION_PRIORS = ("mc", "uniform")
 PROPOSALS = ("posterior", "prior")
 RELEVANT_NATS = 30.0  # e^-30 ≈ 1e-13: hypotheses further below the best do not raise warnings
+# jaxlib 0.10.2 on CPU splits a large batched LAPACK call (Cholesky, triangular solve, QR) across
+# XLA's intra-op thread pool and blocks a pool thread waiting for it; two such calls running at once
+# on a small pool deadlock (seen here: 128 Cholesky factors of 21×21 on 2 cores). Batches of D×D
+# work therefore go through lax.map in chunks this small (16 factors of 93×93 were still safe).
+LAPACK_CHUNK = 16
+SMALL_LAPACK_BATCH = 256  # the same for the 2×2 … 12×12 matrices of gating, screening and sampling
+
+
+def _chunked(fn, *args, batch_size: int = LAPACK_CHUNK):
+    """``jax.vmap(fn)(*args)`` evaluated ``batch_size`` rows at a time (see ``LAPACK_CHUNK``)."""
+    return jax.lax.map(lambda a: fn(*a), args, batch_size=batch_size)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -455,7 +477,10 @@ def _residuals(y, args):
     return jnp.concatenate([prior, jnp.where(known[:, None], meas, 0.0).reshape(-1)])
 
 
-def gauss_newton_child(state: State, mean, cov, objects, new, detections: Detections):
+def gauss_newton_child(
+    state: State, mean: Float[Array, " D"], cov: Float[Array, "D D"], objects: Int[Array, " Dmax"],
+    new: Bool[Array, " Dmax"], detections: Detections,
+) -> tuple[Float[Array, " D"], Float[Array, "D D"], optx.RESULTS]:
     """The Gaussian ``∝ N_i ρ_j`` of one child: Gauss-Newton on the prior and the geometric factors of
     the detections associated with created objects (Eq. 5.11 times one component)."""
     known = (objects >= 0) & ~new
@@ -481,14 +506,16 @@ def hypotheses(
             sensor, params, pred, m, c, class_lp, objects, new, detections)
         return objects, new, jnp.where(feasible, screen, -jnp.inf)
 
-    objects, new, screen = jax.vmap(per_component)(mean, cov, state.class_log_probs, state.num_created)
+    per_batch = max(1, SMALL_LAPACK_BATCH // (choices.shape[0] * cfg.max_detections))
+    objects, new, screen = _chunked(per_component, mean, cov, state.class_log_probs, state.num_created,
+                                    batch_size=per_batch)
     num_assign = choices.shape[0]
     screen_w = (state.log_weights[:, None] + screen).reshape(-1)
     sel_w, sel = jax.lax.top_k(screen_w, cfg.children)
     parent, a = sel // num_assign, sel % num_assign
     objects, new = objects[parent, a], new[parent, a]
-    post_mean, post_cov, result = jax.vmap(gauss_newton_child, (None, 0, 0, 0, 0, None))(
-        state, mean[parent], cov[parent], objects, new, detections)
+    post_mean, post_cov, result = _chunked(lambda m, c, o, n: gauss_newton_child(state, m, c, o, n, detections),
+                                           mean[parent], cov[parent], objects, new)
 
     eps, theta = draws(key, cfg, params)
 
@@ -499,7 +526,8 @@ def hypotheses(
         return sampled_log_likelihood(sensor, params, prior, proposal, class_lp[jnp.maximum(obj, 0)], obj, nw,
                                       detections, eps, theta)
 
-    log_lik = jax.vmap(weigh)(mean[parent], cov[parent], post_mean, post_cov, state.class_log_probs[parent], objects, new)
+    log_lik = _chunked(weigh, mean[parent], cov[parent], post_mean, post_cov, state.class_log_probs[parent],
+                       objects, new)
     log_lik = jnp.where(sel_w > -jnp.inf, log_lik, -jnp.inf)
     log_mass = state.log_weights[parent] + log_lik
     log_prob = tuple_log_probs(objects, log_mass, cfg.max_objects)
@@ -557,7 +585,11 @@ def _class_update(sensor, mean, class_log_probs, observed, objects, new, detecti
     return jax.nn.log_softmax(post, axis=-1), observed | jnp.any(hit, axis=0)
 
 
-def finish_child(state: State, mean, cov, class_log_probs, observed, num_created, objects, new, detections, theta):
+def finish_child(
+    state: State, mean: Float[Array, " D"], cov: Float[Array, "D D"], class_log_probs: Float[Array, "Nmax M"],
+    observed: Bool[Array, " Nmax"], num_created: Int[Array, ""], objects: Int[Array, " Dmax"],
+    new: Bool[Array, " Dmax"], detections: Detections, theta: Float[Array, "S Dmax"],
+):
     """Write the child's new objects into their slots and update its class posteriors."""
     sensor = state.model.sensor
     mean, cov = _create_objects(mean, cov, objects, new, detections.geo, sensor, state.params)
@@ -593,7 +625,7 @@ def merge(
     weights (``-inf`` for unused slots), moment weights ``(K, C)``, and merged means and covariances.
     """
     live = log_w > -jnp.inf
-    chol = jax.vmap(jnp.linalg.cholesky)(cov)
+    chol = _chunked(jnp.linalg.cholesky, cov)
     pose_chol = jax.vmap(jnp.linalg.cholesky)(cov[:, :3, :3])
 
     def round_(owner, r):
@@ -604,7 +636,7 @@ def merge(
         return jnp.where(close & jnp.any(free), r, owner), (c, jnp.any(free))
 
     owner, (centres, used) = jax.lax.scan(round_, jnp.full(log_w.shape, -1), jnp.arange(capacity))
-    full_d2 = jax.vmap(_mahalanobis2, (0, 0, None))(chol[centres], mean[centres], mean)  # (K, C)
+    full_d2 = _chunked(lambda ch, m: _mahalanobis2(ch, m, mean), chol[centres], mean[centres])  # (K, C)
     pose_d2 = jax.vmap(_mahalanobis2, (0, 0, None))(pose_chol[centres], mean[centres, :3], mean[:, :3])
     comparable = used[:, None] & (num_created[centres][:, None] == num_created[None, :])
     has_full = jnp.any(comparable, axis=0)
