@@ -12,7 +12,7 @@ each with its own association history ``β_1:k``, number of created objects and 
 posterior. Given the prior mixture ``Σ_i w_i N_i`` and the step's sum-mixture factor
 ``f = Σ_j p_j ρ_j`` (Eq. 5.11), the posterior is exactly ``Σ_ij w_i p_j N_i ρ_j``: a child per
 (component ``i``, joint assignment ``j``) with weight ``w_i p_j L_ij``, ``L_ij = ∫ N_i ρ_j``, and
-Gaussian ``∝ N_i ρ_j`` found by Gauss-Newton (:func:`hybridslam.update.gauss_newton`). A Gaussian
+Gaussian ``∝ N_i ρ_j`` found by Gauss-Newton (:func:`hybridslam.update.prior_gauss_newton`). A Gaussian
 sum represents a mode with one component however unlikely it is, whereas evenly weighted kernels
 (Fig. 5-2) or resampled particles (a Rao-Blackwellized particle filter) represent a mode of weight
 ``w`` by about ``w·K`` kernels, so a mode below ``1/K`` is lost by sampling noise alone — exactly the
@@ -93,7 +93,7 @@ from ..classifier import ClassifierModel
 from ..measurement import SensorModel, log_visibility
 from ..model import Model, model_from_scenario
 from ..scenario import Scenario
-from ..update import gauss_newton, wrap_angles
+from ..update import prior_gauss_newton, wrap_angles
 from .base import Mixture, Settings
 
 NAME = "multimodal"
@@ -465,8 +465,7 @@ class Children(eqx.Module):
 
 
 def _residuals(y, args):
-    sensor, mean, chol, objects, known, geo = args
-    prior = jsl.solve_triangular(chol, wrap_angles(y - mean), lower=True)
+    sensor, objects, known, geo = args
     x, objs = y[:3], y[3:].reshape(-1, 3)
     w, _ = sensor.geometric_sqrt_information()
 
@@ -474,7 +473,7 @@ def _residuals(y, args):
         return w @ geometry.geometric_residual(z, geometry.range_bearing(x, obj))
 
     meas = jax.vmap(one)(objs[jnp.maximum(objects, 0)], geo)
-    return jnp.concatenate([prior, jnp.where(known[:, None], meas, 0.0).reshape(-1)])
+    return jnp.where(known[:, None], meas, 0.0).reshape(-1)
 
 
 def gauss_newton_child(
@@ -484,8 +483,9 @@ def gauss_newton_child(
     """The Gaussian ``∝ N_i ρ_j`` of one child: Gauss-Newton on the prior and the geometric factors of
     the detections associated with created objects (Eq. 5.11 times one component)."""
     known = (objects >= 0) & ~new
-    args = (state.model.sensor, mean, jnp.linalg.cholesky(cov), objects, known, detections.geo)
-    value, cov, result = gauss_newton(_residuals, mean, args, state.config.gn_max_steps)
+    args = (state.model.sensor, objects, known, detections.geo)
+    # Kalman form: O(D² m) per iterate, where a dense solve over the whole map would be O(D³).
+    value, cov, result = prior_gauss_newton(_residuals, mean, cov, args, state.config.gn_max_steps)
     return wrap_angles(value), cov, result
 
 
