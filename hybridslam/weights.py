@@ -200,9 +200,18 @@ def linearized_log_likelihood(
     ``r̄`` and ``J`` are the whitened residuals of the child's detections at the propagated mean
     and their Jacobian (thesis Eq. 4.14-4.15 in whitened form, all detections of the child jointly
     so the shared robot pose correlates them).
+
+    The residuals, Jacobians and their Gram matrix are formed once per (object, class); gated
+    (``kids.candidates``), only for each slot's candidates, so the cost does not grow with the map.
     """
-    n_obj, m = mean.shape[0] // 3 - 1, sensor.classifier.num_classes
-    objs, classes = jnp.arange(n_obj), jnp.arange(m)
+    m = sensor.classifier.num_classes
+    objs, classes = jnp.arange(mean.shape[0] // 3 - 1), jnp.arange(m)
+    assign = kids.measured  # the row of `objs` that each slot names
+    if kids.candidates is not None:
+        dmax, g = kids.candidates.shape
+        objs = kids.candidates.reshape(-1)
+        assign = jnp.where(assign >= 0, jnp.arange(dmax)[None, :] * g + jnp.asarray(table.assign), -1)
+    n_obj = objs.shape[0]
     rows = jax.vmap(_residual_rows, (None, None, None, 0, None, None))  # classes
     rows = jax.vmap(rows, (None, None, 0, None, None, None))  # objects
     rows = jax.vmap(rows, (None, None, None, None, 0, 0))  # detections
@@ -214,8 +223,6 @@ def linearized_log_likelihood(
     jac = jac.reshape(n_obj * m * rdim, -1)
     gram = jac @ cov @ jac.T  # (N M R, N M R)
     log_vis = jax.vmap(_log_visibility_probability, (None, None, None, 0))(sensor, mean, cov, objs)
-
-    assign = kids.measured
     occupied = assign >= 0
 
     def one_child(a, slot_class):
