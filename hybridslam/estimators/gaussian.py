@@ -370,6 +370,22 @@ def create_objects(state: GaussianState, mean, cov, slots: Int[Array, " Dmax"], 
     return mean, cov
 
 
+def create_likeliest_new(state: GaussianState, mean, cov, assoc: Association, detections: Detections):
+    """Create an object for every detection whose most probable option is "new" (and that fits).
+
+    The soft strategies (``gpda``, ``max-mixture``) decide a detection's existence by its marginal
+    (a new object cannot be created by a fraction). Returns the updated mean and covariance, the
+    new-detection mask and the slot each creates (-1 elsewhere).
+    """
+    best = jnp.argmax(assoc.marginals, axis=-1)
+    wants_new = detections.mask & (best == assoc.num_candidates) if state.config.discovery \
+        else jnp.zeros_like(detections.mask)
+    new = fits(state, wants_new)
+    created = new_slots(state, new)
+    mean, cov = create_objects(state, mean, cov, created, detections)
+    return mean, cov, new, created
+
+
 def geometric_residual(sensor, y, obj, geo):
     """Whitened ``W (z − h(x_k, o_obj))`` of one detection (the paper's Eq. 10, geometric part)."""
     w, _ = sensor.geometric_sqrt_information()

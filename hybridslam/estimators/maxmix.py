@@ -81,11 +81,7 @@ def step(state: GaussianState, odometry: Float[Array, "3"], detections: Detectio
     mean, cov = gaussian.predict(state, odometry)
     assoc = gaussian.associate(state, mean, cov, detections)
     g = assoc.num_candidates
-    best = jnp.argmax(assoc.marginals, axis=-1)
-    wants_new = detections.mask & (best == g) if state.config.discovery else jnp.zeros_like(detections.mask)
-    new = gaussian.fits(state, wants_new)
-    created = gaussian.new_slots(state, new)
-    mean, cov = gaussian.create_objects(state, mean, cov, created, detections)
+    mean, cov, new, created = gaussian.create_likeliest_new(state, mean, cov, assoc, detections)
 
     w = assoc.marginals
     null_ok = jnp.full((w.shape[0], 1), state.config.discovery)
