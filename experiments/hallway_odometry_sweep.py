@@ -70,7 +70,7 @@ def run_cell(folder: str, name: str, trace: float, seed: int, steps: int | None,
     stem = os.path.splitext(os.path.basename(path))[0]
     warnings: list[str] = []
     run = run_estimator(scenario, name, seed=seed, max_detections=max_detections, on_step=lambda r, info, s:
-                        warnings.extend(_warnings(name, info)), **SETTINGS.get(name, {}))
+                        warnings.extend(_warnings(name, info, r.k)), **SETTINGS.get(name, {}))
     result_path = os.path.join(folder, "results", name, stem + ".json")
     os.makedirs(os.path.dirname(result_path), exist_ok=True)
     save_result(run.result, result_path)
@@ -96,13 +96,13 @@ def _cell(name: str, trace: float, seed: int) -> dict:
     return {"estimator": name, "trace": trace, "seed": seed, "settings": SETTINGS.get(name, {})}
 
 
-def _warnings(name: str, info) -> list[str]:
+def _warnings(name: str, info, k: int) -> list[str]:
     from hybridslam.estimators.base import step_warnings
 
     if name == "hybrid":
         from hybridslam.cli import _step_warnings
 
-        return list(_step_warnings(0, info))
+        return list(_step_warnings(k, info))
     return step_warnings(name, info)
 
 
