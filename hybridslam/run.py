@@ -24,18 +24,55 @@ from .scenario import Scenario, stack_steps
 from .step import StepInfo, step
 
 _metrics = jax.jit(metrics)
-_COMPILED: dict = {}  # one executable per (belief structure, shapes): runs of equal shape share it
+_COMPILED: dict = {}  # one executable per (step function, state structure, shapes): equal runs share it
 
 
-def compiled_step(belief: Belief, *args) -> tuple[Callable, float]:
-    """The ahead-of-time compiled step for these argument shapes, and the seconds spent compiling (0 if cached)."""
+def compiled_step(belief: Belief, *args, step_fn: Callable = step) -> tuple[Callable, float]:
+    """The ahead-of-time compiled ``step_fn`` (a ``jax.jit`` function) for these argument shapes, and
+    the seconds spent compiling (0 if cached)."""
     leaves, treedef = jax.tree_util.tree_flatten((belief, args))
-    key = (treedef, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves))
+    key = (step_fn, treedef, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves))
     if key in _COMPILED:
         return _COMPILED[key], 0.0
     t0 = time.perf_counter()
-    _COMPILED[key] = step.lower(belief, *args).compile()
+    _COMPILED[key] = step_fn.lower(belief, *args).compile()
     return _COMPILED[key], time.perf_counter() - t0
+
+
+def drive(
+    step_fn: Callable, state, scenario: Scenario, max_detections: int, seed: int,
+    record: Callable[[object, list[int], np.ndarray | None], StepRecord],
+    on_step: Callable[[StepRecord, object, float], None] | None = None,
+):
+    """Run a jitted ``step_fn(state, odometry, detections, key)`` over every step of ``scenario``.
+
+    Compiles once ahead of time (cached across runs of equal shapes), times each step after
+    compilation, and turns each state into a result record with ``record(state, num_detections,
+    true_pose)``. The per-step keys are ``fold_in(PRNGKey(seed), k)``. Returns the final state, the
+    records, the step infos and the timing dict of the result file.
+    """
+    stacked = stack_steps(scenario, max_detections)
+    num_det = [int(n) for n in stacked.mask.sum(axis=1)]
+    key = jax.random.PRNGKey(seed)
+    truth = scenario.true_robot_poses
+
+    def inputs(k: int):
+        det = Detections(jnp.asarray(stacked.geo[k]), jnp.asarray(stacked.scores[k]), jnp.asarray(stacked.mask[k]))
+        return jnp.asarray(stacked.odometry[k]), det, jax.random.fold_in(key, k)
+
+    compiled, compile_s = (compiled_step(state, *inputs(0), step_fn=step_fn) if scenario.num_steps
+                           else (None, 0.0))
+    records, infos, step_s = [], [], []
+    for k in range(scenario.num_steps):
+        args = inputs(k)
+        t0 = time.perf_counter()
+        state, info = jax.block_until_ready(compiled(state, *args))
+        step_s.append(time.perf_counter() - t0)
+        records.append(record(state, num_det, None if truth is None else truth[k + 1]))
+        infos.append(info)
+        if on_step is not None:
+            on_step(records[-1], info, step_s[-1])
+    return state, records, infos, {"compile_s": compile_s, "step_s": step_s}
 
 
 @dataclasses.dataclass
@@ -142,32 +179,7 @@ def run_scenario(
     config = config_for(scenario, capacity=capacity, num_samples=num_samples, weights=weights, **settings)
     model = model_from_scenario(scenario, classifier, prune_ratio)
     belief = init_belief(priors_from_scenario(scenario), model, config)
-    stacked = stack_steps(scenario, config.max_detections)
-    num_det = [int(n) for n in stacked.mask.sum(axis=1)]
-    key = jax.random.PRNGKey(seed)
-    truth = scenario.true_robot_poses
-
-    def inputs(k: int):
-        det = Detections(jnp.asarray(stacked.geo[k]), jnp.asarray(stacked.scores[k]), jnp.asarray(stacked.mask[k]))
-        return jnp.asarray(stacked.odometry[k]), det, jax.random.fold_in(key, k)
-
-    compiled, compile_s = compiled_step(belief, *inputs(0)) if scenario.num_steps else (None, 0.0)
-
-    records, infos, step_s = [], [], []
-    for k in range(scenario.num_steps):
-        args = inputs(k)
-        t0 = time.perf_counter()
-        belief, info = jax.block_until_ready(compiled(belief, *args))
-        step_s.append(time.perf_counter() - t0)
-        record = step_record(belief, num_det, None if truth is None else truth[k + 1])
-        records.append(record)
-        infos.append(info)
-        if on_step is not None:
-            on_step(record, info, step_s[-1])
+    belief, records, infos, timing = drive(step, belief, scenario, config.max_detections, seed, step_record, on_step)
     name = classifier if isinstance(classifier, str) else scenario.classifier.model if classifier is None else type(classifier).__name__
-    result = Result(
-        estimator=describe(config, name, prune_ratio, seed),
-        steps=records,
-        timing={"compile_s": compile_s, "step_s": step_s},
-    )
+    result = Result(estimator=describe(config, name, prune_ratio, seed), steps=records, timing=timing)
     return Run(result, infos, belief)

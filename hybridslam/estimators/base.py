@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
-import time
 from collections.abc import Callable
 from types import ModuleType
 from typing import Any
@@ -34,10 +33,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ..belief import Detections
 from ..metrics import metrics
 from ..result import Result, StepRecord
-from ..scenario import Scenario, stack_steps
+from ..scenario import Scenario
 
 # name -> module (relative to this package). "hybrid" is the Tchuiev et al. belief of hybridslam.run.
 ESTIMATORS: dict[str, str] = {
@@ -102,17 +100,6 @@ def get_estimator(name: str) -> ModuleType:
 
 
 _metrics = jax.jit(metrics)
-_COMPILED: dict = {}
-
-
-def _compiled(module: ModuleType, state, *args) -> tuple[Callable, float]:
-    leaves, treedef = jax.tree_util.tree_flatten((state, args))
-    key = (module.NAME, treedef, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves))
-    if key in _COMPILED:
-        return _COMPILED[key], 0.0
-    t0 = time.perf_counter()
-    _COMPILED[key] = module.step.lower(state, *args).compile()
-    return _COMPILED[key], time.perf_counter() - t0
 
 
 def mixture_record(mix: Mixture, num_detections: list[int], true_pose: np.ndarray | None) -> StepRecord:
@@ -138,7 +125,7 @@ def run_estimator(
     ``settings`` are :class:`Settings` fields (for ``"hybrid"``: the arguments of
     :func:`hybridslam.run.run_scenario`). Unknown fields go to ``Settings.extra``.
     """
-    from ..run import Run, run_scenario
+    from ..run import Run, drive, run_scenario
 
     module = get_estimator(estimator)
     if estimator == "hybrid":
@@ -150,29 +137,12 @@ def run_estimator(
     known.setdefault("max_steps", max(scenario.num_steps, 1))
     config = Settings(**known, extra=extra)
     state = module.init(scenario, config)
-    stacked = stack_steps(scenario, config.max_detections)
-    num_det = [int(n) for n in stacked.mask.sum(axis=1)]
-    key = jax.random.PRNGKey(seed)
-    truth = scenario.true_robot_poses
 
-    def inputs(k: int):
-        det = Detections(jnp.asarray(stacked.geo[k]), jnp.asarray(stacked.scores[k]), jnp.asarray(stacked.mask[k]))
-        return jnp.asarray(stacked.odometry[k]), det, jax.random.fold_in(key, k)
+    def record(state, num_detections, true_pose):
+        return mixture_record(module.view(state), num_detections, true_pose)
 
-    compiled, compile_s = _compiled(module, state, *inputs(0)) if scenario.num_steps else (None, 0.0)
-    records, infos, step_s = [], [], []
-    for k in range(scenario.num_steps):
-        args = inputs(k)
-        t0 = time.perf_counter()
-        state, info = jax.block_until_ready(compiled(state, *args))
-        step_s.append(time.perf_counter() - t0)
-        record = mixture_record(module.view(state), num_det, None if truth is None else truth[k + 1])
-        records.append(record)
-        infos.append(info)
-        if on_step is not None:
-            on_step(record, info, step_s[-1])
-    result = Result(estimator=module.describe(config), steps=records,
-                    timing={"compile_s": compile_s, "step_s": step_s})
+    state, records, infos, timing = drive(module.step, state, scenario, config.max_detections, seed, record, on_step)
+    result = Result(estimator=module.describe(config), steps=records, timing=timing)
     return Run(result, infos, state)
 
 
