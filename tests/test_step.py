@@ -54,7 +54,7 @@ def test_lazy_class_realizations_equal_full_enumeration(scenario, key):
         class_prior=np.array([[0.3, 0.7], [0.6, 0.4]]), true_object_poses=None, true_classes=None,
         steps=tuple(_first_detection_of(s, 2) for s in scenario.steps),
     )
-    lazy = _belief(small, capacity=16, max_steps=3, prune_ratio=1e300)
+    lazy = _belief(small, capacity=16, max_steps=3, prune_ratio=1e300, weights="linearized")
     realizations = jnp.array([[0, 0], [0, 1], [1, 0], [1, 1]], dtype=jnp.int32)
     prior = jnp.prod(jnp.asarray(small.class_prior)[jnp.arange(2), realizations], axis=1)
     full = eqx.tree_at(

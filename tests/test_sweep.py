@@ -53,10 +53,9 @@ def tiny(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def cache_env(tmp_path_factory):
+def cache_env(shared_compilation_cache):
+    """The subprocesses' environment: the run's compilation cache (conftest), one CPU device."""
     env = dict(os.environ)
-    env["JAX_COMPILATION_CACHE_DIR"] = str(tmp_path_factory.mktemp("jax_cache"))
-    env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
     env.pop("XLA_FLAGS", None)
     return env
 

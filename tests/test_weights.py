@@ -62,8 +62,9 @@ def _near_linear_setup():
 def test_sampled_weight_matches_linearized_where_the_model_is_linear():
     model, mean, cov, det, table, kids = _near_linear_setup()
     eps = jax.random.normal(jax.random.PRNGKey(0), (20000, mean.shape[0]))
-    sampled, _, _ = sampled_log_likelihood(model.sensor, mean, cov, det, eps, table, kids)
-    linear, _, _ = linearized_log_likelihood(model.sensor, mean, cov, det, table, kids)
+    # Jitted: op by op, 20000 samples through the vmapped tables take ~30 s of dispatch.
+    sampled, _, _ = jax.jit(lambda e: sampled_log_likelihood(model.sensor, mean, cov, det, e, table, kids))(eps)
+    linear, _, _ = jax.jit(lambda: linearized_log_likelihood(model.sensor, mean, cov, det, table, kids))()
     ok = kids.valid & (linear > -20)  # the plausible children (detection 0 -> object 0, either class)
     assert int(ok.sum()) == 2
     np.testing.assert_allclose(sampled[ok], linear[ok], atol=0.02)
@@ -96,7 +97,7 @@ def test_children_and_sampled_weights_match_brute_force():
     table = hypothesis_table(3, 2, 2)
     kids = children(table, parent_classes, det.mask, class_prior)
     eps = jax.random.normal(jax.random.PRNGKey(3), (256, mean.shape[0]))
-    got, _, _ = sampled_log_likelihood(sensor, mean, cov, det, eps, table, kids)
+    got, _, _ = jax.jit(lambda: sampled_log_likelihood(sensor, mean, cov, det, eps, table, kids))()
     got = got + kids.log_prior
 
     samples = mean[None, :] + eps @ jnp.linalg.cholesky(cov).T
