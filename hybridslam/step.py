@@ -100,7 +100,8 @@ def _weigh_children(
         weigh = lambda m, c, kid: sampled_log_likelihood(sensor, m, c, detections, eps, table, kid)  # noqa: E731
         log_lik, log_lik_free, ess = map_live(weigh, belief.alive, mean, cov, kids, axis_name=cfg.batch_axis)
         return log_lik, log_lik_free, ess, jnp.ones(ess.shape, bool)
-    weigh = lambda m, c, kid: linearized_log_likelihood(sensor, m, c, detections, table, kid)  # noqa: E731
+    weigh = lambda m, c, kid: linearized_log_likelihood(sensor, m, c, detections, table, kid,  # noqa: E731
+                                                        axis_name=cfg.batch_axis)
     linear, linear_free, ess = map_live(weigh, belief.alive, mean, cov, kids, axis_name=cfg.batch_axis)
     if cfg.weights == "linearized":
         return linear, linear_free, ess, jnp.ones(ess.shape, bool)

@@ -53,10 +53,13 @@ from . import se2
 from .batching import map_live
 from .belief import Detections
 from .geometry import range_bearing
-from .hypotheses import NEW, Children, HypothesisTable
+from .hypotheses import EMPTY, NEW, Children, HypothesisTable
 from .laplace import laplace_is
 from .measurement import SensorModel, detection_residual, detection_residuals, log_visibility, slot_residuals
 from .model import NewObjects
+
+
+ROW_CHUNK = 16  # hypothesis-table rows per chunk of linearized children (see linearized_log_likelihood)
 
 
 def _split(state: Float[Array, " D"]) -> tuple[Float[Array, "3"], Float[Array, "N 3"]]:
@@ -194,6 +197,7 @@ def linearized_log_likelihood(
     detections: Detections,
     table: HypothesisTable,
     kids: Children,
+    axis_name: str | None = None,
 ) -> tuple[Float[Array, "A Mc"], Float[Array, "A Mc"], Float[Array, "A Mc"]]:
     """Deterministic ``log ψ``: ``log N(r̄; 0, J Σ Jᵀ + I) + log normalizers + log P(in view)``.
 
@@ -203,6 +207,8 @@ def linearized_log_likelihood(
 
     The residuals, Jacobians and their Gram matrix are formed once per (object, class); gated
     (``kids.candidates``), only for each slot's candidates, so the cost does not grow with the map.
+    Children are evaluated only in the table rows that match the detection mask (``axis_name``: as
+    in :func:`~hybridslam.batching.map_live`, the name of an enclosing vmap over tracks).
     """
     m = sensor.classifier.num_classes
     objs, classes = jnp.arange(mean.shape[0] // 3 - 1), jnp.arange(m)
@@ -242,8 +248,12 @@ def linearized_log_likelihood(
         log_lik += jnp.sum(jnp.where(occ, log_norm[slots, obj, slot_class], 0.0))
         return log_lik + jnp.sum(jnp.where(occ, log_vis[obj], 0.0)), log_lik
 
-    a_idx = jnp.arange(assign.shape[0])
-    log_psi, log_psi_free = jax.vmap(jax.vmap(one_child, (None, 0)), (0, 0))(a_idx, kids.slot_class)
+    # Only the table rows whose occupied slots are this step's detections can be valid children
+    # (:func:`~hybridslam.hypotheses.children`); they are contiguous in the table, and this test is
+    # the same for every parent, so chunks of other rows are skipped (rows hold zeros, never read).
+    live = jnp.all((jnp.asarray(table.assign) != EMPTY) == detections.mask[None, :], axis=-1)
+    log_psi, log_psi_free = map_live(jax.vmap(one_child, (None, 0)), live, jnp.arange(assign.shape[0]),
+                                     kids.slot_class, chunk=ROW_CHUNK, axis_name=axis_name)
     return log_psi, log_psi_free, jnp.ones_like(log_psi)  # deterministic: no sampling error
 
 
