@@ -16,6 +16,7 @@ have been pruned anyway (their objects are far more than the pruning ratio less 
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
@@ -25,40 +26,71 @@ from .geometry import geometric_residual, range_bearing
 from .measurement import SensorModel
 
 
-def _predicted(sensor: SensorModel, mean: Float[Array, " D"], cov: Float[Array, "D D"], n: Int[Array, ""]):
-    """Predicted range-bearing of object ``n`` and its innovation covariance ``S`` (thesis Eq. 4.14)."""
-    idx = jnp.concatenate([jnp.arange(3), 3 + 3 * n + jnp.arange(3)])
-    y = mean[idx]
-    h = lambda v: range_bearing(v[:3], v[3:])  # noqa: E731
-    jac = jax.jacfwd(h)(y)
-    return h(y), jac @ cov[idx][:, idx] @ jac.T + sensor.geometric_cov
+class Innovations(eqx.Module):
+    """The linearized range-bearing prediction of every (detection, object) pair of one component.
+
+    Shared by every estimator's gating: the hybrid belief (:func:`gate`) and Doherty's
+    (:mod:`hybridslam.estimators.gaussian`, :mod:`hybridslam.estimators.multimodal`).
+    """
+
+    residual: Float[Array, "Dmax N 2"]  # z − h(x̄, ō_n), bearing wrapped
+    jac_pose: Float[Array, "N 2 3"]  # ∂h/∂x_k at the mean (the same for every detection)
+    jac_object: Float[Array, "N 2 3"]  # ∂h/∂o_n at the mean
+    d2: Float[Array, "Dmax N"]  # rᵀ S⁻¹ r, S = H P Hᵀ + Σ_v (thesis Eq. 4.14-4.15); +inf if not finite
+
+
+def _predicted(sensor: SensorModel, x: Float[Array, "3"], obj: Float[Array, "3"], block: Float[Array, "6 6"]):
+    """Predicted range-bearing of one object, its Jacobians and its innovation covariance ``S``."""
+    jac_x, jac_o = jax.jacfwd(range_bearing, argnums=(0, 1))(x, obj)
+    jac = jnp.concatenate([jac_x, jac_o], axis=-1)
+    return range_bearing(x, obj), jac_x, jac_o, jac @ block @ jac.T + sensor.geometric_cov
+
+
+def innovations(
+    sensor: SensorModel, mean: Float[Array, " D"], cov: Float[Array, "D D"], detections: Detections
+) -> Innovations:
+    """:class:`Innovations` of one component with state ``[x_k, o_1, ..., o_N]`` (mean and covariance)."""
+    x, objs = mean[:3], mean[3:].reshape(-1, 3)
+    n = objs.shape[0]
+    idx = jnp.concatenate([jnp.broadcast_to(jnp.arange(3), (n, 3)), 3 + 3 * jnp.arange(n)[:, None] + jnp.arange(3)[None, :]],
+                          axis=1)  # (N, 6): the robot pose and object n
+    blocks = jax.vmap(lambda i: cov[i][:, i])(idx)
+    pred, jac_x, jac_o, s = jax.vmap(_predicted, (None, None, 0, 0))(sensor, x, objs, blocks)
+
+    def pair(z, p, s_):
+        r = geometric_residual(z, p)
+        return r, r @ jnp.linalg.solve(s_, r)
+
+    r, d2 = jax.vmap(jax.vmap(pair, (None, 0, 0)), (0, None, None))(detections.geo, pred, s)
+    return Innovations(r, jac_x, jac_o, jnp.where(jnp.isfinite(d2), d2, jnp.inf))
 
 
 def mahalanobis(
     sensor: SensorModel, mean: Float[Array, " D"], cov: Float[Array, "D D"], detections: Detections
 ) -> Float[Array, "Dmax N"]:
     """``d²`` of every (detection, object) pair of one component."""
-    n = mean.shape[0] // 3 - 1
-    pred, s = jax.vmap(_predicted, (None, None, None, 0))(sensor, mean, cov, jnp.arange(n))
+    return innovations(sensor, mean, cov, detections).d2
 
-    def one(z, p, s_):
-        d = geometric_residual(z, p)
-        return d @ jnp.linalg.solve(s_, d)
 
-    return jax.vmap(jax.vmap(one, (None, 0, 0)), (0, None, None))(detections.geo, pred, s)
+def nearest(
+    d2: Float[Array, "Dmax N"], num_created: Int[Array, ""] | None, num_candidates: int
+) -> tuple[Int[Array, "Dmax G"], Float[Array, "Dmax G"]]:
+    """The ``G`` existing objects (index ``< num_created``; all if ``None``) of lowest ``d²`` per
+    detection, and their ``d²``: ``+inf`` where fewer than ``G`` objects exist (the index is then
+    an uncreated object, which every caller rules out)."""
+    if num_created is not None:
+        d2 = jnp.where(jnp.arange(d2.shape[1])[None, :] < num_created, d2, jnp.inf)
+    neg, ids = jax.lax.top_k(-d2, num_candidates)
+    return ids.astype(jnp.int32), -neg
 
 
 def gate(
     sensor: SensorModel, mean: Float[Array, " D"], cov: Float[Array, "D D"], detections: Detections,
     num_created: Int[Array, ""] | None, num_candidates: int,
 ) -> Int[Array, "Dmax G"]:
-    """The ``G`` existing objects (index ``< num_created``; all if ``None``) of lowest ``d²`` per detection.
+    """The hybrid belief's gate: the ``G`` nearest existing objects per detection (:func:`nearest`).
 
     With fewer than ``G`` existing objects the tail names uncreated ones, which
     :func:`hybridslam.hypotheses.resolve` rules out.
     """
-    d2 = mahalanobis(sensor, mean, cov, detections)
-    d2 = jnp.where(jnp.isnan(d2), jnp.inf, d2)
-    if num_created is not None:
-        d2 = jnp.where(jnp.arange(d2.shape[1])[None, :] < num_created, d2, jnp.inf)
-    return jax.lax.top_k(-d2, num_candidates)[1].astype(jnp.int32)
+    return nearest(mahalanobis(sensor, mean, cov, detections), num_created, num_candidates)[0]

@@ -52,7 +52,7 @@ import optimistix as optx
 from jax.scipy.special import logsumexp
 from jaxtyping import Array, Bool, Float, Int
 
-from .. import __version__, discovery, geometry
+from .. import __version__, discovery, gating, geometry
 from ..belief import Detections
 from ..model import Model, model_from_scenario
 from ..motion import propagate
@@ -228,28 +228,13 @@ def _objects(mean: Float[Array, " D"]) -> Float[Array, "Nmax 3"]:
     return mean[3:].reshape(-1, 3)
 
 
-def _innovation(x, obj, geo):
-    """``z − h(x, o)`` (bearing wrapped) and its Jacobians wrt ``x`` and ``o``."""
-    e = lambda x_, o_: geometry.geometric_residual(geo, geometry.range_bearing(x_, o_))  # noqa: E731
-    jx, jo = jax.jacfwd(e, argnums=(0, 1))(x, obj)
-    return e(x, obj), -jx, -jo  # Jacobians of h = z − e
-
-
 def _class_loglik(classifier, scores, x, obj):
     """``log P(z^s | c, viewpoint)`` for every class (Eq. 2 / Eq. 2.14)."""
     r, log_norm = classifier.residuals(scores, geometry.viewpoint(x, obj))
     return log_norm - 0.5 * jnp.sum(r**2, axis=-1)
 
 
-def _marginal_cov_blocks(cov, n_max):
-    """Per object: ``Σ_xx``, ``Σ_xo`` and ``Σ_oo`` blocks, shapes (3, 3), (Nmax, 3, 3), (Nmax, 3, 3)."""
-    sxo = cov[:3, 3:].reshape(3, n_max, 3).transpose(1, 0, 2)
-    soo = cov[3:, 3:].reshape(n_max, 3, n_max, 3)
-    soo = soo[jnp.arange(n_max), :, jnp.arange(n_max), :]
-    return cov[:3, :3], sxo, soo
-
-
-def _joint_log_likelihood(obj, used, innov, hx, ho, cov, geometric_cov):
+def _joint_log_likelihood(obj, used, inn: gating.Innovations, cov, geometric_cov):
     """Joint linearized ``log p(z_used | d, Z⁻)`` (Eq. 4.14-4.15 stacked over the used slots).
 
     ``S = H Σ Hᵀ + I⊗Γ`` over ``[x_k, o_{obj_1}, ..., o_{obj_Dmax}]``; unused slots are masked to
@@ -257,8 +242,8 @@ def _joint_log_likelihood(obj, used, innov, hx, ho, cov, geometric_cov):
     """
     dmax = obj.shape[0]
     slots = jnp.arange(dmax)
-    r = jnp.where(used[:, None], innov[slots, obj], 0.0).reshape(-1)
-    h_x, h_o = hx[slots, obj], ho[slots, obj]  # (Dmax, 2, 3)
+    r = jnp.where(used[:, None], inn.residual[slots, obj], 0.0).reshape(-1)
+    h_x, h_o = inn.jac_pose[obj], inn.jac_object[obj]  # (Dmax, 2, 3)
     h_o = (h_o[:, :, None, :] * jnp.eye(dmax, dtype=cov.dtype)[:, None, :, None]).reshape(dmax, 2, 3 * dmax)
     h = jnp.concatenate([h_x, h_o], axis=-1).reshape(2 * dmax, 3 + 3 * dmax)
     idx = jnp.concatenate([jnp.arange(3), (3 + 3 * obj[:, None] + jnp.arange(3)[None, :]).reshape(-1)])
@@ -281,16 +266,9 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
     gamma = sensor.geometric_cov
 
     # Per (detection, object): innovation, Jacobians, Mahalanobis distance (gating, Sec. 3.2.1).
-    per_obj = jax.vmap(_innovation, (None, 0, None))
-    innov, hx, ho = jax.vmap(per_obj, (None, None, 0))(x, objs, detections.geo)  # (Dmax, Nmax, ...)
-    sxx, sxo, soo = _marginal_cov_blocks(cov, n_max)
-    s = (hx @ sxx @ jnp.swapaxes(hx, -1, -2) + hx @ sxo @ jnp.swapaxes(ho, -1, -2)
-         + ho @ jnp.swapaxes(sxo, -1, -2) @ jnp.swapaxes(hx, -1, -2) + ho @ soo @ jnp.swapaxes(ho, -1, -2) + gamma[None, None])
-    d2 = jnp.einsum("dni,dni->dn", innov, jnp.linalg.solve(s, innov[..., None])[..., 0])
-    created = jnp.arange(n_max) < state.num_created
-    d2 = jnp.where(created[None, :], d2, jnp.inf)
-    neg_d2, candidates = jax.lax.top_k(-d2, g)
-    candidate_ok = (-neg_d2 <= params.gate) & detections.mask[:, None]
+    inn = gating.innovations(sensor, mean, cov, detections)
+    candidates, d2 = gating.nearest(inn.d2, state.num_created, g)
+    candidate_ok = (d2 <= params.gate) & detections.mask[:, None]
 
     # Semantic terms (Eq. 4.13 / 2.14): per object, and under the null hypothesis.
     classifier = sensor.classifier
@@ -317,7 +295,7 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
         null = occupied & (opts == g)
         order = jnp.cumsum(null) - 1
         new = null & (state.num_created + order < n_max) if cfg.discovery else jnp.zeros_like(null)
-        log_w = (_joint_log_likelihood(obj, used, innov, hx, ho, cov, gamma)
+        log_w = (_joint_log_likelihood(obj, used, inn, cov, gamma)
                  + jnp.sum(jnp.where(used, sem_cand[slots, pick], 0.0)) + jnp.sum(jnp.where(new, null_w, 0.0)))
         return ok, new, null & ~new, log_w
 

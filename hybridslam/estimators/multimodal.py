@@ -87,7 +87,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from .. import discovery, geometry, motion
+from .. import discovery, gating, geometry, motion
 from ..belief import Detections
 from ..classifier import ClassifierModel
 from ..measurement import SensorModel, log_visibility
@@ -184,40 +184,11 @@ def joint_assignments(candidates: int, slots: int) -> np.ndarray:
     return np.array(list(itertools.product(range(candidates + 1), repeat=slots)), dtype=np.int32).reshape(-1, slots)
 
 
-class Predictions(eqx.Module):
-    """Linearized range-bearing predictions of every detection under every object of one component."""
-
-    residual: Float[Array, "Dmax Nmax 2"]  # z − h(x̄, ō_n), bearing wrapped
-    jacobian: Float[Array, "Dmax Nmax 2 6"]  # ∂h / ∂(x_k, o_n) at the mean
-    d2: Float[Array, "Dmax Nmax"]  # Mahalanobis distance rᵀ (J Σ Jᵀ + Σ_v)⁻¹ r
-
-
-def _pair_block(cov: Float[Array, "D D"], n: Int[Array, ""]) -> Float[Array, "6 6"]:
-    idx = jnp.concatenate([jnp.arange(3), 3 + 3 * n + jnp.arange(3)])
-    return cov[idx][:, idx]
-
-
-def predict(sensor: SensorModel, mean: Float[Array, " D"], cov: Float[Array, "D D"], detections: Detections) -> Predictions:
-    """Residuals, Jacobians and Mahalanobis distances of every (detection, object) pair (Sec. 3.2.1)."""
-    x, objs = mean[:3], mean[3:].reshape(-1, 3)
-    jac = jax.jacfwd(lambda xo: geometry.range_bearing(xo[:3], xo[3:]))
-
-    def one(n, z):
-        j = jac(jnp.concatenate([x, objs[n]]))
-        s = j @ _pair_block(cov, n) @ j.T + sensor.geometric_cov
-        r = geometry.geometric_residual(z, geometry.range_bearing(x, objs[n]))
-        return r, j, r @ jnp.linalg.solve(s, r)
-
-    r, j, d2 = jax.vmap(jax.vmap(one, (0, None)), (None, 0))(jnp.arange(objs.shape[0]), detections.geo)
-    return Predictions(r, j, d2)
-
-
 def gate(d2: Float[Array, "Dmax Nmax"], num_created: Int[Array, ""], candidates: int) -> Int[Array, "Dmax G"]:
-    """The ``G`` created objects nearest each detection in Mahalanobis distance (gating, Sec. 3.2.1);
-    ranks with no created object left hold ``-1``."""
-    created = jnp.arange(d2.shape[1])[None, :] < num_created
-    score, ids = jax.lax.top_k(jnp.where(created, -d2, -jnp.inf), candidates)
-    return jnp.where(score > -jnp.inf, ids, -1)
+    """The ``G`` created objects nearest each detection in Mahalanobis distance (gating, Sec. 3.2.1,
+    :func:`hybridslam.gating.nearest`); ranks with no created object left hold ``-1``."""
+    ids, d2_ids = gating.nearest(d2, num_created, candidates)
+    return jnp.where(d2_ids < jnp.inf, ids, -1)
 
 
 def assignment_objects(
@@ -336,7 +307,7 @@ def sub_gaussian(
 def screen_log_likelihood(
     sensor: SensorModel,
     params: Params,
-    pred: Predictions,
+    pred: gating.Innovations,
     mean: Float[Array, " D"],
     cov: Float[Array, "D D"],
     class_log_probs: Float[Array, "Nmax M"],
@@ -353,7 +324,8 @@ def screen_log_likelihood(
     slots = jnp.arange(objects.shape[0])
     obj = jnp.maximum(objects, 0)
     r = jnp.where(known[:, None], pred.residual[slots, obj], 0.0).reshape(-1)
-    j = jnp.where(known[:, None, None], pred.jacobian[slots, obj], 0.0)  # (Dmax, 2, 6)
+    jac = jnp.concatenate([pred.jac_pose[obj], pred.jac_object[obj]], axis=-1)  # (Dmax, 2, 6): ∂h/∂(x_k, o)
+    j = jnp.where(known[:, None, None], jac, 0.0)
     h = jnp.zeros((objects.shape[0], 2, sub_cov.shape[0]), cov.dtype)
     h = h.at[:, :, :3].set(j[:, :, :3])
     h = jax.vmap(lambda hk, jk, k: jax.lax.dynamic_update_slice(hk, jk[:, 3:], (0, 3 + 3 * k)))(h, j, slots)
@@ -499,7 +471,7 @@ def hypotheses(
     choices = jnp.asarray(joint_assignments(cfg.candidates, cfg.max_detections))
 
     def per_component(m, c, class_lp, created):
-        pred = predict(sensor, m, c, detections)
+        pred = gating.innovations(sensor, m, c, detections)
         cand = gate(pred.d2, created, cfg.candidates)
         objects, new, feasible = assignment_objects(choices, cand, detections.mask, created, cfg.max_objects, cfg.discovery)
         screen = jax.vmap(screen_log_likelihood, (None, None, None, None, None, None, 0, 0, None))(
