@@ -16,9 +16,13 @@ have been pruned anyway (their objects are far more than the pruning ratio less 
 
 from __future__ import annotations
 
+import functools
+import itertools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Int
 
 from .belief import Detections
@@ -94,3 +98,13 @@ def gate(
     :func:`hybridslam.hypotheses.resolve` rules out.
     """
     return nearest(mahalanobis(sensor, mean, cov, detections), num_created, num_candidates)[0]
+
+
+@functools.cache
+def joint_options(num_candidates: int, slots: int) -> np.ndarray:
+    """Every tuple of per-slot options ``0..G`` (a candidate rank, or ``G``: none of them — the null /
+    new-object hypothesis, or an empty slot), shape ``((G+1)^Dmax, Dmax)``, lexicographic. Which
+    tuples are joint-compatible (injective) depends on the traced candidates, so each estimator
+    checks it against its own gate."""
+    rows = list(itertools.product(range(num_candidates + 1), repeat=slots))
+    return np.asarray(rows, dtype=np.int32).reshape(-1, slots)

@@ -13,8 +13,8 @@ import math
 import numpy as np
 import pytest
 
+from hybridslam import gating
 from hybridslam.estimators import run_estimator
-from hybridslam.estimators.multimodal import joint_assignments
 from hybridslam.result import parse_result, result_to_json
 from hybridslam.scenario import parse_scenario
 
@@ -201,7 +201,7 @@ def test_association_probabilities_converge_to_brute_force(toy_runs):
 
 
 def test_joint_assignments_enumerate_every_choice():
-    choices = joint_assignments(2, 2)
+    choices = gating.joint_options(2, 2)
     assert choices.shape == (9, 2) and len({tuple(c) for c in choices}) == 9
 
 

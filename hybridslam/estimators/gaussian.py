@@ -39,8 +39,6 @@ Prior objects start from the scenario's class prior, new ones from a uniform pri
 from __future__ import annotations
 
 import dataclasses
-import functools
-import itertools
 import math
 
 import equinox as eqx
@@ -217,13 +215,6 @@ def warnings(info: StepInfo) -> list[str]:
 # --------------------------------------------------------------------------- #
 
 
-@functools.lru_cache(maxsize=None)
-def option_table(max_detections: int, num_candidates: int) -> np.ndarray:
-    """Every tuple of per-slot options ``0..G`` (``G`` = null), shape ``((G+1)^Dmax, Dmax)``."""
-    rows = list(itertools.product(range(num_candidates + 1), repeat=max_detections))
-    return np.asarray(rows, dtype=np.int32).reshape(-1, max_detections)
-
-
 def _objects(mean: Float[Array, " D"]) -> Float[Array, "Nmax 3"]:
     return mean[3:].reshape(-1, 3)
 
@@ -282,7 +273,7 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
     sem_cand = sem[slots[:, None], candidates]  # (Dmax, G)
     null_w = params.new_object_log_density + logsumexp(params.new_class_log_prior[None] + new_class_loglik, axis=-1)
 
-    options = jnp.asarray(option_table(dmax, g))
+    options = jnp.asarray(gating.joint_options(g, dmax))
 
     def row(opts):
         occupied = detections.mask

@@ -75,8 +75,6 @@ Options (``Settings.option``): ``candidates`` (3), ``children`` (``2·capacity``
 from __future__ import annotations
 
 import dataclasses
-import functools
-import itertools
 import math
 
 import equinox as eqx
@@ -173,15 +171,6 @@ class Info(eqx.Module):
 # --------------------------------------------------------------------------- #
 # Joint assignments and gating
 # --------------------------------------------------------------------------- #
-
-
-@functools.cache
-def joint_assignments(candidates: int, slots: int) -> np.ndarray:
-    """All choice tuples ``(A, Dmax)`` over ``{0..G-1}`` (gated candidate rank) and ``G`` (new / empty).
-
-    Injectivity depends on the traced candidate ids and is checked in :func:`assignment_objects`.
-    """
-    return np.array(list(itertools.product(range(candidates + 1), repeat=slots)), dtype=np.int32).reshape(-1, slots)
 
 
 def gate(d2: Float[Array, "Dmax Nmax"], num_created: Int[Array, ""], candidates: int) -> Int[Array, "Dmax G"]:
@@ -468,7 +457,7 @@ def hypotheses(
     best by Gauss-Newton and weigh them by Monte Carlo (Eq. 5.9-5.11). ``mean`` / ``cov`` are the
     components at the current pose (after propagation)."""
     cfg, sensor, params = state.config, state.model.sensor, state.params
-    choices = jnp.asarray(joint_assignments(cfg.candidates, cfg.max_detections))
+    choices = jnp.asarray(gating.joint_options(cfg.candidates, cfg.max_detections))
 
     def per_component(m, c, class_lp, created):
         pred = gating.innovations(sensor, m, c, detections)
