@@ -59,15 +59,31 @@ def _near_linear_setup():
     return model, mean, cov, det, table, kids
 
 
-def test_sampled_weight_matches_linearized_where_the_model_is_linear():
-    model, mean, cov, det, table, kids = _near_linear_setup()
+def test_sampled_weight_matches_linearized_where_the_model_is_linear(monkeypatch):
+    """Near-linear measurements: the Monte-Carlo weight equals the linearized closed form (thesis
+    Eq. 4.14-4.15) for every plausible child, whichever slots hold the detections. Chunks of 2 table
+    rows make the linearized weights skip most of the table (only rows matching the mask are
+    evaluated), so a wrongly skipped child would show up here as a mismatch."""
+    from hybridslam import weights
+
+    monkeypatch.setattr(weights, "ROW_CHUNK", 2)
+    model, mean, cov, _, table, _ = _near_linear_setup()
+    geo, scores = jnp.array([[5.15, 0.2], [5.3, -0.25]]), jnp.array([[0.9, 0.2], [0.3, 0.7]])
     eps = jax.random.normal(jax.random.PRNGKey(0), (20000, mean.shape[0]))
-    # Jitted: op by op, 20000 samples through the vmapped tables take ~30 s of dispatch.
-    sampled, _, _ = jax.jit(lambda e: sampled_log_likelihood(model.sensor, mean, cov, det, e, table, kids))(eps)
-    linear, _, _ = jax.jit(lambda: linearized_log_likelihood(model.sensor, mean, cov, det, table, kids))()
-    ok = kids.valid & (linear > -20)  # the plausible children (detection 0 -> object 0, either class)
-    assert int(ok.sum()) == 2
-    np.testing.assert_allclose(sampled[ok], linear[ok], atol=0.02)
+
+    # Jitted (op by op, 20000 samples through the vmapped tables take ~30 s of dispatch); the mask is traced.
+    @jax.jit
+    def both(det, kids):
+        sampled = sampled_log_likelihood(model.sensor, mean, cov, det, eps, table, kids)[0]
+        return sampled, linearized_log_likelihood(model.sensor, mean, cov, det, table, kids)[0]
+
+    for mask, plausible in (([True, False], 2), ([False, True], 1), ([True, True], 1)):
+        det = hs.Detections(geo, scores, jnp.array(mask))
+        kids = children(table, jnp.array([-1, -1]), det.mask, jnp.full((2, 2), 0.5))
+        sampled, linear = both(det, kids)
+        ok = kids.valid & (linear > -20)  # the plausible children
+        assert int(ok.sum()) == plausible, mask
+        np.testing.assert_allclose(sampled[ok], linear[ok], atol=0.02)
 
 
 def test_weights_are_log_probabilities_of_the_children():
@@ -135,3 +151,4 @@ def test_children_and_sampled_weights_match_brute_force():
         else:
             assert found[key_] == -np.inf
     assert any(v > -np.inf for v in expected.values()) and any(v == -np.inf for v in expected.values())
+
