@@ -58,7 +58,7 @@ def test_kalman_form_gauss_newton_equals_gauss_newton_with_a_prior_factor():
     import jax.scipy.linalg as jsl
 
     from hybridslam import geometry
-    from hybridslam.update import gauss_newton, prior_gauss_newton, wrap_angles
+    from hybridslam.update import gauss_newton, prior_gauss_newton, support_of, wrap_angles
 
     rng = np.random.default_rng(0)
     mean = jnp.asarray(rng.normal(size=12)).at[2::3].set(0.3)
@@ -80,3 +80,9 @@ def test_kalman_form_gauss_newton_equals_gauss_newton_with_a_prior_factor():
     assert r1 == optx.RESULTS.successful
     np.testing.assert_allclose(y1, y2, atol=1e-10)
     np.testing.assert_allclose(c1, c2, atol=1e-10)
+    # The Jacobian over the entries the measurement reads (robot, objects 0 and 1; object 0 named
+    # twice, as an empty slot names it): the same mode and covariance; object 2 moves only through
+    # its prior correlation.
+    y3, c3, _ = prior_gauss_newton(measurement, mean, cov, None, 50, support_of(jnp.array([0, 1, -1])))
+    np.testing.assert_allclose(y3, y1, atol=1e-12)
+    np.testing.assert_allclose(c3, c1, atol=1e-12)

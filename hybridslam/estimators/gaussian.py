@@ -55,7 +55,7 @@ from ..belief import Detections
 from ..model import Model, model_from_scenario
 from ..motion import propagate
 from ..scenario import Scenario
-from ..update import prior_gauss_newton, wrap_angles
+from ..update import prior_gauss_newton, support_of, wrap_angles
 from .base import Mixture, Settings
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -375,7 +375,8 @@ def weighted_update(state: GaussianState, mean, cov, obj: Int[Array, " F"], geo:
     """
     args = (state.model.sensor, jnp.maximum(obj, 0), geo, weight)
     # Kalman-form Gauss-Newton: O(D² m) per iterate, not a dense solve over the whole map.
-    value, new_cov, result = prior_gauss_newton(_weighted_residuals, mean, cov, args, state.config.gn_max_steps)
+    value, new_cov, result = prior_gauss_newton(_weighted_residuals, mean, cov, args, state.config.gn_max_steps,
+                                                support_of(obj))
     return wrap_angles(value), new_cov, result
 
 

@@ -91,7 +91,8 @@ def step(state: GaussianState, odometry: Float[Array, "3"], detections: Detectio
     args = (state.model.sensor, assoc.candidates, detections.geo, log_w, valid, null_ld)
     # The prior enters in Kalman form (update.prior_gauss_newton); the active components are
     # re-chosen at every iterate, as in Eq. 4.16.
-    value, cov, result = gaussian.prior_gauss_newton(_residuals, mean, cov, args, state.config.gn_max_steps)
+    value, cov, result = gaussian.prior_gauss_newton(_residuals, mean, cov, args, state.config.gn_max_steps,
+                                                     gaussian.support_of(assoc.candidates))
     mean = gaussian.wrap_angles(value)
 
     _, active = jax.vmap(max_mixture_residual, (None, None, 0, 0, 0, 0, None))(

@@ -91,7 +91,7 @@ from ..classifier import ClassifierModel
 from ..measurement import SensorModel, log_visibility
 from ..model import Model, model_from_scenario
 from ..scenario import Scenario
-from ..update import prior_gauss_newton, wrap_angles
+from ..update import prior_gauss_newton, support_of, wrap_angles
 from .base import Mixture, Settings
 
 NAME = "multimodal"
@@ -446,7 +446,7 @@ def gauss_newton_child(
     known = (objects >= 0) & ~new
     args = (state.model.sensor, objects, known, detections.geo)
     # Kalman form: O(D² m) per iterate, where a dense solve over the whole map would be O(D³).
-    value, cov, result = prior_gauss_newton(_residuals, mean, cov, args, state.config.gn_max_steps)
+    value, cov, result = prior_gauss_newton(_residuals, mean, cov, args, state.config.gn_max_steps, support_of(objects))
     return wrap_angles(value), cov, result
 
 
