@@ -106,6 +106,16 @@ def _warnings(name: str, info, k: int) -> list[str]:
     return step_warnings(name, info)
 
 
+def final_error(folder: str, record: dict) -> float:
+    """Translation error of the last pose (m), after the loop has closed: for a filter this, not the
+    APE over the run, shows how well the loop closure corrected the estimate (read from the TUM files)."""
+    cell = record["cell"]
+    stem = os.path.splitext(hallway.scenario_name(cell["trace"], cell["seed"]))[0]
+    _, truth = trajectory.read_tum(os.path.join(folder, "tum", "truth", stem + ".tum"))
+    _, estimate = trajectory.read_tum(os.path.join(folder, "tum", cell["estimator"], stem + ".tum"))
+    return float(np.linalg.norm(estimate[-1, :2] - truth[-1, :2]))
+
+
 def _write_csv(folder: str, records: list[dict]) -> str:
     path = os.path.join(folder, "errors.csv")
     rows = []
@@ -113,7 +123,8 @@ def _write_csv(folder: str, records: list[dict]) -> str:
         row = dict(r["cell"])
         for metric, stats in r["errors"].items():
             row.update({f"{metric}_{k}": v for k, v in stats.items()})
-        row.update(step_ms_median=r["step_ms_median"], compile_s=r["compile_s"], num_warnings=r["num_warnings"])
+        row.update(final_translation=final_error(folder, r), step_ms_median=r["step_ms_median"],
+                   compile_s=r["compile_s"], num_warnings=r["num_warnings"])
         rows.append(row)
     tmp = path + ".tmp"
     with open(tmp, "w", newline="", encoding="utf-8") as f:
@@ -141,6 +152,20 @@ def summarize(records: list[dict], estimators: list[str], levels: list[float]) -
         ms = np.median([r["step_ms_median"] for r in cells])
         print(f"{name:<12} " + " ".join(f"{m:>8.3f}" for m in means) + f" {a:>8.3f} {b:>8.2f} {ms:>8.1f}")
     return lines
+
+
+def summarize_final(folder: str, records: list[dict], estimators: list[str], levels: list[float]) -> None:
+    """Print the mean translation error of the last pose (after the loop closure) per estimator and level."""
+    print("\ntranslation error of the last pose, after the loop closure (m), mean over seeds")
+    print(f"{'estimator':<12} " + " ".join(f"{t:>8.4f}" for t in levels) + f" {'all':>8}")
+    for name in estimators:
+        cells = [r for r in records if r["cell"]["estimator"] == name and r["cell"]["trace"] in levels]
+        if not cells:
+            continue
+        err = {t: [final_error(folder, r) for r in cells if r["cell"]["trace"] == t] for t in levels}
+        means = [float(np.mean(err[t])) if err[t] else float("nan") for t in levels]
+        every = [e for t in levels for e in err[t]]
+        print(f"{name:<12} " + " ".join(f"{m:>8.3f}" for m in means) + f" {np.mean(every):>8.3f}")
 
 
 def plot_errors(folder: str, records: list[dict], estimators: list[str], levels: list[float], lines: dict) -> str:
@@ -201,6 +226,7 @@ def main(output: str = os.path.join("runs", "hallway"), seeds: int = 3, estimato
     done = [r for k, r in records.done.items() if k in keys]  # this run's cells, not older settings
     print(f"ran {len(todo)} cells in {time.perf_counter() - t0:.0f} s; wrote {_write_csv(output, done)}")
     lines = summarize(done, estimators, levels)
+    summarize_final(output, done, estimators, levels)
     print(f"wrote {plot_errors(output, done, estimators, levels, lines)}")
     print(f"wrote {plot_examples(output, done, estimators)}")
     return done
