@@ -2,10 +2,14 @@
 
 The posterior of a child is ``b ∝ P(Z_k | X_k, C, β_k) · b⁻`` (Eq. 9) with the propagated
 Gaussian ``b⁻`` as a prior factor and one factor per associated detection (Eq. 10). We find its
-mode with :class:`optimistix.GaussNewton` (``throw=False``; the solver result is returned so a
-failed solve is visible, not fatal) and take the covariance from the Gauss-Newton Hessian ``JᵀJ``
-at the mode. The covariance is formed in square-root form: ``J = Q R`` and ``Σ = R⁻¹ R⁻ᵀ``, which
-is symmetric positive definite by construction.
+mode by Gauss-Newton in Kalman form (:func:`prior_gauss_newton`, an iterated EKF: ``O(D² m)`` per
+iterate, so a large map is cheap when a step observes a few objects) and take the covariance
+from the Gauss-Newton Hessian ``Σ⁻¹ + JᵀJ`` at the mode. The solver result is returned
+(``throw=False``) so a failed solve is visible, not fatal.
+
+:func:`gauss_newton` (``optimistix.GaussNewton`` on whitened residuals, covariance ``R⁻¹R⁻ᵀ`` from
+``J = QR``) serves the Laplace mode search of ``laplace-is`` and is the reference the Kalman form
+is tested against.
 """
 
 from __future__ import annotations

@@ -100,17 +100,21 @@ def test_same_seed_same_result_and_different_seed_differs(scenario):
 
 
 def test_capacity_overflow_is_counted_not_silent(scenario):
-    run = hs.run_scenario(scenario, classifier="none", capacity=2, num_samples=SAMPLES, max_detections=SLOTS, prune_ratio=1e6)
+    # run_none's shapes (prune_ratio is traced): no compile of its own.
+    run = hs.run_scenario(scenario, classifier="none", capacity=CAPACITY, num_samples=SAMPLES, max_detections=SLOTS,
+                          prune_ratio=1e300)
     dropped = [int(i.prune.dropped_capacity) for i in run.infos]
     assert max(dropped) > 0
-    assert all(int(i.num_alive) <= 2 for i in run.infos)
+    assert all(int(i.num_alive) <= CAPACITY for i in run.infos)
 
 
 def test_history_overflow_raises(scenario, key):
-    belief = _belief(scenario, max_steps=1)
-    belief, _ = hs.step(belief, *_inputs(scenario, 0), key)
+    belief = _belief(scenario)  # the shapes of the other tests here: no compile of its own
+    assert belief.config.max_steps == scenario.num_steps
+    for k in range(scenario.num_steps):
+        belief, _ = hs.step(belief, *_inputs(scenario, k), key)
     with pytest.raises(Exception, match="history is full"):
-        jax.block_until_ready(hs.step(belief, *_inputs(scenario, 1), key))
+        jax.block_until_ready(hs.step(belief, *_inputs(scenario, 0), key))
 
 
 def test_unexplainable_detection_falls_back_to_likelihood(scenario, key):
