@@ -12,7 +12,7 @@ when a loop closes. These host-side checks make that visible on simulated runs:
 * :func:`association_audit`: per detection, whether the estimator assigned it to the object it
   made of the same landmark's first detection (a loop closure, for a landmark first seen long
   ago), to an object that another landmark created (a wrong merge), or to a new object;
-* :func:`loop_closure_report`: both, for one scenario and one result file.
+* :func:`loop_closure_report`: the audit and the pose's consistency, for one scenario and one result file.
 """
 
 from __future__ import annotations
@@ -150,7 +150,6 @@ class LoopClosureReport:
     nees: float | None  # pose NEES of the highest-weight component after step first_redetection − 1
     heading_z: float | None  # |heading error| / its reported standard deviation there
     heading_sd_ratio: float | None  # reported heading sd / dead-reckoning sd there
-    bound_sd_ratio: float | None  # the Cramér-Rao bound on that sd (:func:`heading_bound`) / dead-reckoning sd
 
 
 def loop_closure_report(scenario: Scenario, result: Result, gap: int = 20) -> LoopClosureReport:
@@ -160,11 +159,10 @@ def loop_closure_report(scenario: Scenario, result: Result, gap: int = 20) -> Lo
     top = max(result.steps[-1].components, key=lambda c: c.weight)
     audit = association_audit(truth, top.associations, gap)
     if audit.first_redetection is None or audit.first_redetection < 2:
-        return LoopClosureReport(audit, None, None, None, None)
+        return LoopClosureReport(audit, None, None, None)
     k = audit.first_redetection - 1
     comp = max(result.steps[k - 1].components, key=lambda c: c.weight)
     cov = np.asarray(comp.pose_cov)
     err = (poses[k][2] - comp.pose_mean[2] + math.pi) % (2.0 * math.pi) - math.pi
-    dead_reckoning = math.sqrt(dead_reckoning_heading_var(scenario, k))
     return LoopClosureReport(audit, pose_nees(poses[k], comp.pose_mean, cov), abs(err) / math.sqrt(cov[2, 2]),
-                             math.sqrt(cov[2, 2]) / dead_reckoning, heading_bound(scenario, k) / dead_reckoning)
+                             math.sqrt(cov[2, 2] / dead_reckoning_heading_var(scenario, k)))

@@ -41,6 +41,7 @@ class Innovations(eqx.Module):
     jac_pose: Float[Array, "N 2 3"]  # ∂h/∂x_k at the mean (the same for every detection)
     jac_object: Float[Array, "N 2 3"]  # ∂h/∂o_n at the mean
     d2: Float[Array, "Dmax N"]  # rᵀ S⁻¹ r, S = H P Hᵀ + Σ_v (thesis Eq. 4.14-4.15); +inf if not finite
+    cov: Float[Array, "N 2 2"]  # S of each object (the same for every detection)
 
 
 def _predicted(sensor: SensorModel, x: Float[Array, "3"], obj: Float[Array, "3"], block: Float[Array, "6 6"]):
@@ -66,7 +67,7 @@ def innovations(
         return r, r @ jnp.linalg.solve(s_, r)
 
     r, d2 = jax.vmap(jax.vmap(pair, (None, 0, 0)), (0, None, None))(detections.geo, pred, s)
-    return Innovations(r, jac_x, jac_o, jnp.where(jnp.isfinite(d2), d2, jnp.inf))
+    return Innovations(r, jac_x, jac_o, jnp.where(jnp.isfinite(d2), d2, jnp.inf), s)
 
 
 def mahalanobis(

@@ -94,4 +94,5 @@ def test_report_of_the_truth_itself(scenario):
     assert report.audit.redetections > 0 and report.audit.closed == report.audit.redetections
     assert report.audit.wrong == 0 and report.audit.objects == report.audit.landmarks
     assert report.nees == 0.0 and report.heading_z == 0.0
-    assert 0.5 < report.bound_sd_ratio < 1.0
+    assert report.heading_sd_ratio == pytest.approx(0.1 / math.sqrt(consistency.dead_reckoning_heading_var(
+        scenario, report.audit.first_redetection - 1)))
