@@ -31,6 +31,7 @@ import argparse
 import os
 import time
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -38,11 +39,17 @@ from matplotlib.figure import Figure
 
 import hybridslam as hs
 from hybridslam import planning
-from hybridslam.plot import mean_band
-from hybridslam.simulate import move, observe
+from hybridslam.analysis.plot import mean_band
+from hybridslam.sim.paper import move, observe
 
 POLICIES = ("straight", "random", "planner", "refined")
 MAX_TURN = 0.6
+
+
+@eqx.filter_jit
+def _step(estimator: hs.Hybrid, belief: hs.Belief, odometry, detections: hs.Detections, key):
+    """One step of Algorithm 1 (compiled once per estimator and belief shape, shared by every episode)."""
+    return estimator.step(belief, odometry, detections, key)
 
 
 def _detections(dets: tuple, slots: int, m: int) -> hs.Detections:
@@ -83,7 +90,8 @@ def run_policy(policy: str, seed: int, steps: int, alpha: float, candidates: int
     scenario = _start(hs.simulate(seed, steps=1, alpha=alpha), seed, start_heading)  # map, truth, priors
     truth_objects = np.asarray(scenario.true_object_poses)
     classifier = hs.make_classifier("mirror", 2, alpha, 15.0)
-    belief = hs.init_belief(scenario, capacity=16, max_steps=steps, max_detections=2)
+    estimator = hs.Hybrid(capacity=16, max_steps=steps, max_detections=2)  # laplace-is, the scenario's classifier
+    belief = estimator.init(scenario)
     rng = np.random.default_rng(10_000 + seed)  # the world's noise: the same for every policy
     turns = np.random.default_rng(20_000 + seed)  # the random policy's own draws
     pose = np.asarray(scenario.true_robot_poses[0])
@@ -100,7 +108,7 @@ def run_policy(policy: str, seed: int, steps: int, alpha: float, candidates: int
             out["plan_s"].append(time.perf_counter() - t0)
         pose = move(pose, action, rng)
         dets = observe(rng, pose, truth_objects, classifier)
-        belief, _ = hs.step(belief, jnp.asarray(action), _detections(dets, 2, 2), jax.random.fold_in(key, k))
+        belief, _ = _step(estimator, belief, jnp.asarray(action), _detections(dets, 2, 2), jax.random.fold_in(key, k))
         m = hs.metrics(belief, jnp.asarray(pose))
         out["entropy"].append(float(m.entropy))
         out["error"].append(float(m.err_wmax))

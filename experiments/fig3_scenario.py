@@ -16,7 +16,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 import hybridslam as hs
-from hybridslam.plot import plot_map
+from hybridslam.analysis.plot import plot_map
 
 
 def main(output: str = os.path.join("runs", "figures"), tracks: int = 50, steps: int = 10, seed: int = 0) -> str:

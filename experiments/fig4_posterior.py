@@ -19,8 +19,8 @@ import numpy as np
 from matplotlib.figure import Figure
 
 import hybridslam as hs
-from hybridslam.plot import plot_posterior
-from hybridslam.result import StepRecord
+from hybridslam.analysis.plot import plot_posterior
+from hybridslam.io.result import StepRecord
 
 SHOW = (1, 5, 15, 25)
 # Shorter, straighter steps than the Fig. 5 tracks, so that 25 steps stay inside the map.
@@ -46,7 +46,8 @@ def main(output: str = os.path.join("runs", "figures"), seed: int = 6, steps: in
     """Run both models on one track, draw Fig. 4 into ``output/fig4_posterior.png``; return the path."""
     scenario = hs.simulate(seed, steps=steps, setup=SETUP)
     show = [k for k in SHOW if k <= steps]
-    runs = {model: hs.run_scenario(scenario, classifier=model, capacity=64, weights=weights, seed=seed).result
+    runs = {model: hs.run_estimator(scenario, "hybrid", seed=seed, classifier=model, capacity=64,
+                                    weights=weights).result
             for model, _, _ in RUNS}
 
     print(f"track seed {seed}, {steps} steps, weights {weights}")

@@ -17,15 +17,17 @@ import os
 
 import numpy as np
 
-from hybridslam import plot, study
-from hybridslam.cli import alpha_summary
+import hybridslam as hs
+from hybridslam.analysis import plot
+from hybridslam.cli.tables import alpha_summary
+from hybridslam.studies import study
 
 
 def main(output: str = os.path.join("runs", "figures"), tracks: int = 50, steps: int = 10,
          weights: str = "laplace-is", samples: int | None = None, capacity: int = 16) -> str:
     """Run (or resume) the study, draw ``output/fig5_alpha_sweep.png``; return the path."""
-    spec = study.AlphaStudy(tracks=tracks, steps=steps,
-                            estimator=study.Estimator(weights=weights, samples=samples, capacity=capacity))
+    estimator = hs.make_estimator("hybrid", weights=weights, samples=samples, capacity=capacity)
+    spec = study.AlphaStudy(tracks=tracks, steps=steps, estimator=estimator)
     folder = os.path.join(output, "fig5")
 
     def on_cell(label: str, record: dict | None) -> None:

@@ -1,6 +1,6 @@
 """Doherty's hallway study (thesis Sec. 5.4.1, Fig. 5-3): every association strategy against odometry noise.
 
-The simulated hallway loop of :mod:`hybridslam.hallway` (landmarks of 2 classes in aliased rows,
+The simulated hallway loop of :mod:`hybridslam.sim.hallway` (landmarks of 2 classes in aliased rows,
 120° / 3.5 m field of view, range and bearing noise variance 0.01, a 90%-accurate confusion
 matrix, an unknown map). For each odometry noise level ``tr(Λ_t)`` (five, 0.005 to 0.05) and
 each seed, one scenario; every estimator runs on the same files. Reports, per estimator, the
@@ -14,8 +14,9 @@ Writes, under ``--output``:
 - ``scenarios/*.json``: the scenario files (for other implementations);
 - ``results/<estimator>/*.json``: result files; ``tum/<estimator>/*.tum`` and ``tum/truth/*.tum``
   trajectories for ``evo_ape`` / ``evo_rpe``;
-- ``cells.jsonl``: one record per (estimator, level, seed), appended as each finishes: a killed run
-  resumes where it stopped (same settings; other settings are refused);
+- ``cells.jsonl``: one record per (estimator, level, seed), keyed by the estimator's settings
+  (``estimator.settings()``), appended as each finishes: a killed run resumes where it stopped (same
+  settings; cells of other settings run afresh);
 - ``errors.csv``: APE/RPE statistics of every cell; ``hallway_error.png``, ``hallway_trajectories.png``.
 
     python experiments/hallway_odometry_sweep.py [-o runs/hallway] [--seeds 3] [--estimators ml,gpda,...]
@@ -33,24 +34,33 @@ import numpy as np
 from matplotlib.figure import Figure
 from tqdm import tqdm
 
-from hybridslam import hallway, trajectory
-from hybridslam.estimators import ESTIMATORS, run_estimator
-from hybridslam.plot import plot_trajectory
-from hybridslam.result import load_result, save_result
-from hybridslam.scenario import load_scenario, save_scenario
-from hybridslam.study import Records
+from hybridslam import driver
+from hybridslam.analysis import trajectory
+from hybridslam.analysis.plot import plot_trajectory
+from hybridslam.estimators import ESTIMATORS, AbstractEstimator, make_estimator
+from hybridslam.io.result import load_result, save_result
+from hybridslam.io.scenario import load_scenario, save_scenario
+from hybridslam.sim import hallway
+from hybridslam.studies.study import Records
 
 EXAMPLE_TRACE = 0.021  # the thesis's Fig. 5-3a-c example, Λ_t = diag(0.01, 0.01, 0.001)
 DEFAULT_ESTIMATORS = ("ml", "gpda", "max-mixture", "multimodal", "hybrid")
-# Settings per estimator (hybridslam.estimators.run_estimator keywords), part of each cell's key:
-# both mixtures keep 16 components; the hybrid gates to 3 candidate objects per detection (its
-# exact enumeration over ~70 object slots is intractable) and uses the deterministic linearized
-# weights (scripts/bench_estimators.py: ~0.4-0.5 s per step for either on this 213-dimensional state).
+# Options per estimator (hybridslam.make_estimator keywords); the estimator's settings are part of
+# each cell's key: both mixtures keep 16 components; the hybrid gates to 3 candidate objects per
+# detection (its exact enumeration over ~70 object slots is intractable) and uses the deterministic
+# linearized weights (scripts/bench_estimators.py: ~0.4-0.5 s per step for either on this
+# 213-dimensional state).
 SETTINGS: dict[str, dict] = {
     "ml": {}, "gpda": {}, "max-mixture": {},
     "multimodal": {"capacity": 16},
-    "hybrid": {"capacity": 16, "gate_candidates": 3, "weights": "linearized"},
+    "hybrid": {"capacity": 16, "gate": 3, "weights": "linearized"},
 }
+
+
+def estimator(name: str, max_detections: int | None = None) -> AbstractEstimator:
+    """Estimator ``name`` with the study's :data:`SETTINGS`; ``max_detections`` pads every step to that
+    many detection slots (``None``: the scenario's largest step)."""
+    return make_estimator(name, max_detections=max_detections, **SETTINGS.get(name, {}))
 
 
 def _scenario(folder: str, trace: float, seed: int, steps: int | None):
@@ -69,8 +79,8 @@ def run_cell(folder: str, name: str, trace: float, seed: int, steps: int | None,
     path, scenario = _scenario(folder, trace, seed, steps)
     stem = os.path.splitext(os.path.basename(path))[0]
     warnings: list[str] = []
-    run = run_estimator(scenario, name, seed=seed, max_detections=max_detections, on_step=lambda r, info, s:
-                        warnings.extend(_warnings(name, info, r.k)), **SETTINGS.get(name, {}))
+    run = driver.run(estimator(name, max_detections), scenario, seed=seed,
+                     on_step=lambda r, info, s: warnings.extend(info.warnings()))
     result_path = os.path.join(folder, "results", name, stem + ".json")
     os.makedirs(os.path.dirname(result_path), exist_ok=True)
     save_result(run.result, result_path)
@@ -93,17 +103,14 @@ def run_cell(folder: str, name: str, trace: float, seed: int, steps: int | None,
 
 
 def _cell(name: str, trace: float, seed: int) -> dict:
-    return {"estimator": name, "trace": trace, "seed": seed, "settings": SETTINGS.get(name, {})}
+    """A cell's key: the estimator's settings (``estimator.settings()``), the noise level and the seed.
 
-
-def _warnings(name: str, info, k: int) -> list[str]:
-    from hybridslam.estimators.base import step_warnings
-
-    if name == "hybrid":
-        from hybridslam.cli import _step_warnings
-
-        return list(_step_warnings(k, info))
-    return step_warnings(name, info)
+    The detection slots every cell is padded to (``max_detections``, the largest step of any
+    scenario of the run) are left out of the key, as before, so that resuming with more seeds or
+    levels does not rerun the finished cells.
+    """
+    settings = {k: v for k, v in estimator(name).settings().items() if k != "max_detections"}
+    return {"estimator": name, "trace": trace, "seed": seed, "settings": settings}
 
 
 def final_error(folder: str, record: dict) -> float:
@@ -212,18 +219,18 @@ def main(output: str = os.path.join("runs", "hallway"), seeds: int = 3, estimato
     if unknown:
         raise SystemExit(f"--estimators: unknown {', '.join(unknown)} (known: {', '.join(ESTIMATORS)})")
     os.makedirs(output, exist_ok=True)
-    records = Records(output, {"study": "hallway", "steps": steps})
-    cells = [(n, t, s) for t in levels for s in range(seeds) for n in estimators]
-    cells += [(n, EXAMPLE_TRACE, 0) for n in estimators]
-    todo = [c for c in cells if _cell(*c) not in records]
-    print(f"{len(cells)} cells ({len(estimators)} estimators x {len(levels)} levels x {seeds} seeds, plus the "
-          f"example at tr = {EXAMPLE_TRACE}); {len(cells) - len(todo)} done already", flush=True)
-    max_detections = max(max(_scenario(output, t, s, steps)[1].max_detections, 1) for _, t, s in cells)
-    t0 = time.perf_counter()
-    for name, trace, seed in tqdm(todo, desc="hallway cells", unit="cell"):
-        records.append(run_cell(output, name, trace, seed, steps, max_detections))
-    keys = {json.dumps(_cell(*c), sort_keys=True) for c in cells}
-    done = [r for k, r in records.done.items() if k in keys]  # this run's cells, not older settings
+    with Records(output, {"study": "hallway", "steps": steps}) as records:  # the folder is locked until the end
+        cells = [(n, t, s) for t in levels for s in range(seeds) for n in estimators]
+        cells += [(n, EXAMPLE_TRACE, 0) for n in estimators]
+        todo = [c for c in cells if _cell(*c) not in records]
+        print(f"{len(cells)} cells ({len(estimators)} estimators x {len(levels)} levels x {seeds} seeds, plus the "
+              f"example at tr = {EXAMPLE_TRACE}); {len(cells) - len(todo)} done already", flush=True)
+        max_detections = max(max(_scenario(output, t, s, steps)[1].max_detections, 1) for _, t, s in cells)
+        t0 = time.perf_counter()
+        for name, trace, seed in tqdm(todo, desc="hallway cells", unit="cell"):
+            records.append(run_cell(output, name, trace, seed, steps, max_detections))
+        keys = {json.dumps(_cell(*c), sort_keys=True) for c in cells}
+        done = [r for k, r in records.done.items() if k in keys]  # this run's cells, not older settings
     print(f"ran {len(todo)} cells in {time.perf_counter() - t0:.0f} s; wrote {_write_csv(output, done)}")
     lines = summarize(done, estimators, levels)
     summarize_final(output, done, estimators, levels)

@@ -1,80 +1,94 @@
 """hybridslam: semantic localization and mapping under ambiguous data association.
 
-The hybrid belief of Tchuiev, Feldman & Indelman (IROS 2019) as a fixed-capacity, jit-compiled JAX
-mixture. hybridslam computes in float64: importing it turns on ``jax_enable_x64``, because the
-paper's variances span 1e-4 to 1e2 (README, "Numerics").
+Five estimators behind one interface (:class:`AbstractEstimator`): the hybrid belief of Tchuiev,
+Feldman & Indelman (IROS 2019) as a fixed-capacity, jit-compiled JAX mixture (:class:`Hybrid`), and
+Doherty's maximum-likelihood, Gaussian PDA, max-mixture and multimodal estimators. One driver
+(:func:`run`, :func:`scan`) runs any of them on a scenario file. hybridslam computes in float64:
+importing it turns on ``jax_enable_x64``, because the paper's variances span 1e-4 to 1e2.
+
+Layers (each subpackage imports only from the ones before it): ``io`` (files) → ``models`` (the
+generative model) → ``inference`` (Gauss-Newton, gating, ...) → ``estimators`` → ``analysis``
+(metrics, marginals, errors, plots) → ``driver`` → ``studies``, ``sim``, ``planning`` → ``cli``.
 """
 
-import jax as _jax
+import os as _os
+
+# jaxlib 0.10.2's CPU LAPACK kernels (Cholesky, triangular solve, QR, ...) split a batched call over
+# XLA's intra-op thread pool and block a pool thread until the pieces finish. Two such calls that
+# XLA runs concurrently on a pool as small as the machine (2 threads on a 2-core CPU) wait for each
+# other forever (seen here: the multimodal estimator on a 12-step hallway file hung, 100% reproducible;
+# jaxlib 0.11 compiles that path out). A larger pool breaks the cycle and changes no number (checked
+# on the golden result files of tests/data/golden). Set before the CPU backend starts; a user's own
+# PJRT_NPROC wins.
+_os.environ.setdefault("PJRT_NPROC", str(max(32, 4 * (_os.cpu_count() or 1))))
+
+import jax as _jax  # noqa: E402
 
 _jax.config.update("jax_enable_x64", True)
 
 __version__ = "0.1.0"
 
-from .belief import Belief as Belief
-from .belief import Config as Config
-from .belief import Detections as Detections
-from .belief import Priors as Priors
-from .belief import init_belief as _init_belief_from_priors
-from .belief import priors_from_scenario as priors_from_scenario
-from .belief import stacked_detections as stacked_detections
-from .classifier import ClassifierModel as ClassifierModel
-from .classifier import Independent as Independent
-from .classifier import Mirror as Mirror
-from .classifier import NoClassifier as NoClassifier
-from .classifier import make_classifier as make_classifier
-from .gradients import best_pose_log_det as best_pose_log_det
-from .gradients import expected_association_entropy as expected_association_entropy
-from .gradients import expected_position_error as expected_position_error
-from .gradients import hypothesis_neg_log_weight as hypothesis_neg_log_weight
-from .gradients import rollout as rollout
-from .learned import Learned as Learned
-from .learned import fit_classifier as fit_classifier
-from .learned import load_classifier as load_classifier
-from .learned import save_classifier as save_classifier
-from .marginals import association_probabilities as association_probabilities
-from .marginals import class_probabilities as class_probabilities
-from .marginals import pose_mixture as pose_mixture
-from .measurement import SensorModel as SensorModel
-from .metrics import Metrics as Metrics
-from .metrics import association_entropy as association_entropy
-from .metrics import metrics as metrics
-from .model import Model as Model
-from .model import model_from_scenario as model_from_scenario
-from .model import with_smooth_visibility as with_smooth_visibility
-from .result import Result as Result
-from .result import load_result as load_result
-from .result import save_result as save_result
-from .run import run_scenario as run_scenario
-from .scenario import Scenario as Scenario
-from .scenario import ScenarioError as ScenarioError
-from .scenario import load_scenario as load_scenario
-from .scenario import save_scenario as save_scenario
-from .scenario import stack_steps as stack_steps
-from .simulate import PaperSetup as PaperSetup
-from .simulate import simulate as simulate
-from .step import StepInfo as StepInfo
-from .step import step as step
-
-
-def init_belief(
-    source: "Scenario | Priors",
-    model: "Model | None" = None,
-    config: "Config | None" = None,
-    **settings,
-) -> Belief:
-    """The initial belief (one component, every class open) from a scenario or explicit priors.
-
-    ``init_belief(scenario)`` reads priors and model from the file and sizes the config for it;
-    ``init_belief(priors, model, config)`` builds it from parts. ``settings`` (``capacity``,
-    ``num_samples``, ``weights``, ...) fill a :class:`Config` when none is given.
-    """
-    from .run import config_for
-
-    if isinstance(source, Scenario):
-        model = model_from_scenario(source) if model is None else model
-        config = config_for(source, **settings) if config is None else config
-        source = priors_from_scenario(source)
-    elif model is None:
-        raise TypeError("init_belief(priors, model, config): a model is required with explicit priors")
-    return _init_belief_from_priors(source, model, Config(**settings) if config is None else config)
+from .analysis.marginals import association_probabilities as association_probabilities
+from .analysis.marginals import class_probabilities as class_probabilities
+from .analysis.marginals import pose_mixture as pose_mixture
+from .analysis.metrics import Metrics as Metrics
+from .analysis.metrics import association_entropy as association_entropy
+from .analysis.metrics import metrics as metrics
+from .driver import Inputs as Inputs
+from .driver import Run as Run
+from .driver import Trace as Trace
+from .driver import inputs_from_scenario as inputs_from_scenario
+from .driver import run as run
+from .driver import run_estimator as run_estimator
+from .driver import scan as scan
+from .estimators import ESTIMATORS as ESTIMATORS
+from .estimators import GPDA as GPDA
+from .estimators import ML as ML
+from .estimators import AbstractEstimator as AbstractEstimator
+from .estimators import AbstractWeigher as AbstractWeigher
+from .estimators import Hybrid as Hybrid
+from .estimators import LaplaceIS as LaplaceIS
+from .estimators import Linearized as Linearized
+from .estimators import MaxMixture as MaxMixture
+from .estimators import Mixture as Mixture
+from .estimators import Multimodal as Multimodal
+from .estimators import Sampled as Sampled
+from .estimators import StepInfo as StepInfo
+from .estimators import make_estimator as make_estimator
+from .estimators.hybrid.branching import Beam as Beam
+from .estimators.hybrid.branching import Exhaustive as Exhaustive
+from .estimators.hybrid.weighers import make_weigher as make_weigher
+from .estimators.smoothing import Filter as Filter
+from .estimators.smoothing import Full as Full
+from .estimators.hybrid.belief import Belief as Belief
+from .estimators.hybrid.belief import Priors as Priors
+from .estimators.hybrid.belief import priors_from_scenario as priors_from_scenario
+from .io.result import Result as Result
+from .io.result import load_result as load_result
+from .io.result import save_result as save_result
+from .io.scenario import Scenario as Scenario
+from .io.scenario import ScenarioError as ScenarioError
+from .io.scenario import load_scenario as load_scenario
+from .io.scenario import save_scenario as save_scenario
+from .io.scenario import stack_steps as stack_steps
+from .models.classifier import ClassifierModel as ClassifierModel
+from .models.classifier import Independent as Independent
+from .models.classifier import Mirror as Mirror
+from .models.classifier import NoClassifier as NoClassifier
+from .models.classifier import make_classifier as make_classifier
+from .models.learned import Learned as Learned
+from .models.learned import fit_classifier as fit_classifier
+from .models.learned import load_classifier as load_classifier
+from .models.learned import save_classifier as save_classifier
+from .models.measurement import Detections as Detections
+from .models.measurement import SensorModel as SensorModel
+from .models.measurement import stacked_detections as stacked_detections
+from .models.model import Model as Model
+from .models.model import model_from_scenario as model_from_scenario
+from .models.model import with_smooth_visibility as with_smooth_visibility
+from .planning.gradients import best_pose_log_det as best_pose_log_det
+from .planning.gradients import expected_association_entropy as expected_association_entropy
+from .planning.gradients import expected_position_error as expected_position_error
+from .planning.gradients import hypothesis_neg_log_weight as hypothesis_neg_log_weight
+from .sim.paper import PaperSetup as PaperSetup
+from .sim.paper import simulate as simulate

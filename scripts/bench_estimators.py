@@ -16,11 +16,12 @@ import sys
 
 import numpy as np
 
-from hybridslam import hallway, trajectory
-from hybridslam.estimators import run_estimator
+from hybridslam import driver
+from hybridslam.analysis import trajectory
+from hybridslam.sim import hallway
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "experiments"))
-from hallway_odometry_sweep import DEFAULT_ESTIMATORS, EXAMPLE_TRACE, SETTINGS  # noqa: E402
+from hallway_odometry_sweep import DEFAULT_ESTIMATORS, EXAMPLE_TRACE, SETTINGS, estimator  # noqa: E402
 
 
 def main() -> None:
@@ -38,7 +39,7 @@ def main() -> None:
           f"{'APE m':>6}")
     for name in a.estimators.split(","):
         settings = SETTINGS.get(name, {})
-        run = run_estimator(scenario, name, seed=a.seed, **settings)
+        run = driver.run(estimator(name), scenario, seed=a.seed)
         step_ms = 1e3 * np.asarray(run.result.timing["step_s"])
         _, estimate = trajectory.trajectory_from_result(run.result)
         ape = trajectory.ape(truth, estimate).statistics()["translation"]["mean"]

@@ -22,6 +22,7 @@ import jax.numpy as jnp
 
 import hybridslam as hs
 from hybridslam import planning
+from hybridslam.planning.plan import turn_actions
 
 
 def main() -> None:
@@ -37,11 +38,11 @@ def main() -> None:
     parser.add_argument("--no-grad", action="store_true", help="skip the gradient timing")
     a = parser.parse_args()
     scenario = hs.simulate(0, steps=2)
-    belief = hs.run_scenario(scenario, classifier=a.classifier, capacity=16, max_detections=2).belief
+    belief = hs.run_estimator(scenario, "hybrid", classifier=a.classifier, capacity=16, max_detections=2).state
     plan = planning.prepare(belief, a.horizon, capacity=a.capacity, weights=a.weights, gn_max_steps=a.gn_max_steps)
     cands = planning.arc_candidates(a.candidates, a.horizon, key=jax.random.PRNGKey(1))
-    print(f"{a.candidates} candidates x {a.horizon} steps x {a.draws} draw(s); belief: {int(plan.alive.sum())} live of "
-          f"{a.capacity} kept components, classifier {a.classifier}, weights {a.weights}, gn_max_steps {a.gn_max_steps}")
+    print(f"{a.candidates} candidates x {a.horizon} steps x {a.draws} draw(s); belief: "
+          f"{int(plan.belief.alive.sum())} live of {a.capacity} kept components, classifier {a.classifier}, weights {a.weights}, gn_max_steps {a.gn_max_steps}")
     t0 = time.perf_counter()
     jax.block_until_ready(planning.score_candidates(plan, cands, jax.random.PRNGKey(0), a.draws))
     first = time.perf_counter() - t0
@@ -66,7 +67,7 @@ def _bench_gradient(belief, a) -> None:
     @jax.jit
     def grad(turns, keys):
         return jax.value_and_grad(lambda t: planning.expected_objective(
-            smooth, planning.turn_actions(jnp.arctanh(t / 0.6), 1.0, 0.6), keys))(turns)
+            smooth, turn_actions(jnp.arctanh(t / 0.6), 1.0, 0.6), keys))(turns)
 
     turns = jnp.linspace(-0.3, 0.3, a.horizon)
     t0 = time.perf_counter()

@@ -15,23 +15,29 @@ laplace-is (default 256); linearized draws nothing.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import statistics
 import time
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
 import hybridslam as hs
-from hybridslam.run import config_for, samples_of
+from hybridslam.estimators.hybrid.weighers import make_weigher
 
 
-def full_belief(scenario: hs.Scenario, capacity: int, samples: int, weights: str) -> hs.Belief:
-    config = config_for(scenario, capacity=capacity, num_samples=samples, weights=weights, max_detections=2)
-    belief = hs.init_belief(scenario, config=config)
-    return hs.Belief(
-        jnp.full((capacity,), -jnp.log(capacity)), belief.mean, belief.cov, belief.classes,
-        belief.history, belief.k, belief.model, belief.config,
-    )
+def estimator(capacity: int, samples: int | None, weights: str, classifier: str | None = None) -> hs.Hybrid:
+    """The hybrid belief at capacity K with 2 detection slots; ``samples`` sets the draws of the weight
+    method (``None``: its default; the deterministic ``linearized`` draws none and ignores it)."""
+    weigher = make_weigher(weights, None if weights == "linearized" else samples)
+    return hs.Hybrid(weights=weigher, capacity=capacity, classifier=classifier, max_detections=2)
+
+
+def full_belief(scenario: hs.Scenario, est: hs.Hybrid) -> hs.Belief:
+    """The initial belief with every one of its K slots alive (equal weights)."""
+    belief = est.init(scenario)
+    return dataclasses.replace(belief, log_weights=jnp.full((est.capacity,), -jnp.log(est.capacity)))
 
 
 def two_detection_step(scenario: hs.Scenario):
@@ -43,11 +49,12 @@ def two_detection_step(scenario: hs.Scenario):
 
 def bench(capacity: int, samples: int, weights: str, repeats: int) -> tuple[float, float, float]:
     scenario = hs.simulate(0, steps=10)
-    belief = full_belief(scenario, capacity, samples, weights)
+    est = estimator(capacity, samples, weights)
+    belief = full_belief(scenario, est)
     odometry, det = two_detection_step(scenario)
     key = jax.random.PRNGKey(0)
     t0 = time.perf_counter()
-    compiled = hs.step.lower(belief, odometry, det, key).compile()
+    compiled = eqx.filter_jit(est.step).lower(belief, odometry, det, key).compile()
     compile_s = time.perf_counter() - t0
     jax.block_until_ready(compiled(belief, odometry, det, key))  # warm-up
     times = []
@@ -64,10 +71,7 @@ def bench_tracks(capacity: int, samples: int, weights: str, tracks: int) -> tupl
     times, alive = [], []
     for seed in range(tracks):
         for classifier in ("mirror", "none"):
-            run = hs.run_scenario(
-                hs.simulate(seed, steps=10), classifier=classifier, capacity=capacity,
-                num_samples=samples, weights=weights, max_detections=2,
-            )
+            run = hs.run(estimator(capacity, samples, weights, classifier), hs.simulate(seed, steps=10))
             times += run.result.timing["step_s"]
             alive += [s.metrics["num_components"] for s in run.result.steps]
     return statistics.median(times), statistics.mean(alive)
@@ -86,7 +90,7 @@ def main() -> None:
     for weights in args.weights:
         for capacity in args.capacities:
             c, med, best = bench(capacity, args.samples, weights, args.repeats)
-            draws = samples_of(config_for(hs.simulate(0, 1), num_samples=args.samples, weights=weights))
+            draws = estimator(capacity, args.samples, weights).weights.draws
             print(f"{weights:>10} {capacity:>5} {draws:>6} {c:>10.2f} {med * 1e3:>17.1f} {best * 1e3:>14.1f}")
     if args.tracks:
         print(f"\nwhole tracks (mirror and none, {args.tracks} tracks each, 10 steps, paper setup)")
@@ -94,7 +98,7 @@ def main() -> None:
         for weights in args.weights:
             for capacity in args.capacities:
                 med, live = bench_tracks(capacity, args.samples, weights, args.tracks)
-                draws = samples_of(config_for(hs.simulate(0, 1), num_samples=args.samples, weights=weights))
+                draws = estimator(capacity, args.samples, weights).weights.draws
                 print(f"{weights:>10} {capacity:>5} {draws:>6} {live:>12.1f} {med * 1e3:>17.1f}")
 
 

@@ -1,7 +1,7 @@
 """Benchmark the sweep engine on the paper's full Fig. 5 study.
 
 6 alphas x 3 classifier models x 50 tracks x 10 steps (9000 track-steps), each (alpha, model)
-cell one batched, compiled run (hybridslam.sweep). Prints compile time (once per model: alpha is
+cell one batched, compiled run (hybridslam.studies.batch). Prints compile time (once per model: alpha is
 traced), the time of the batched runs, the wall time of the whole study (simulation and host work
 included) and track-steps per second. Runs into a fresh temporary folder; asserts nothing.
 
@@ -16,7 +16,8 @@ import time
 
 import jax
 
-from hybridslam import study
+import hybridslam as hs
+from hybridslam.studies import study
 
 
 def main() -> None:
@@ -29,10 +30,11 @@ def main() -> None:
     parser.add_argument("--samples", type=int, default=1000, help="n_s (sampled) or draws per candidate (laplace-is)")
     parser.add_argument("--capacity", type=int, default=16)
     a = parser.parse_args()
+    estimator = hs.make_estimator("hybrid", weights=a.weights, capacity=a.capacity,
+                                  samples=a.samples if a.weights != "linearized" else None)
     spec = study.AlphaStudy(
         alphas=tuple(float(x) for x in a.alphas.split(",")), models=tuple(a.models.split(",")), tracks=a.tracks,
-        steps=a.steps, estimator=study.Estimator(weights=a.weights, samples=a.samples if a.weights != "linearized" else None,
-                                                 capacity=a.capacity))
+        steps=a.steps, estimator=estimator)
     devices = jax.devices()
     print(f"{len(spec.alphas)} alphas x {len(spec.models)} models x {spec.tracks} tracks x {spec.steps} steps; "
           f"weights={a.weights}, samples={a.samples}, capacity={a.capacity}; {len(devices)} {devices[0].platform} device(s)")

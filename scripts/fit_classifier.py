@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import hybridslam as hs
-from hybridslam.learned import mean_nll, sample_scores, viewpoint_features
+from hybridslam.models.learned import mean_nll, sample_scores, viewpoint_features
 
 Samples = tuple[np.ndarray, np.ndarray, np.ndarray]
 

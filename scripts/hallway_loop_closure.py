@@ -3,7 +3,7 @@
 Two modes.
 
 **A finished study** (``experiments/hallway_odometry_sweep.py -o FOLDER``): one row per estimator,
-from its result files and the scenarios' ground truth (:func:`hybridslam.consistency.loop_closure_report`):
+from its result files and the scenarios' ground truth (:func:`hybridslam.analysis.consistency.loop_closure_report`):
 re-detections of landmarks first seen more than ``--gap`` steps earlier and how many were
 associated with the landmark's first object (a loop closure), detections merged into another
 landmark's object, objects against landmarks, and, just before the first re-detection, the pose
@@ -36,14 +36,19 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import logsumexp
 
-from hybridslam import consistency, gating, geometry, hallway
-from hybridslam.belief import Detections
+from hybridslam.analysis import consistency
 from hybridslam.estimators import gaussian
-from hybridslam.estimators.base import Settings, get_estimator
-from hybridslam.result import load_result
-from hybridslam.scenario import load_scenario, stack_steps
+from hybridslam.estimators.registry import make_estimator
+from hybridslam.inference import gating
+from hybridslam.io.result import load_result
+from hybridslam.io.scenario import load_scenario, stack_steps
+from hybridslam.models import geometry
+from hybridslam.models.measurement import Detections
+from hybridslam.sim import hallway
 
 jax.config.update("jax_enable_x64", True)
+
+PROBED = ("ml", "gpda", "max-mixture")  # the single-Gaussian filters, whose state _probe reads
 
 
 @jax.jit
@@ -81,11 +86,10 @@ def diagnose(estimator: str, trace: float, seed: int, gap: int, exact: bool = Fa
     scenario = hallway.hallway(seed=seed, trace=trace)
     scenario = exact_detections(scenario) if exact else scenario
     headline = ""
-    module = get_estimator(estimator)
     stacked = stack_steps(scenario)
-    settings = Settings(max_detections=stacked.mask.shape[1], max_steps=scenario.num_steps)
-    state = module.init(scenario, settings)
-    step = jax.jit(module.step)
+    est = make_estimator(estimator, max_detections=stacked.mask.shape[1], max_steps=scenario.num_steps)
+    state = est.init(scenario)
+    step = jax.jit(est.step)
     first: dict[int, tuple[int, int]] = {}  # landmark -> (step, detection slot) of its first detection
     rows = []
     for k in range(scenario.num_steps):
@@ -170,6 +174,8 @@ def main(argv: list[str] | None = None) -> None:
         print_summary(*summarize(args.folder, args.gap), args.gap)
         return
     est, trace, seed = args.probe.split(":")
+    if est not in PROBED:
+        parser.error(f"--probe: EST must be one of {', '.join(PROBED)}, got {est!r}")
     rows, headline = diagnose(est, float(trace), int(seed), args.gap, args.exact_detections)
     print(f"{est}, tr(Λ_t) = {float(trace):g}, seed {seed}{', exact detections' if args.exact_detections else ''}: "
           f"{len(rows)} re-detections, {sum(r['assigned'] == r['slot'] for r in rows)} assigned to the landmark's "

@@ -39,10 +39,12 @@ def compare(a: list[dict], b: list[dict]) -> tuple[list[bool], list[float]]:
     return agree, tv
 
 
-def run(scenario: hs.Scenario, classifier: str, weights: str, seed: int, **settings) -> list[dict]:
-    """Association posteriors of one run (capacity 64; ``settings`` go to :func:`hs.run_scenario`)."""
-    result = hs.run_scenario(
-        scenario, classifier=classifier, weights=weights, seed=seed, capacity=64, max_detections=2, **settings
+def run(scenario: hs.Scenario, classifier: str, weights: str, seed: int, samples: int | None = None) -> list[dict]:
+    """Association posteriors of one run (capacity 64; ``samples``: the draws of the weight method,
+    ``None`` for its default)."""
+    result = hs.run_estimator(
+        scenario, "hybrid", classifier=classifier, weights=weights, samples=samples, seed=seed, capacity=64,
+        max_detections=2,
     ).result
     return association_posteriors(result)
 
@@ -60,7 +62,7 @@ def main() -> None:
     stats: dict[str, dict[str, list]] = {m: defaultdict(list) for m in args.methods}
     for seed, clf in tqdm(cases, desc="scenarios"):
         scenario = hs.simulate(1000 + seed, steps=args.steps)
-        reference = run(scenario, clf, "laplace-is", 0, is_samples=1024)
+        reference = run(scenario, clf, "laplace-is", 0, samples=1024)
         for method in args.methods:
             first = run(scenario, clf, method, 1)
             second = run(scenario, clf, method, 2)
@@ -94,10 +96,10 @@ def accuracy_table(num_scenarios: int, steps: int, classifiers: list[str]) -> No
     cases = [(seed, clf) for clf in classifiers for seed in range(num_scenarios)]
     for seed, clf in tqdm(cases, desc="accuracy"):
         scenario = hs.simulate(1000 + seed, steps=steps)
-        reference = run(scenario, clf, "laplace-is", 0, is_samples=1024)
+        reference = run(scenario, clf, "laplace-is", 0, samples=1024)
         for method, counts in draws.items():
             for n in counts:
-                errors[(method, n)] += compare(run(scenario, clf, method, 1, num_samples=n), reference)[1]
+                errors[(method, n)] += compare(run(scenario, clf, method, 1, samples=n), reference)[1]
     print(f"\naccuracy against the reference ({len(cases)} scenario configurations, {steps} steps): mean TV")
     for method, counts in draws.items():
         cells = "  ".join(f"{n:>5} draws: {statistics.mean(errors[(method, n)]):.4f}" for n in counts)

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 import hybridslam as hs
-from hybridslam.classifier import Confusion, make_classifier
-from hybridslam.scenario import Classifier
+from hybridslam.io.scenario import Classifier
+from hybridslam.models.classifier import Confusion, make_classifier
 
 MATRIX = np.array([[0.7, 0.1, 0.2], [0.2, 0.6, 0.3], [0.1, 0.3, 0.5]])  # matrix[label, class]
 VIEW = jnp.array([0.6, 0.8])
@@ -61,7 +61,7 @@ def test_hybrid_run_realizes_the_detected_label():
     )
     matrix = np.array([[0.9, 0.1], [0.1, 0.9]])
     scenario = scenario.replace(steps=steps, classifier=Classifier("confusion", matrix=matrix))
-    run = hs.run_scenario(scenario, capacity=4, weights="linearized")
+    run = hs.run_estimator(scenario, capacity=4, weights="linearized")
     last = run.result.steps[-1]
     assert sum(c.weight for c in last.components) == pytest.approx(1.0)
     best = last.components[0]

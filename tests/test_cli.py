@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 import hybridslam as hs
-from hybridslam import cli, plot
+from hybridslam import cli
+from hybridslam.analysis import plot
 
 SMALL = ["--samples", "50", "--capacity", "8"]
 
@@ -74,18 +75,18 @@ def test_same_seed_same_result(scenario_path, tmp_path):
 
 def test_run_warns_on_capacity_and_visibility(scenario_path, tmp_path, capsys, monkeypatch):
     """The warnings come from StepInfo; fake the counters on a real run (same compiled step)."""
-    real = cli.run_scenario
+    real = cli.run.run
 
-    def run_with_bad_news(scenario, *, on_step, **kwargs):
+    def run_with_bad_news(estimator, scenario, *, on_step, **kwargs):
         def patched(record, info, seconds):
             if record.k == 2:
-                info = eqx.tree_at(lambda i: (i.prune.dropped_capacity, i.visibility_ignored), info,
+                info = eqx.tree_at(lambda i: (i.dropped_capacity, i.visibility_ignored), info,
                                    (np.int64(5), np.bool_(True)))
             on_step(record, info, seconds)
 
-        return real(scenario, on_step=patched, **kwargs)
+        return real(estimator, scenario, on_step=patched, **kwargs)
 
-    monkeypatch.setattr(cli, "run_scenario", run_with_bad_news)
+    monkeypatch.setattr(cli.run, "run", run_with_bad_news)
     assert cli.main(["run", scenario_path, "-o", str(tmp_path / "r.json"), *SMALL]) == 0
     warnings = [line for line in capsys.readouterr().err.splitlines() if line.startswith("WARNING")]
     assert len(warnings) == 2, warnings
@@ -131,11 +132,11 @@ def test_missing_input_and_unwritable_output_exit_2(scenario_path, tmp_path, cap
 def test_demo_smoke(tmp_path, capsys):
     out = tmp_path / "demo"
     # Linearized weights: three classifier models mean three compiles, and these are the cheapest.
-    argv = ["demo", "-o", str(out), "--tracks", "1", "--steps", "3", *SMALL, "--weights", "linearized"]
+    argv = ["demo", "-o", str(out), "--tracks", "1", "--steps", "3", "--capacity", "8", "--weights", "linearized"]
     assert cli.main(argv) == 0
     with open(out / "metrics.csv", newline="") as f:
         rows = list(csv.DictReader(f))
-    assert list(rows[0]) == list(cli.CSV_COLUMNS)
+    assert list(rows[0]) == list(cli.demo.CSV_COLUMNS)
     assert len(rows) == 3 * 1 * 3  # models x tracks x steps
     assert {r["model"] for r in rows} == {"mirror", "independent", "none"}
     assert all(r["err_wmax"] != "" and float(r["step_ms"]) > 0 for r in rows)

@@ -12,10 +12,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import hybridslam  # noqa: F401  (float64)
-from hybridslam import consistency, geometry
-from hybridslam.hallway import hallway
-from hybridslam.motion import odometry_residual
-from hybridslam.result import ComponentRecord, Result, StepRecord
+from hybridslam.analysis import consistency
+from hybridslam.io.result import ComponentRecord, Result, StepRecord
+from hybridslam.models import geometry
+from hybridslam.models.motion import odometry_residual
+from hybridslam.sim.hallway import hallway
 
 
 @pytest.fixture(scope="module")

@@ -10,17 +10,17 @@ import numpy as np
 import pytest
 
 import hybridslam as hs
-from hybridslam.classifier import make_classifier
-from hybridslam.discovery import back_project, create_object
-from hybridslam.gating import gate
-from hybridslam.hypotheses import NEW, children, hypothesis_table
-from hybridslam.scenario import Classifier, Discovery, Step
-from hybridslam.simulate import PaperSetup, _between, _compose, observe
-from hybridslam.weights import linearized_log_likelihood, sampled_log_likelihood
+from hybridslam.estimators.hybrid.hypotheses import NEW, children, hypothesis_table
+from hybridslam.estimators.hybrid.weights import linearized_log_likelihood, sampled_log_likelihood
+from hybridslam.inference.discovery import back_project, create_object
+from hybridslam.inference.gating import gate
+from hybridslam.io.scenario import Classifier, Discovery, Step
+from hybridslam.models.classifier import make_classifier
+from hybridslam.sim.paper import PaperSetup, _between, _compose, observe
 
 TRUTH = np.array([[3.0, 1.5, 0.3], [5.5, -1.5, 2.0], [8.0, 1.5, -1.0]])
 CAPACITY = 5  # object slots
-RUN = {"capacity": 8, "max_detections": 2, "weights": "linearized"}
+RUN = {"capacity": 8, "max_detections": 2, "weights": "linearized", "smoother": "filter"}
 
 
 def _world(steps: int = 8) -> hs.Scenario:
@@ -52,7 +52,7 @@ def world() -> hs.Scenario:
 
 @pytest.fixture(scope="module")
 def exact(world):
-    return hs.run_scenario(world, **RUN)
+    return hs.run_estimator(world, **RUN)
 
 
 @pytest.fixture(scope="module")
@@ -130,8 +130,8 @@ def test_gating_with_all_objects_equals_exact_enumeration(world, exact):
 
 def test_known_map_is_unchanged_by_discovery(known_map):
     """Mapped objects and an implausible new object (log density −1000): discovery changes nothing."""
-    plain = hs.run_scenario(known_map, **RUN)
-    open_map = hs.run_scenario(known_map.replace(discovery=Discovery(CAPACITY, -1000.0, 9.87)), **RUN)
+    plain = hs.run_estimator(known_map, **RUN)
+    open_map = hs.run_estimator(known_map.replace(discovery=Discovery(CAPACITY, -1000.0, 9.87)), **RUN)
     for a, b in zip(plain.result.steps, open_map.result.steps):
         assert len(a.components) == len(b.components)
         for ca, cb in zip(a.components, b.components):

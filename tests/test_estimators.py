@@ -16,10 +16,11 @@ import pytest
 
 import hybridslam as hs
 from hybridslam import cli
-from hybridslam.belief import Detections
-from hybridslam.estimators import gaussian, maxmix, run_estimator
-from hybridslam.result import load_result, save_result
-from hybridslam.scenario import Classifier, Detection, Discovery, Scenario, Step
+from hybridslam.driver import run_estimator
+from hybridslam.estimators import gaussian, maxmix
+from hybridslam.io.result import load_result, save_result
+from hybridslam.io.scenario import Classifier, Detection, Discovery, Scenario, Step
+from hybridslam.models.measurement import Detections
 
 ALPHA, K_SHARP = 0.25, 15.0
 MAX_STEPS = 8  # every run uses this history length: one compiled step per estimator
@@ -154,12 +155,11 @@ def _weighted_line_solution(prior_mean, prior_var, weights, z, var):
 
 
 def _init(scenario):
-    settings = hs.estimators.Settings(max_detections=2, max_steps=MAX_STEPS)
-    return gaussian.init_state(scenario, settings)
+    return hs.ML(max_detections=2, max_steps=MAX_STEPS).init(scenario)
 
 
 def _dets(scenario, k=0):
-    st = hs.scenario.stack_steps(scenario, 2)
+    st = hs.stack_steps(scenario, 2)
     return Detections(jnp.asarray(st.geo[k]), jnp.asarray(st.scores[k]), jnp.asarray(st.mask[k]))
 
 
@@ -310,7 +310,7 @@ def test_unknown_map_creates_each_true_object_once(discovery_scenario, estimator
     classes = run.result.steps[-1].components[0].classes
     by_truth = dict(pairs)
     assert [classes[by_truth[t]] for t in range(4)] == [c for _, c in discovery_scenario.true_objects]
-    assert not any(gaussian.warnings(i) for i in run.infos)
+    assert not any(i.warnings() for i in run.infos)
 
 
 def test_no_free_slot_skips_the_detection_and_warns():
@@ -318,7 +318,7 @@ def test_no_free_slot_skips_the_detection_and_warns():
     sc = _scenario(full, [[0.5, 0.5]] * 4, (0, 0, 0), (0.01, 0.01, 0.001), [_step((8.0, -1.0, (0.5, 0.5)))])
     run = _runs(sc, "ml")
     assert int(run.infos[0].skipped) == 1 and int(run.belief.num_created) == 4
-    assert "unassociated" in " ".join(gaussian.warnings(run.infos[0]))
+    assert "unassociated" in " ".join(run.infos[0].warnings())
     assert np.isfinite(np.asarray(run.belief.mean)).all()
 
 
@@ -327,7 +327,7 @@ def test_result_files_and_cli(discovery_scenario, tmp_path, capsys):
     save_result(run.result, tmp_path / "ml.json")
     assert load_result(tmp_path / "ml.json").estimator.startswith("hybridslam") and "maximum-likelihood" in run.result.estimator
     path = tmp_path / "scenario.json"
-    hs.scenario.save_scenario(discovery_scenario, path)
+    hs.save_scenario(discovery_scenario, path)
     out = tmp_path / "gpda.json"
     assert cli.main(["run", str(path), "-o", str(out), "--estimator", "gpda"]) == 0
     result = load_result(out)

@@ -2,7 +2,7 @@
 
 Every continuous input — odometry, classifier ``alpha``/``K``, ``Σ_w``, ``Σ_v``, the prior means and
 the visibility temperatures — is checked, for every functional of :mod:`hybridslam.gradients`,
-after a two-step :func:`~hybridslam.gradients.rollout`, for all three weight methods with the
+after a two-step :func:`~hybridslam.planning.gradients.rollout`, for all three weight methods with the
 smooth visibility model: forward mode (``jax.jvp``, what ``jax.jacfwd`` batches) for ``linearized``
 and ``laplace-is``, reverse mode (``jax.grad``) for ``sampled``. The same three compiled programs
 (the scene has the paper setup's shapes: 6 objects, 2 detection slots) then check that gradients
@@ -22,9 +22,10 @@ import numpy as np
 import pytest
 
 import hybridslam as hs
-from hybridslam.classifier import Mirror
-from hybridslam.geometry import log_smooth_visibility, visible
-from hybridslam.gradients import (
+from hybridslam.estimators.hybrid.belief import init_belief
+from hybridslam.models.classifier import Mirror
+from hybridslam.models.geometry import log_smooth_visibility, visible
+from hybridslam.planning.gradients import (
     best_pose_log_det,
     expected_association_entropy,
     expected_position_error,
@@ -33,7 +34,8 @@ from hybridslam.gradients import (
 )
 
 N, T = 6, 2  # the paper setup's objects; steps per rollout
-CONFIG = dict(capacity=4, max_detections=2, max_steps=T, num_samples=64, is_samples=32, is_candidates=4)
+WEIGHERS = {"sampled": hs.Sampled(samples=64), "laplace-is": hs.LaplaceIS(samples=32, candidates=4),
+            "linearized": hs.Linearized()}
 FUNCTIONALS = ("entropy", "neg_log_weight", "log_det", "position_error")
 RTOL = 1e-3  # the bound on the finite-difference agreement
 f64 = lambda a: jnp.asarray(a, dtype=float)  # noqa: E731
@@ -54,14 +56,17 @@ def _objectives(p, q, weights):
     priors = hs.Priors(p["robot_mean"], q["robot_cov"], p["object_means"], q["object_covs"])
     sensor = hs.SensorModel(p["geometric_cov"], Mirror(p["alpha"], p["K"]), q["max_range"], q["fov"], p["temperature"])
     model = hs.Model(p["motion_cov"], sensor, q["class_prior"], q["prune_ratio"])
-    belief = hs.init_belief(priors, model, hs.Config(weights=weights, **CONFIG))
-    belief, info = rollout(belief, p["odometry"], q["detections"], q["keys"])
+    estimator = hs.Hybrid(weights=WEIGHERS[weights], capacity=4, max_detections=2, max_steps=T,
+                          smoother=hs.Filter())
+    belief = init_belief(priors, model, estimator.capacity, T, 2)
+    belief, trace = rollout(estimator, belief, p["odometry"], q["detections"], q["key"])
+    info = trace.info
     values = jnp.stack([
         expected_association_entropy(belief), hypothesis_neg_log_weight(belief, q["history"]),
         best_pose_log_det(belief), expected_position_error(belief, q["true_position"]),
     ])
     # The discrete choices (held fixed by the derivative): which hypotheses survive, from which parents.
-    return values, (belief.history, info.parent, info.visibility_ignored)
+    return values, (belief.history, info.details.parent, info.visibility_ignored)
 
 
 def _ambiguous_scene():
@@ -86,7 +91,7 @@ def _ambiguous_scene():
             f64([[[0.8, 0.3], [0.0, 0.0]], [[0.7, 0.35], [0.4, 0.6]]]),
             jnp.array([[True, False], [True, True]]),
         ),
-        keys=jax.random.split(jax.random.PRNGKey(3), T),
+        key=jax.random.PRNGKey(3),
         history=jnp.array([[0, -1], [0, 1]], dtype=jnp.int32),
         true_position=f64([1.0, 0.05]),
     )
@@ -109,7 +114,7 @@ def _paper_scene(temperature):
     q = dict(
         robot_cov=priors.robot_cov, object_covs=priors.object_covs, class_prior=model.class_prior,
         prune_ratio=model.prune_ratio, max_range=model.sensor.max_range, fov=model.sensor.fov,
-        detections=jax.tree.map(lambda x: x[:T], det), keys=jax.random.split(jax.random.PRNGKey(0), T),
+        detections=jax.tree.map(lambda x: x[:T], det), key=jax.random.PRNGKey(0),
         history=jnp.array(truth, dtype=jnp.int32), true_position=f64(scenario.true_robot_poses[T][:2]),
     )
     return p, q
@@ -287,7 +292,7 @@ def test_functionals():
     priors = hs.Priors(p["robot_mean"], q["robot_cov"], p["object_means"], q["object_covs"])
     sensor = hs.SensorModel(p["geometric_cov"], Mirror(p["alpha"], p["K"]), q["max_range"], q["fov"], p["temperature"])
     model = hs.Model(p["motion_cov"], sensor, q["class_prior"], q["prune_ratio"])
-    belief = hs.init_belief(priors, model, hs.Config(weights="linearized", **CONFIG))
+    belief = init_belief(priors, model, 4, T, 2)
     # Four components with hand-set weights, means, covariances and histories.
     w = np.array([0.5, 0.3, 0.2, 0.0])
     hist = np.full(belief.history.shape, -1, np.int32)
@@ -300,12 +305,12 @@ def test_functionals():
     cov = np.array(belief.cov)
     cov[0, :3, :3] = [[0.2, 0.05, 0.0], [0.05, 0.1, 0.01], [0.0, 0.01, 0.03]]
     belief = hs.Belief(jnp.log(f64(w)), f64(mean), f64(cov), belief.classes, jnp.asarray(hist), jnp.asarray(2, jnp.int32),
-                       model, belief.config)
+                       model)
     truth = f64([1.0, 0.1])
 
     @jax.jit
     def evaluate(log_weights, mean, cov):
-        b = hs.Belief(log_weights, mean, cov, belief.classes, belief.history, belief.k, model, belief.config)
+        b = hs.Belief(log_weights, mean, cov, belief.classes, belief.history, belief.k, model)
         return jnp.stack([
             expected_association_entropy(b),
             hypothesis_neg_log_weight(b, jnp.asarray(hist[0])), hypothesis_neg_log_weight(b, jnp.asarray(hist[1, :1])),

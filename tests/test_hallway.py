@@ -7,11 +7,12 @@ import numpy as np
 import pytest
 
 import hybridslam  # noqa: F401  (float64)
-from hybridslam import cli, geometry, se2
-from hybridslam.hallway import LEVELS, HallwaySetup, hallway, odometry_cov
-from hybridslam.plot import plot_trajectory
-from hybridslam.result import ComponentRecord, Result, StepRecord
-from hybridslam.scenario import load_scenario, save_scenario
+from hybridslam import cli
+from hybridslam.analysis.plot import plot_trajectory
+from hybridslam.io.result import ComponentRecord, Result, StepRecord
+from hybridslam.io.scenario import load_scenario, save_scenario
+from hybridslam.models import geometry, se2
+from hybridslam.sim.hallway import LEVELS, HallwaySetup, hallway, odometry_cov
 
 TRACE = 0.03
 

@@ -7,7 +7,7 @@ from jax.scipy.stats import multivariate_normal as mvn
 from jax.scipy.stats import norm
 
 import hybridslam as hs
-from hybridslam.laplace import laplace_is
+from hybridslam.inference.laplace import laplace_is
 
 from .conftest import SAMPLES, SLOTS
 
@@ -70,8 +70,8 @@ def test_laplace_is_weights_are_stable_across_seeds(scenario):
     """Paper prior (σ = 10 m): two seeds give nearly the same association posterior at every step
     (the paper's sampled estimator disagrees on the top hypothesis in 6 of 20 such runs: README)."""
     runs = [
-        hs.run_scenario(scenario, classifier="none", weights="laplace-is", seed=s, capacity=8,
-                        num_samples=SAMPLES, max_detections=SLOTS).result
+        hs.run_estimator(scenario, classifier="none", weights="laplace-is", seed=s, capacity=8,
+                        samples=SAMPLES, max_detections=SLOTS).result
         for s in (1, 2)
     ]
     tvs = []
@@ -87,9 +87,9 @@ def test_ess_diagnostic_exposes_the_paper_estimator_under_the_broad_prior(scenar
     """Step 1 from Σ_p = diag(100, 100, 0.04): the paper's weights rest on ~1 draw of n_s, the
     Laplace-IS weights on most of theirs."""
     kwargs = dict(classifier="none", capacity=8, max_detections=SLOTS)
-    sampled = hs.run_scenario(scenario, weights="sampled", num_samples=1000, **kwargs).infos[0]
-    laplace = hs.run_scenario(scenario, weights="laplace-is", num_samples=SAMPLES, **kwargs).infos[0]
-    alive = int(sampled.num_alive)
-    assert float(jnp.max(sampled.ess[:alive])) < 0.05
-    assert float(jnp.min(laplace.ess[: int(laplace.num_alive)])) > 0.3
-    assert int(laplace.is_solver_failures) == 0
+    sampled = hs.run_estimator(scenario, weights="sampled", samples=1000, **kwargs).infos[0]
+    laplace = hs.run_estimator(scenario, weights="laplace-is", samples=SAMPLES, **kwargs).infos[0]
+    alive = int(sampled.num_components)
+    assert float(jnp.max(sampled.details.ess[:alive])) < 0.05
+    assert float(jnp.min(laplace.details.ess[: int(laplace.num_components)])) > 0.3
+    assert int(laplace.is_failures) == 0

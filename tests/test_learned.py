@@ -16,8 +16,15 @@ import numpy as np
 import pytest
 
 import hybridslam as hs
-from hybridslam.learned import mean_nll, sample_scores, viewpoint_features
-from hybridslam.scenario import Classifier, ScenarioError, load_scenario, parse_scenario, save_scenario, scenario_to_json
+from hybridslam.io.scenario import (
+    Classifier,
+    ScenarioError,
+    load_scenario,
+    parse_scenario,
+    save_scenario,
+    scenario_to_json,
+)
+from hybridslam.models.learned import mean_nll, sample_scores, viewpoint_features
 
 TRUE = hs.Mirror(0.25, 15.0)
 GRID = viewpoint_features(jnp.linspace(-jnp.pi, jnp.pi, 72, endpoint=False))  # every 5°
@@ -148,15 +155,15 @@ def two_steps() -> hs.Scenario:
 
 # The paper's sampled weights (Eq. 16) compile in about half the time of laplace-is; the step and
 # the run share one compile.
-SETTINGS = {"capacity": 4, "num_samples": 32, "max_detections": 2, "weights": "sampled"}
+SETTINGS = {"capacity": 4, "samples": 32, "max_detections": 2, "weights": "sampled"}
 
 
 def test_step_with_learned_model(fitted, two_steps):
-    model = hs.model_from_scenario(two_steps, fitted)
-    belief = hs.init_belief(two_steps, model=model, **SETTINGS)
+    estimator = hs.make_estimator("hybrid", classifier=fitted, **SETTINGS)
+    belief = estimator.init(two_steps)
     st = hs.stack_steps(two_steps, 2)
     det = hs.Detections(jnp.asarray(st.geo[0]), jnp.asarray(st.scores[0]), jnp.asarray(st.mask[0]))
-    belief, _ = hs.step(belief, jnp.asarray(st.odometry[0]), det, jax.random.PRNGKey(0))
+    belief, _ = eqx.filter_jit(estimator.step)(belief, jnp.asarray(st.odometry[0]), det, jax.random.PRNGKey(0))
     w = belief.weights[belief.alive]
     assert w.size >= 1 and bool(jnp.all(jnp.isfinite(w)))
     np.testing.assert_allclose(float(w.sum()), 1.0, rtol=1e-12)
@@ -176,7 +183,7 @@ def test_scenario_key_and_relative_path(model_file, two_steps, tmp_path, monkeyp
     assert loaded.classifier.path == str(folder / "models" / "mirror.eqx")
     save_scenario(loaded, tmp_path / "copy.json")  # the absolute path is written back
     assert load_scenario(tmp_path / "copy.json") == loaded
-    run = hs.run_scenario(loaded, **SETTINGS)
+    run = hs.run_estimator(loaded, **SETTINGS)
     assert len(run.result.steps) == 2 and "classifier=learned" in run.result.estimator
     weights = run.belief.weights[run.belief.alive]
     assert bool(jnp.all(jnp.isfinite(weights))) and abs(float(weights.sum()) - 1.0) < 1e-12

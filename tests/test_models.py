@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import hybridslam as hs
-from hybridslam import geometry, motion, se2
+from hybridslam.models import geometry, motion, se2
 
 
 def test_range_bearing_and_viewpoint_conventions():
@@ -88,7 +88,7 @@ def test_mirror_sampling_matches_its_covariance():
 
 
 def test_confusion_and_unknown_map_scenarios_build_models():
-    from hybridslam.scenario import Classifier, Discovery
+    from hybridslam.io.scenario import Classifier, Discovery
 
     scenario = hs.simulate(0, steps=1)
     confusion = scenario.replace(classifier=Classifier("confusion", matrix=np.eye(2)))

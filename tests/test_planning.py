@@ -21,32 +21,32 @@ HORIZON = 2
 def ambiguous():
     """A geometry-only belief after 1 step: several association hypotheses alive."""
     scenario = hs.simulate(0, steps=1)
-    belief = hs.run_scenario(scenario, classifier="none", capacity=8, weights="linearized",
+    belief = hs.run_estimator(scenario, classifier="none", capacity=8, weights="linearized",
                              max_detections=2).belief
     assert int(belief.alive.sum()) >= 2 and float(hs.association_entropy(belief)) > 0.3
-    return scenario, planning.prepare(belief, HORIZON, capacity=4, gn_max_steps=2)
+    return scenario, planning.prepare(belief, HORIZON, capacity=4, weights="linearized", gn_max_steps=2)
 
 
 def test_prepare_keeps_the_best_components_normalized(ambiguous):
     _, plan = ambiguous
-    w = np.exp(np.asarray(plan.log_weights))
-    assert plan.config.capacity == 4 and plan.config.batch_axis == planning.PLAN_AXIS
+    w = np.exp(np.asarray(plan.belief.log_weights))
+    assert plan.belief.capacity == 4 and plan.estimator.batch_axis == planning.PLAN_AXIS
     np.testing.assert_allclose(w.sum(), 1.0, rtol=1e-12)
     assert np.all(np.diff(w) <= 0)  # still sorted by weight
-    assert plan.history.shape[1] == plan.config.max_steps >= int(plan.k) + HORIZON
+    assert plan.belief.max_steps >= int(plan.belief.k) + HORIZON and plan.room == HORIZON
 
 
 def test_predicted_observations_follow_the_drawn_world(ambiguous):
     _, plan = ambiguous
     key = jax.random.PRNGKey(3)
-    world = planning.sample_world(plan, jax.random.split(jax.random.split(key, 3)[0], 1)[0])
+    world = planning.sample_world(plan.belief, jax.random.split(jax.random.split(key, 3)[0], 1)[0])
     assert world.objects.shape == (6, 3) and world.classes.shape == (6,)
     actions = jnp.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
-    odometry, det = planning.predict_observations(plan, actions, key)
+    odometry, det = planning.predict_observations(plan.belief, actions, key)
     np.testing.assert_array_equal(odometry, actions)
     assert det.geo.shape == (HORIZON, 2, 2) and det.mask.dtype == bool
     ranges = np.asarray(det.geo[..., 0])[np.asarray(det.mask)]
-    assert np.all(ranges <= float(plan.model.sensor.max_range) + 2.0)  # detections are of visible objects
+    assert np.all(ranges <= float(plan.belief.model.sensor.max_range) + 2.0)  # detections are of visible objects
 
 
 def test_looking_at_the_objects_lowers_the_expected_entropy(ambiguous):
@@ -57,13 +57,13 @@ def test_looking_at_the_objects_lowers_the_expected_entropy(ambiguous):
     scores = planning.score_candidates(plan, candidates, jax.random.PRNGKey(0), num_draws=4)
     assert np.all(np.isfinite(scores))
     assert scores[0] == scores[2] and scores[1] == scores[3]  # common random numbers
-    entropy_now = float(hs.association_entropy(plan))
+    entropy_now = float(hs.association_entropy(plan.belief))
     assert float(scores[0]) < entropy_now - 0.05
 
 
 def test_unprepared_beliefs_are_refused(ambiguous):
     scenario, _ = ambiguous
-    raw = hs.init_belief(scenario, capacity=4)
+    raw = hs.Hybrid(capacity=4).init(scenario)
     with pytest.raises(ValueError, match="prepare"):
         planning.score_candidates(raw, jnp.zeros((2, HORIZON, 3)), jax.random.PRNGKey(0))
 
@@ -78,10 +78,11 @@ def test_arc_candidates_shapes():
 
 def test_refinement_lowers_the_smooth_objective_within_bounds(ambiguous):
     scenario, _ = ambiguous
-    belief = hs.run_scenario(scenario, classifier="none", capacity=8, weights="linearized",
+    belief = hs.run_estimator(scenario, classifier="none", capacity=8, weights="linearized",
                              max_detections=2).belief
-    smooth = planning.prepare(belief, HORIZON, capacity=2, gn_max_steps=1, visibility_temperature=0.5)
-    hard = planning.prepare(belief, HORIZON, capacity=2, gn_max_steps=1)
+    smooth = planning.prepare(belief, HORIZON, capacity=2, weights="linearized", gn_max_steps=1,
+                              visibility_temperature=0.5)
+    hard = planning.prepare(belief, HORIZON, capacity=2, weights="linearized", gn_max_steps=1)
     with pytest.raises(ValueError, match="visibility_temperature"):
         planning.refine_actions(hard, jnp.zeros(HORIZON), jax.random.PRNGKey(0))
     start = jnp.array([0.5, -0.5])

@@ -3,7 +3,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hybridslam.prune import prune
+from hybridslam.estimators.hybrid.prune import prune
 
 
 @settings(deadline=None, max_examples=25, database=None)

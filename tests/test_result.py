@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hybridslam.result import (
+from hybridslam.io.result import (
     ComponentRecord,
     Result,
     StepRecord,
@@ -19,7 +19,7 @@ from hybridslam.result import (
     result_to_json,
     save_result,
 )
-from hybridslam.scenario import ScenarioError
+from hybridslam.io.scenario import ScenarioError
 
 COV = [[0.1, 0.01, 0.0], [0.01, 0.1, 0.0], [0.0, 0.0, 0.02]]
 
@@ -125,8 +125,8 @@ MALFORMED = [
      "steps[1].components: empty (weights must sum to 1)"),
     ("associations_length", _set((*C0, "associations"), [[0], [1]]),
      "steps[0].components[0].associations: expected 1 lists (one per step so far), got 2"),
-    ("association_negative", _set((*C0, "associations", 0, 0), -1),
-     "steps[0].components[0].associations[0][0]: expected an integer >= 0, got -1"),
+    ("association_below_clutter", _set((*C0, "associations", 0, 0), -2),
+     "steps[0].components[0].associations[0][0]: expected an integer >= -1, got -2"),
     ("class_value", _set((*C0, "classes", 1), -2),
      "steps[0].components[0].classes[1]: expected an integer >= -1, got -2"),
     ("pose_mean_length", _set((*C0, "pose_mean"), [0.0, 0.0]),
@@ -195,3 +195,12 @@ def test_random_round_trip(obj: dict) -> None:
     r = parse_result(copy.deepcopy(obj))
     assert result_to_json(r) == obj
     assert parse_result(json.loads(json.dumps(result_to_json(r)))) == r
+
+
+def test_unassociated_detection_is_minus_one() -> None:
+    """An association index of -1 marks a detection the component left unassociated (clutter)."""
+    obj = minimal()
+    obj["steps"][1]["components"][0]["associations"] = [[-1], []]
+    r = parse_result(obj)
+    assert r.steps[1].components[0].associations == [[-1], []]
+    assert result_to_json(r) == obj

@@ -12,7 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hybridslam.scenario import (
+from hybridslam.io.scenario import (
     Scenario,
     ScenarioError,
     load_scenario,

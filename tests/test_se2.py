@@ -4,7 +4,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hybridslam import se2
+from hybridslam.models import se2
 
 angle = st.floats(-3.1, 3.1)
 coord = st.floats(-20, 20)

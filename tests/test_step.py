@@ -7,9 +7,11 @@ import numpy as np
 import pytest
 
 import hybridslam as hs
-from hybridslam.step import _step
 
 from .conftest import CAPACITY, SAMPLES, SLOTS
+
+# One jitted step for the file: estimators of equal settings and beliefs of equal shapes share it.
+STEP = eqx.filter_jit(lambda estimator, belief, *inputs: estimator.step(belief, *inputs))
 
 
 def _inputs(scenario, k):
@@ -18,15 +20,23 @@ def _inputs(scenario, k):
     return jnp.asarray(st.odometry[k]), det
 
 
+def _estimator(classifier="mirror", prune_ratio=150.0, **settings):
+    settings = {"capacity": CAPACITY, "max_detections": SLOTS, **settings}
+    if settings.get("weights", "laplace-is") != "linearized":
+        settings.setdefault("samples", SAMPLES)
+    return hs.make_estimator("hybrid", classifier=classifier, prune_ratio=prune_ratio, **settings)
+
+
 def _belief(scenario, classifier="mirror", prune_ratio=150.0, **settings):
-    settings = {"capacity": CAPACITY, "num_samples": SAMPLES, "max_detections": SLOTS, **settings}
-    return hs.init_belief(scenario, model=hs.model_from_scenario(scenario, classifier, prune_ratio), **settings)
+    """An estimator and its initial belief for ``scenario``."""
+    estimator = _estimator(classifier, prune_ratio, **settings)
+    return estimator, estimator.init(scenario)
 
 
 @pytest.fixture(scope="module")
 def run_none(scenario):
     """Geometry only keeps several association hypotheses alive: a good belief to check marginals on."""
-    return hs.run_scenario(scenario, classifier="none", capacity=CAPACITY, num_samples=SAMPLES, max_detections=SLOTS)
+    return hs.run_estimator(scenario, classifier="none", capacity=CAPACITY, samples=SAMPLES, max_detections=SLOTS)
 
 
 def test_weights_and_marginals_sum_to_one(run_none):
@@ -52,9 +62,10 @@ def test_lazy_class_realizations_equal_full_enumeration(scenario, key):
     small = scenario.replace(
         object_prior_means=scenario.object_prior_means[:2], object_prior_covs=scenario.object_prior_covs[:2],
         class_prior=np.array([[0.3, 0.7], [0.6, 0.4]]), true_object_poses=None, true_classes=None,
-        steps=tuple(_first_detection_of(s, 2) for s in scenario.steps),
+        steps=tuple(_first_detection_of(s, 2) for s in scenario.steps[:3]), true_robot_poses=None,
     )
-    lazy = _belief(small, capacity=16, max_steps=3, prune_ratio=1e300, weights="linearized")
+    estimator, lazy = _belief(small, capacity=16, max_steps=3, prune_ratio=1e300, weights="linearized", exhaustive=True,
+                              smoother="filter")
     realizations = jnp.array([[0, 0], [0, 1], [1, 0], [1, 1]], dtype=jnp.int32)
     prior = jnp.prod(jnp.asarray(small.class_prior)[jnp.arange(2), realizations], axis=1)
     full = eqx.tree_at(
@@ -64,15 +75,15 @@ def test_lazy_class_realizations_equal_full_enumeration(scenario, key):
     )
     for k in range(3):
         odometry, det = _inputs(small, k)
-        lazy, _ = hs.step(lazy, odometry, det, jax.random.fold_in(key, k))
-        full, _ = hs.step(full, odometry, det, jax.random.fold_in(key, k))
+        lazy, _ = STEP(estimator, lazy, odometry, det, jax.random.fold_in(key, k))
+        full, _ = STEP(estimator, full, odometry, det, jax.random.fold_in(key, k))
     assert int(lazy.alive.sum()) < int(full.alive.sum())  # the point of being lazy
     np.testing.assert_allclose(hs.class_probabilities(lazy), hs.class_probabilities(full), rtol=1e-9)
     np.testing.assert_allclose(hs.association_entropy(lazy), hs.association_entropy(full), rtol=1e-9)
 
 
 def _first_detection_of(step, num_objects):
-    from hybridslam.scenario import Step
+    from hybridslam.io.scenario import Step
 
     dets = tuple(d for d in step.detections if d.true_object is not None and d.true_object < num_objects)[:1]
     return Step(step.odometry, dets)
@@ -81,50 +92,51 @@ def _first_detection_of(step, num_objects):
 def test_step_is_traced_once_per_run(scenario, key):
     """One compile per run, also when model parameters (alpha) change between runs."""
     traces = []
-    counted = jax.jit(eqx.debug.assert_max_traces(lambda *a: traces.append(1) or _step(*a), max_traces=1))
+    estimator = _estimator()  # the classifier (and alpha) live in the belief's model: traced
+    counted = jax.jit(eqx.debug.assert_max_traces(lambda *a: traces.append(1) or estimator.step(*a), max_traces=1))
     for alpha in (0.25, 0.4):
-        belief = _belief(scenario, hs.Mirror(alpha, 15.0))
+        belief = hs.Hybrid(classifier=hs.Mirror(alpha, 15.0), capacity=CAPACITY, max_detections=SLOTS,
+                           weights=hs.LaplaceIS(samples=SAMPLES)).init(scenario)
         for k in range(scenario.num_steps):
             belief, info = counted(belief, *_inputs(scenario, k), jax.random.fold_in(key, k))
     assert len(traces) == 1
 
 
 def test_same_seed_same_result_and_different_seed_differs(scenario):
-    kwargs = dict(classifier="none", capacity=CAPACITY, num_samples=SAMPLES, max_detections=SLOTS)
-    a = hs.run_scenario(scenario, seed=3, **kwargs).result
-    b = hs.run_scenario(scenario, seed=3, **kwargs).result
-    c = hs.run_scenario(scenario, seed=4, **kwargs).result
+    kwargs = dict(classifier="none", capacity=CAPACITY, samples=SAMPLES, max_detections=SLOTS)
+    a = hs.run_estimator(scenario, seed=3, **kwargs).result
+    b = hs.run_estimator(scenario, seed=3, **kwargs).result
+    c = hs.run_estimator(scenario, seed=4, **kwargs).result
     weights = lambda r: [c.weight for s in r.steps for c in s.components]  # noqa: E731
     assert weights(a) == weights(b)
     assert weights(a) != weights(c)
 
 
 def test_capacity_overflow_is_counted_not_silent(scenario):
-    # run_none's shapes (prune_ratio is traced): no compile of its own.
-    run = hs.run_scenario(scenario, classifier="none", capacity=CAPACITY, num_samples=SAMPLES, max_detections=SLOTS,
-                          prune_ratio=1e300)
-    dropped = [int(i.prune.dropped_capacity) for i in run.infos]
+    # Never pruned, the belief holds 8 components by step 6 (a capacity of 8 is just enough): half of it overflows.
+    run = hs.run_estimator(scenario, classifier="none", capacity=CAPACITY // 2, samples=SAMPLES, max_detections=SLOTS,
+                           prune_ratio=1e300, smoother="filter")
+    dropped = [int(i.dropped_capacity) for i in run.infos]
     assert max(dropped) > 0
-    assert all(int(i.num_alive) <= CAPACITY for i in run.infos)
+    assert all(int(i.num_components) <= CAPACITY // 2 for i in run.infos)
+    assert any("lack of capacity" in line for i in run.infos for line in i.warnings())
 
 
-def test_history_overflow_raises(scenario, key):
-    belief = _belief(scenario)  # the shapes of the other tests here: no compile of its own
-    assert belief.config.max_steps == scenario.num_steps
-    for k in range(scenario.num_steps):
-        belief, _ = hs.step(belief, *_inputs(scenario, k), key)
-    with pytest.raises(Exception, match="history is full"):
-        jax.block_until_ready(hs.step(belief, *_inputs(scenario, 0), key))
+def test_history_overflow_is_refused(scenario):
+    """A scenario longer than the history the estimator keeps is refused before any step runs."""
+    estimator = _estimator(max_steps=scenario.num_steps)
+    with pytest.raises(ValueError, match="max_steps: 6, but the scenario has 7 steps"):
+        hs.run(estimator, scenario.replace(steps=scenario.steps + scenario.steps[:1], true_robot_poses=None))
 
 
 def test_unexplainable_detection_falls_back_to_likelihood(scenario, key):
     """The robot surely faces away from every object, yet detects two: no hypothesis has its
     objects in view (a model violation). The step weighs by likelihood instead and stays finite."""
-    belief = _belief(scenario)
+    estimator, belief = _belief(scenario)
     odometry, det = _inputs(scenario, 0)
     det = hs.Detections(det.geo, det.scores, jnp.array([True, True]))
     away = eqx.tree_at(lambda b: (b.mean, b.cov), belief, (belief.mean.at[:, 2].set(np.pi), belief.cov * 1e-4))
-    new, info = hs.step(away, odometry, det, key)
+    new, info = STEP(estimator, away, odometry, det, key)
     assert bool(info.visibility_ignored)
     assert bool(jnp.all(jnp.isfinite(new.log_weights[new.alive])))
     np.testing.assert_allclose(new.weights[new.alive].sum(), 1.0)
@@ -140,7 +152,8 @@ def test_viewpoint_dependent_model_lowers_entropy(weights):
         finals = []
         for seed in range(4):
             sc = hs.simulate(seed, steps=10)
-            run = hs.run_scenario(sc, classifier=clf, capacity=16, num_samples=1000, weights=weights, max_detections=SLOTS)
+            samples = 1000 if weights == "sampled" else None
+            run = hs.run_estimator(sc, classifier=clf, capacity=16, samples=samples, weights=weights, max_detections=SLOTS)
             finals.append(run.result.steps[-1].metrics["entropy"])
         mean_entropy[clf] = np.mean(finals)
     assert mean_entropy["mirror"] < mean_entropy["none"] - 0.1, mean_entropy

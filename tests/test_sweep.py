@@ -19,18 +19,19 @@ import numpy as np
 import pytest
 
 import hybridslam as hs
-from hybridslam import study, sweep
-from hybridslam.run import config_for
+from hybridslam.studies import batch as sweep
+from hybridslam.studies import study
 
 TINY = dict(alphas=(0.1, 0.4, 0.7), models=("mirror",), tracks=3, steps=3)
-ESTIMATOR = study.Estimator(weights="linearized", capacity=4)
+ESTIMATOR = hs.Hybrid(weights=hs.Linearized(), capacity=4)
 CLI_ARGS = ["--alphas", "0.1,0.4,0.7", "--models", "mirror", "--tracks", "3", "--steps", "3",
             "--capacity", "4", "--weights", "linearized"]
 # The CLI in a child process that SIGKILLs itself right after its first cell record reaches the
 # disk, half way through writing the second one (a real kill, at a deterministic point).
 KILLED_AFTER_ONE_CELL = """
 import os, signal, sys
-from hybridslam import cli, study
+from hybridslam import cli
+from hybridslam.studies import study
 append = study.Records.append
 def append_then_die(self, record):
     if self.done:
@@ -78,13 +79,14 @@ def test_table_layout(tiny):
 
 
 def test_batched_run_equals_single_runs(tiny):
-    """A track in a batch gets the numbers `run_scenario` gives it alone (same seed)."""
+    """A track in a batch gets the numbers `hybridslam.run` gives it alone (same seed)."""
     scenarios = [hs.simulate(t, steps=3, alpha=0.4) for t in range(3)]
-    config = config_for(scenarios[0], capacity=4, weights="linearized", max_detections=2)
-    run = sweep.run_batch(sweep.batch_inputs(scenarios, config, classifier="mirror", seeds=[0, 1, 2]))
+    estimator = sweep.batched(hs.Hybrid(weights=hs.Linearized(), capacity=4, classifier="mirror", max_detections=2),
+                              scenarios)
+    run = sweep.run_batch(estimator, sweep.batch_inputs(estimator, scenarios, seeds=[0, 1, 2]))
     assert run.compile_s == 0.0  # the study compiled this shape already: one executable per shape
     for t in (0, 2):
-        alone = hs.run_scenario(scenarios[t], classifier="mirror", capacity=4, weights="linearized",
+        alone = hs.run_estimator(scenarios[t], classifier="mirror", capacity=4, weights="linearized",
                                 seed=t, max_detections=2).result.steps
         batched = sweep.step_records(run.trace, t, scenarios[t])
         for a, b in zip(alone, batched):
@@ -98,12 +100,30 @@ def test_batched_run_equals_single_runs(tiny):
 def test_wide_batches_run_as_slices(tiny, monkeypatch):
     """More tracks than MAX_TRACKS_PER_DEVICE: equal slices in sequence, same numbers."""
     scenarios = [hs.simulate(t, steps=3, alpha=0.4) for t in range(3)]
-    config = config_for(scenarios[0], capacity=4, weights="linearized", max_detections=2)
-    inputs = sweep.batch_inputs(scenarios, config, classifier="mirror", seeds=[0, 1, 2])
-    whole = sweep.run_batch(inputs).trace
+    estimator = sweep.batched(hs.Hybrid(weights=hs.Linearized(), capacity=4, classifier="mirror", max_detections=2),
+                              scenarios)
+    inputs = sweep.batch_inputs(estimator, scenarios, seeds=[0, 1, 2])
+    whole = sweep.run_batch(estimator, inputs).trace
     monkeypatch.setattr(sweep, "MAX_TRACKS_PER_DEVICE", 2)
-    sliced = sweep.run_batch(inputs).trace  # 2 slices of 2 tracks (the last padded)
+    sliced = sweep.run_batch(estimator, inputs).trace  # 2 slices of 2 tracks (the last padded)
     for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(sliced)):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
+
+
+def test_batches_too_big_for_memory_are_split(tiny, monkeypatch):
+    """A batch whose compiled program needs more memory than the budget runs as smaller slices (halved
+    until it fits, here down to one track each), with the same numbers, and says so."""
+    scenarios = [hs.simulate(t, steps=3, alpha=0.4) for t in range(3)]
+    estimator = sweep.batched(hs.Hybrid(weights=hs.Linearized(), capacity=4, classifier="mirror", max_detections=2),
+                              scenarios)
+    inputs = sweep.batch_inputs(estimator, scenarios, seeds=[0, 1, 2])
+    whole = sweep.run_batch(estimator, inputs)
+    assert whole.plan.slices == 1
+    monkeypatch.setattr(sweep, "memory_budget", lambda mesh: 1)
+    plans = []
+    split = sweep.run_batch(estimator, inputs, on_plan=plans.append)
+    assert plans[0].slices == 3 and plans[0].width == 1 and "3 batch(es) of 1" in plans[0].describe(3)
+    for a, b in zip(jax.tree.leaves(whole.trace), jax.tree.leaves(split.trace)):
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
 
 
@@ -150,7 +170,7 @@ def test_sharded_over_four_devices_equals_one(tiny, tmp_path, cache_env):
 def test_other_settings_are_refused(tiny):
     folder, _, _ = tiny
     with pytest.raises(study.StudyError, match=r"capacity: 4 there, 8 now"):
-        study.Records(folder, study.AlphaStudy(**TINY, estimator=study.Estimator(weights="linearized", capacity=8)).header())
+        study.Records(folder, study.AlphaStudy(**TINY, estimator=hs.Hybrid(weights=hs.Linearized(), capacity=8)).header())
 
 
 def test_a_subset_of_the_grid_reuses_finished_cells(tiny):
@@ -166,17 +186,19 @@ def test_scenario_files_give_result_files_equal_to_single_runs(tiny, tmp_path):
     """`--scenarios`: files of equal shape run as one batch; each gets the result `run` would write."""
     files = tmp_path / "logs"
     files.mkdir()
-    scenarios = {f"log{t}": hs.simulate(10 + t, steps=3, alpha=0.4) for t in range(3)}
+    # Files of different lengths run in one batch: the shorter ones are padded with inactive steps.
+    scenarios = {f"log{t}": hs.simulate(10 + t, steps=3 if t < 2 else 4, alpha=0.4) for t in range(3)}
     for name, s in scenarios.items():
         hs.save_scenario(s, str(files / f"{name}.json"))
     out = str(tmp_path / "out")
     spec = study.FileStudy(tuple(study.scenario_paths(str(files))), None, 7, ESTIMATOR)
     rows = study.run_file_study(spec, out)
-    assert len(rows) == 3 * 3 and {r["scenario"] for r in rows} == {f"{n}.json" for n in scenarios}
+    assert len(rows) == 3 + 3 + 4 and {r["scenario"] for r in rows} == {f"{n}.json" for n in scenarios}
     for name, s in scenarios.items():
         got = hs.load_result(os.path.join(out, "results", f"{name}.json"))
-        want = hs.run_scenario(s, capacity=4, weights="linearized", seed=7, max_detections=2).result
-        assert got.timing is not None and len(got.timing["step_s"]) == 3
+        want = hs.run(ESTIMATOR.__class__(weights=hs.Linearized(), capacity=4, max_detections=2, max_steps=4), s,
+                      seed=7).result
+        assert got.timing is not None and len(got.timing["step_s"]) == s.num_steps
         for a, b in zip(want.steps, got.steps):
             assert [c.associations for c in a.components] == [c.associations for c in b.components]
             np.testing.assert_allclose([c.weight for c in a.components], [c.weight for c in b.components], rtol=1e-9)
@@ -190,7 +212,8 @@ def test_files_are_grouped_by_shape_and_model():
     a, b = hs.simulate(0, steps=3), hs.simulate(1, steps=4)
     spec = study.FileStudy(("a.json", "b.json", "c.json"), None)
     cells = study.file_groups(spec, {"a.json": a, "b.json": b, "c.json": a})
-    assert [(c["run_as"], c["scenarios"]) for c in cells] == [("mirror", ["a.json", "c.json"]), ("mirror", ["b.json"])]
+    # Files of different lengths share a cell (the shorter ones are padded with inactive steps).
+    assert [(c["run_as"], c["scenarios"]) for c in cells] == [("mirror", ["a.json", "b.json", "c.json"])]
     two = study.file_groups(study.FileStudy(("a.json",), ("mirror", "none")), {"a.json": a})
     assert [c["run_as"] for c in two] == ["mirror", "none"]
 

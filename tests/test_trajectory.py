@@ -8,8 +8,8 @@ from evo.core import metrics as evo_metrics
 from evo.tools import file_interface
 
 import hybridslam  # noqa: F401  (float64)
-from hybridslam import trajectory as tj
-from hybridslam.result import ComponentRecord, Result, StepRecord
+from hybridslam.analysis import trajectory as tj
+from hybridslam.io.result import ComponentRecord, Result, StepRecord
 
 
 def _random_trajectory(rng: np.random.Generator, n: int) -> np.ndarray:

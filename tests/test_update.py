@@ -3,13 +3,11 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
-
 import optimistix as optx
 
 import hybridslam as hs
-from hybridslam import geometry
-from hybridslam.update import _residuals, gauss_newton, gauss_newton_update
-
+from hybridslam.inference.update import _residuals, gauss_newton, gauss_newton_update
+from hybridslam.models import geometry
 
 # Jitted once per shape: op by op, the update's surrounding array code costs seconds of dispatch.
 _update = jax.jit(gauss_newton_update, static_argnums=6)
@@ -61,8 +59,8 @@ def test_kalman_form_gauss_newton_equals_gauss_newton_with_a_prior_factor():
     """update.prior_gauss_newton (iterated EKF) has the same mode and covariance as update.gauss_newton."""
     import jax.scipy.linalg as jsl
 
-    from hybridslam import geometry
-    from hybridslam.update import gauss_newton, prior_gauss_newton, support_of, wrap_angles
+    from hybridslam.inference.update import gauss_newton, prior_gauss_newton, support_of, wrap_angles
+    from hybridslam.models import geometry
 
     rng = np.random.default_rng(0)
     mean = jnp.asarray(rng.normal(size=12)).at[2::3].set(0.3)

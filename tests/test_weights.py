@@ -6,8 +6,12 @@ import numpy as np
 from jax.scipy.stats import multivariate_normal as mvn
 
 import hybridslam as hs
-from hybridslam.hypotheses import children, hypothesis_table
-from hybridslam.weights import linearized_log_likelihood, log_mean_exp_outer, sampled_log_likelihood
+from hybridslam.estimators.hybrid.hypotheses import children, hypothesis_table
+from hybridslam.estimators.hybrid.weights import (
+    linearized_log_likelihood,
+    log_mean_exp_outer,
+    sampled_log_likelihood,
+)
 
 
 @jax.numpy_rank_promotion("allow")  # jax.scipy's logpdf broadcasts internally
@@ -64,7 +68,7 @@ def test_sampled_weight_matches_linearized_where_the_model_is_linear(monkeypatch
     Eq. 4.14-4.15) for every plausible child, whichever slots hold the detections. Chunks of 2 table
     rows make the linearized weights skip most of the table (only rows matching the mask are
     evaluated), so a wrongly skipped child would show up here as a mismatch."""
-    from hybridslam import weights
+    from hybridslam.estimators.hybrid import weights
 
     monkeypatch.setattr(weights, "ROW_CHUNK", 2)
     model, mean, cov, _, table, _ = _near_linear_setup()
@@ -100,8 +104,8 @@ def test_children_and_sampled_weights_match_brute_force():
 
     from jax.scipy.special import logsumexp
 
-    from hybridslam.geometry import range_bearing, visible
-    from hybridslam.measurement import detection_residual
+    from hybridslam.models.geometry import range_bearing, visible
+    from hybridslam.models.measurement import detection_residual
 
     scenario = hs.simulate(0, steps=1)
     sensor = hs.model_from_scenario(scenario, "mirror").sensor

@@ -1,65 +1,57 @@
-"""The contract every association strategy keeps, and one runner for all of them.
+"""What every estimator is: one interface, one view of its belief, one report of each step.
 
-An estimator is a module of :mod:`hybridslam.estimators` that defines
+An estimator is an :class:`AbstractEstimator`: an ``equinox.Module`` whose fields are its
+settings (static: they fix shapes and code paths), validated when it is built. It has
 
-* ``NAME`` — the name ``hybridslam run --estimator NAME`` selects;
-* ``init(scenario, settings) -> state`` — host-side: the state before step 1, an ``eqx.Module``
-  pytree of fixed shapes (``settings`` is a :class:`Settings`);
-* ``step(state, odometry, detections, key) -> (state, info)`` — pure and ``jax.jit``-compiled:
-  odometry ``Float[Array, "3"]`` (``u_k``), :class:`~hybridslam.belief.Detections` padded to
-  ``settings.max_detections`` slots, a PRNG key (``fold_in(PRNGKey(seed), k)``);
-  ``info`` an ``eqx.Module`` of diagnostics;
-* ``view(state) -> Mixture`` — the belief as a weighted set of components, which is all the
-  result file (SCENARIO_FORMAT.md, "Result file") and the paper's metrics need;
-* ``describe(settings) -> str`` — the result file's ``estimator`` text;
-* optionally ``warnings(info) -> list[str]`` — one line per thing a user must hear about
-  (capacity overflow, solver failure), printed by the CLI after each step.
+* ``init(scenario) -> state`` — host-side: the belief before step 1, a pytree of fixed shapes
+  that carries every traced parameter of the model (so changing alpha or a covariance never
+  recompiles, and a batch of states may carry a batch of models);
+* ``step(state, odometry, detections, key) -> (state, StepInfo)`` — pure and jittable:
+  odometry ``u_k`` ``(3,)``, the step's :class:`~hybridslam.models.measurement.Detections`
+  padded to a fixed number of slots, a PRNG key;
+* ``view(state) -> Mixture`` — the belief as weighted Gaussian components over the current robot
+  pose, which is all the result file (``docs/file_format.md``) and the paper's metrics need;
+* ``trajectory(state)`` — the smoothed trajectory ``x_0..x_T`` of the best component, for
+  estimators that keep it (``None`` for filters);
+* ``describe()`` — the result file's ``estimator`` text.
 
-:func:`run_estimator` runs any of them over a scenario and writes nothing: it returns a
-:class:`~hybridslam.run.Run` whose ``result`` is a ``hybridslam-result/1``.
+:mod:`hybridslam.driver` runs any of them; :func:`make_estimator` builds one from its name and
+command-line style options. A :class:`StepInfo` knows its own warnings, written once here (the way
+optimistix's ``RESULTS`` carry their messages).
 """
 
 from __future__ import annotations
 
+import abc
 import dataclasses
-import importlib
-from collections.abc import Callable
-from types import ModuleType
-from typing import Any
+import math
+from typing import Any, ClassVar
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
-from ..metrics import metrics
-from ..result import Result, StepRecord
-from ..scenario import Scenario
+from ..io.scenario import Scenario
+from ..models.measurement import Detections
 
-# name -> module (relative to this package). "hybrid" is the Tchuiev et al. belief of hybridslam.run.
-ESTIMATORS: dict[str, str] = {
-    "hybrid": "hybrid",
-    "ml": "ml",
-    "gpda": "gpda",
-    "max-mixture": "maxmix",
-    "multimodal": "multimodal",
-}
+LOW_ESS = 0.01  # below this a weight estimate rests on ~1% of its draws
 
 
 class Mixture(eqx.Module):
-    """A belief as ``K`` weighted Gaussian components over the current robot pose.
+    """A belief as ``K`` weighted Gaussian components over the current robot pose ``x_k``.
 
     A single-Gaussian estimator (``ml``, ``gpda``, ``max-mixture``) is a mixture with one live slot.
-    Field names match :class:`~hybridslam.belief.Belief`, so :func:`hybridslam.metrics.metrics`
-    and :func:`hybridslam.marginals.association_probabilities` take either.
+    The hybrid belief's own :class:`~hybridslam.estimators.hybrid.belief.Belief` has the same
+    fields (its ``mean``/``cov`` hold the whole joint state, whose first three entries are ``x_k``),
+    so the metrics and marginals of :mod:`hybridslam.analysis` take either.
     """
 
     log_weights: Float[Array, " K"]  # -inf marks an empty slot; need not be normalized
     mean: Float[Array, "K 3"]  # robot pose x_k = [x, y, theta]
     cov: Float[Array, "K 3 3"]
     classes: Int[Array, "K N"]  # class estimate or realization per object, -1 = none yet
-    history: Int[Array, "K T Dmax"]  # object index of each detection of steps 1..T, -1 = empty slot
+    history: Int[Array, "K T Dmax"]  # object of each detection of steps 1..T; -1 = empty slot or clutter
     k: Int[Array, ""]  # steps taken
 
     @property
@@ -71,82 +63,164 @@ class Mixture(eqx.Module):
         return jnp.exp(self.log_weights)
 
 
-@dataclasses.dataclass(frozen=True)
-class Settings:
-    """What every estimator is configured by; each estimator reads the fields it uses.
+# --------------------------------------------------------------------------- #
+# The report of one step
+# --------------------------------------------------------------------------- #
 
-    ``capacity`` is the number of components (mixture / particle slots) for the multi-hypothesis
-    estimators; the single-Gaussian ones ignore it. ``extra`` holds estimator-specific options
-    (documented in each module).
+
+def _zero_int() -> Int[Array, ""]:
+    return jnp.zeros((), jnp.int32)
+
+
+class StepInfo(eqx.Module):
+    """What an estimator reports about one step: counts and flags (scalars), the same for every
+    estimator (zero where a notion does not apply), plus estimator-specific ``details``.
+
+    Every count of a hypothesis or detection that a budget, a gate or a capacity dropped is here,
+    so nothing is lost silently; :meth:`warnings` turns them into one line each.
     """
 
-    max_detections: int
-    max_steps: int
-    capacity: int = 64
-    classifier: str | None = None  # override of scenario.classifier.model
-    num_samples: int | None = None  # Monte Carlo draws, where the estimator draws any
-    gn_max_steps: int = 20
-    extra: tuple[tuple[str, Any], ...] = ()
+    k: Int[Array, ""]  # the step just taken (1-based)
+    num_components: Int[Array, ""]  # live components after the step
+    log_evidence: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.full((), jnp.nan))
+    dropped_capacity: Int[Array, ""] = eqx.field(default_factory=_zero_int)  # above the pruning threshold, no slot
+    dropped_budget: Int[Array, ""] = eqx.field(default_factory=_zero_int)  # cut by a gate / child budget, would have survived pruning
+    dropped_mass: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.zeros(()))  # posterior mass beyond a budget
+    visibility_ignored: Bool[Array, ""] = eqx.field(default_factory=lambda: jnp.zeros((), bool))
+    solver_failures: Int[Array, ""] = eqx.field(default_factory=_zero_int)  # updates that did not converge
+    is_failures: Int[Array, ""] = eqx.field(default_factory=_zero_int)  # laplace-is mode searches that did not converge
+    min_ess: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.full((), jnp.nan))  # smallest normalized ESS
+    skipped: Int[Array, ""] = eqx.field(default_factory=_zero_int)  # detections left unassociated
+    rejected: Int[Array, ""] = eqx.field(default_factory=_zero_int)  # detections explained as clutter / null
+    object_overflow: Bool[Array, ""] = eqx.field(default_factory=lambda: jnp.zeros((), bool))  # no free object slot
+    details: Any = None  # estimator-specific diagnostics (e.g. the hybrid belief's per-component solver results)
 
-    def option(self, name: str, default: Any) -> Any:
-        return dict(self.extra).get(name, default)
-
-
-def get_estimator(name: str) -> ModuleType:
-    """The module of estimator ``name``; a clear error for an unknown or unavailable one."""
-    if name not in ESTIMATORS:
-        raise ValueError(f"estimator: unknown {name!r} (known: {', '.join(ESTIMATORS)})")
-    return importlib.import_module(f".{ESTIMATORS[name]}", __package__)
-
-
-_metrics = jax.jit(metrics)
+    def warnings(self) -> list[str]:
+        """One line per thing a user must hear about after this step (host-side)."""
+        return [f"step {int(self.k)}: {line}" for line in messages(_totals(self), per_step=True)]
 
 
-def mixture_record(mix: Mixture, num_detections: list[int], true_pose: np.ndarray | None) -> StepRecord:
-    """The host-side record of one belief view (SCENARIO_FORMAT.md, "Result file")."""
-    from ..run import record_from_arrays
-
-    m = jax.device_get(_metrics(mix, None if true_pose is None else jnp.asarray(true_pose)))
-    b = jax.device_get(mix)
-    return record_from_arrays(int(b.k), b.log_weights, b.classes, b.history, b.mean, b.cov,
-                              num_detections, m, has_truth=true_pose is not None)
-
-
-def run_estimator(
-    scenario: Scenario,
-    estimator: str = "hybrid",
-    *,
-    seed: int = 0,
-    on_step: Callable[[StepRecord, Any, float], None] | None = None,
-    **settings,
-):
-    """Run estimator ``estimator`` over every step of ``scenario``; returns a :class:`~hybridslam.run.Run`.
-
-    ``settings`` are :class:`Settings` fields (for ``"hybrid"``: the arguments of
-    :func:`hybridslam.run.run_scenario`). Unknown fields go to ``Settings.extra``.
-    """
-    from ..run import Run, drive, run_scenario
-
-    module = get_estimator(estimator)
-    if estimator == "hybrid":
-        return run_scenario(scenario, seed=seed, on_step=on_step, **settings)
-    fields = {f.name for f in dataclasses.fields(Settings)} - {"extra"}
-    known = {k: v for k, v in settings.items() if k in fields and v is not None}
-    extra = tuple(sorted((k, v) for k, v in settings.items() if k not in fields))
-    known.setdefault("max_detections", max(scenario.max_detections, 1))
-    known.setdefault("max_steps", max(scenario.num_steps, 1))
-    config = Settings(**known, extra=extra)
-    state = module.init(scenario, config)
-
-    def record(state, num_detections, true_pose):
-        return mixture_record(module.view(state), num_detections, true_pose)
-
-    state, records, infos, timing = drive(module.step, state, scenario, config.max_detections, seed, record, on_step)
-    result = Result(estimator=module.describe(config), steps=records, timing=timing)
-    return Run(result, infos, state)
+def _totals(info: StepInfo) -> dict[str, float]:
+    """Host-side totals of the counts of one info, or of a stack of them (any leading axes)."""
+    a = {name: np.asarray(getattr(info, name)) for name in
+         ("dropped_capacity", "dropped_budget", "dropped_mass", "visibility_ignored", "solver_failures",
+          "is_failures", "skipped", "rejected", "object_overflow", "num_components")}
+    ess = np.asarray(info.min_ess, dtype=float)
+    out: dict[str, float] = {name: float(np.sum(v)) for name, v in a.items()}
+    out["steps_dropped_capacity"] = float(np.sum(a["dropped_capacity"] > 0))
+    out["min_ess"] = float(np.min(ess[np.isfinite(ess)])) if np.any(np.isfinite(ess)) else math.nan
+    out["num_components_max"] = float(np.max(a["num_components"])) if a["num_components"].size else 0.0
+    return out
 
 
-def step_warnings(estimator: str, info: Any) -> list[str]:
-    """The estimator's warning lines for one step's ``info`` (none if it defines no ``warnings``)."""
-    module = get_estimator(estimator)
-    return list(module.warnings(info)) if hasattr(module, "warnings") else []
+def summarize(infos: StepInfo) -> list[str]:
+    """The warnings of many steps at once (``infos`` stacked on leading axes, e.g. tracks × steps)."""
+    return messages(_totals(infos), per_step=False)
+
+
+def messages(t: dict[str, float], per_step: bool) -> list[str]:
+    """The warning lines for counts ``t`` (:func:`_totals`): the texts of every estimator, written once."""
+    out = []
+    where = "" if per_step else f" in {int(t['steps_dropped_capacity'])} step(s)"
+    if (n := int(t["dropped_capacity"])) > 0:
+        out.append(f"{n} {'hypothesis' if n == 1 else 'hypotheses'} above the pruning threshold dropped for lack "
+                   f"of capacity{where} (the belief is truncated); rerun with a larger --capacity")
+    if (n := int(t["dropped_budget"])) > 0:
+        out.append(f"{n} {'hypothesis' if n == 1 else 'hypotheses'} cut by the association gate or the child "
+                   "budget would have survived pruning; raise --gate or --max-children")
+    if (m := t["dropped_mass"]) > 1e-6:
+        out.append(f"{m:.2e} of the posterior mass lay in hypotheses beyond the child budget and was dropped "
+                   "(raise --max-children or --capacity)")
+    if (n := int(t["visibility_ignored"])) > 0:
+        out.append("no hypothesis has every detected object in view; the visibility model was ignored "
+                   + ("for this step" if per_step else f"for {n} step(s)")
+                   + " (weights from the measurement likelihood alone)")
+    if (n := int(t["solver_failures"])) > 0:
+        of = f" of {int(t['num_components'])}" if per_step else ""
+        out.append(f"the Gauss-Newton update did not converge for {n}{of} component(s)")
+    if (n := int(t["is_failures"])) > 0:
+        out.append(f"the laplace-is mode search did not converge for {n} component(s) (their weights stay "
+                   "unbiased but are noisier)")
+    if (e := t["min_ess"]) < LOW_ESS:
+        out.append(f"a kept weight rests on few draws (effective sample size {e:.3g} of 1); its value is luck: "
+                   "prefer --weights laplace-is or more --samples")
+    if (n := int(t["skipped"])) > 0:
+        out.append(f"{n} detection(s) left unassociated (no object inside the gate of a known map, or no free "
+                   "object slot: raise discovery.max_objects)")
+    if (n := int(t["rejected"])) > 0:
+        out.append(f"{n} detection(s) explained as clutter by the null hypothesis (treated as outliers)")
+    if int(t["object_overflow"]) > 0:
+        out.append("object capacity full: a detection could not create a new object (raise discovery.max_objects)")
+    return out
+
+
+# --------------------------------------------------------------------------- #
+# The interface
+# --------------------------------------------------------------------------- #
+
+
+def _jsonable(value: Any) -> Any:
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, (tuple, list)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, eqx.Module) and hasattr(value, "name") and dataclasses.is_dataclass(value):
+        fields = {f.name: _jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
+        return {"name": value.name, **fields} if fields else value.name
+    return type(value).__name__  # e.g. a classifier model object
+
+
+def classifier_name(classifier: Any, scenario: Scenario | None) -> str:
+    """How a result file names the classifier model an estimator runs with."""
+    if classifier is None:
+        return scenario.classifier.model if scenario is not None else "scenario"
+    return classifier if isinstance(classifier, str) else type(classifier).__name__
+
+
+def history_length(max_steps: int | None, scenario: Scenario) -> int:
+    """The association-history length of a state for ``scenario``: its steps, or ``max_steps`` (a
+    shared length that lets files of different lengths run on one compiled step)."""
+    if max_steps is None:
+        return max(scenario.num_steps, 1)
+    if max_steps < scenario.num_steps:
+        raise ValueError(f"max_steps: {max_steps}, but the scenario has {scenario.num_steps} steps")
+    return max_steps
+
+
+class AbstractEstimator(eqx.Module):
+    """The interface every estimator implements (see the module docstring)."""
+
+    name: ClassVar[str]  # what ``--estimator`` selects
+    reference: ClassVar[str]  # the paper and section it implements
+
+    @abc.abstractmethod
+    def init(self, scenario: Scenario) -> Any:
+        """The state before step 1 (host-side; raises ``ValueError`` for a scenario it cannot run)."""
+
+    @abc.abstractmethod
+    def step(
+        self, state: Any, odometry: Float[Array, "3"], detections: Detections, key: PRNGKeyArray
+    ) -> tuple[Any, StepInfo]:
+        """Advance the state by one step (pure, jittable)."""
+
+    @abc.abstractmethod
+    def view(self, state: Any) -> Mixture:
+        """The belief as weighted Gaussian components over ``x_k``."""
+
+    def trajectory(self, state: Any) -> Float[Array, "T1 3"] | None:
+        """The smoothed ``x_0..x_T`` of the best component (smoothers), else ``None``."""
+        return None
+
+    @abc.abstractmethod
+    def describe(self, scenario: Scenario | None = None) -> str:
+        """The result file's ``estimator`` text: name, paper, every setting (the classifier the
+        ``scenario`` names where the estimator does not override it)."""
+
+    def settings(self) -> dict[str, Any]:
+        """Every setting as JSON-able values (what a study's records depend on)."""
+        return {f.name: _jsonable(getattr(self, f.name)) for f in dataclasses.fields(self) if f.name != "batch_axis"}
+
+    def with_batch_axis(self, axis_name: str | None) -> AbstractEstimator:
+        """This estimator under an enclosing ``jax.vmap`` named ``axis_name`` (studies batch tracks
+        that way); estimators that skip dead slots use the name to skip them in every track at once."""
+        return self

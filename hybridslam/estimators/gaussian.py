@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -50,26 +51,29 @@ import optimistix as optx
 from jax.scipy.special import logsumexp
 from jaxtyping import Array, Bool, Float, Int
 
-from .. import __version__, discovery, gating, geometry
-from ..belief import Detections
-from ..model import Model, model_from_scenario
-from ..motion import propagate
-from ..scenario import Scenario
-from ..update import prior_gauss_newton, support_of, wrap_angles
-from .base import Mixture, Settings
+from .. import __version__
+from ..inference import discovery, gating
+from ..inference.beam import beam_search
+from ..inference.update import prior_gauss_newton, support_of, wrap_angles
+from ..io.scenario import Scenario
+from ..models import geometry
+from ..models.measurement import Detections
+from ..models.model import Model, model_from_scenario
+from ..models.motion import propagate
+from ..models.classifier import ClassifierModel
+from .base import AbstractEstimator, Mixture, StepInfo, classifier_name, history_length
+from .smoothing import DataLog, Factors, Filter, Full, Smoother, data_log, initial_trajectory, smooth
+from .smoothing import graph as smoothing_graph
 
 _LOG_2PI = math.log(2.0 * math.pi)
-DEFAULT_CANDIDATES = 3  # G: objects per detection after gating (Settings option "candidates")
-DEFAULT_GATE = 0.999  # chi-square gate probability (Settings option "gate_probability")
 
 
 @dataclasses.dataclass(frozen=True)
-class Config:
-    """Static settings: each fixes a shape or a code path."""
+class Structure:
+    """What the scenario and the settings fix about a state's code path (static)."""
 
     discovery: bool  # the null hypothesis creates objects (scenario has a "discovery" section)
-    num_candidates: int  # G
-    gn_max_steps: int
+    num_candidates: int  # G, at most the object capacity
 
 
 class Params(eqx.Module):
@@ -93,19 +97,20 @@ class GaussianState(eqx.Module):
     k: Int[Array, ""]
     model: Model
     params: Params
-    config: Config = eqx.field(static=True)
+    structure: Structure = eqx.field(static=True)
+    # Smoothing (smoother=Full()): the trajectory x_0..x_T, the data so far, the measurement factors.
+    poses: Float[Array, "T1 3"] | None = None
+    log: DataLog | None = None
+    factors: Factors | None = None
 
     @property
     def max_objects(self) -> int:
         return self.class_log_post.shape[0]
 
 
-class StepInfo(eqx.Module):
-    """Diagnostics of one step."""
+class GaussianDetails(eqx.Module):
+    """The single-Gaussian estimators' own diagnostics of one step (``StepInfo.details``)."""
 
-    k: Int[Array, ""]  # the step just taken
-    skipped: Int[Array, ""]  # detections left unassociated (empty gate of a known map, no free slot)
-    rejected: Int[Array, ""]  # detections whose null component is active at the solution (max-mixture)
     num_created: Int[Array, ""]
     solver_result: optx.RESULTS
 
@@ -122,6 +127,7 @@ class Association(eqx.Module):
     marginals: Float[Array, "Dmax G1"]  # P(d_k^j = candidate g), last column the null option
     class_loglik: Float[Array, "Dmax Nmax M"]  # log P(z^s_j | c) seen from each object
     new_class_loglik: Float[Array, "Dmax M"]  # ... from the object the detection would create
+    dropped: Int[Array, ""]  # assignments the beam dropped within its margin of the best (0 if exhaustive)
 
     @property
     def num_candidates(self) -> int:
@@ -140,74 +146,111 @@ def chi2_gate(probability: float) -> float:
     return -2.0 * math.log1p(-probability)
 
 
-def init_state(scenario: Scenario, settings: Settings) -> GaussianState:
-    """The belief before step 1: the priors of the scenario's objects, then uncreated slots."""
-    disc = scenario.discovery
-    n, m = scenario.num_objects, scenario.num_classes
-    n_max = n if disc is None else disc.max_objects
-    if n_max < 1:
-        raise ValueError("objects: the scenario has no objects and no discovery section to create any")
-    g = settings.option("candidates", DEFAULT_CANDIDATES)
-    if not (isinstance(g, int) and g >= 1):
-        raise ValueError(f"candidates: expected a positive int, got {g!r}")
-    model = model_from_scenario(scenario.replace(discovery=None), settings.classifier)
-    uniform = np.full(m, -math.log(m))
-    class_log_post = np.tile(uniform, (n_max, 1))
-    class_log_post[:n] = np.log(scenario.class_prior)
-    # One class prior row per slot, so the state's shapes depend on the capacity alone.
-    model = eqx.tree_at(lambda mod: mod.class_prior, model, jnp.asarray(np.exp(class_log_post)))
-    dim = 3 + 3 * n_max
-    mean = np.zeros(dim)
-    cov = np.eye(dim)
-    mean[:3], cov[:3, :3] = scenario.robot_prior_mean, scenario.robot_prior_cov
-    for i in range(n):  # host-side, once
-        mean[3 + 3 * i : 6 + 3 * i] = scenario.object_prior_means[i]
-        cov[3 + 3 * i : 6 + 3 * i, 3 + 3 * i : 6 + 3 * i] = scenario.object_prior_covs[i]
-    f = lambda a: jnp.asarray(a, dtype=float)  # noqa: E731
-    params = Params(
-        gate=f(chi2_gate(settings.option("gate_probability", DEFAULT_GATE))),
-        new_object_log_density=f(0.0 if disc is None else disc.new_object_log_density),
-        new_object_orientation_var=f(1.0 if disc is None else disc.new_object_orientation_var),
-        new_class_log_prior=f(uniform),
-    )
-    return GaussianState(
-        mean=f(mean), cov=f(cov), num_created=jnp.asarray(n, dtype=jnp.int32),
-        class_log_post=f(class_log_post), observed=jnp.zeros(n_max, dtype=bool),
-        history=jnp.full((settings.max_steps, settings.max_detections), -1, dtype=jnp.int32),
-        k=jnp.zeros((), dtype=jnp.int32), model=model, params=params,
-        config=Config(disc is not None, min(g, n_max), settings.gn_max_steps),
-    )
+class SingleGaussian(AbstractEstimator):
+    """What ``ml``, ``gpda`` and ``max-mixture`` share: one joint Gaussian, gated joint association.
 
+    Settings: ``candidates`` (``G``, objects per detection after gating), ``gate_probability`` (of
+    the chi-square gate on the innovation's Mahalanobis distance), ``max_hypotheses`` (joint
+    assignments kept while they are built one detection at a time, :func:`associate`; ``None``
+    enumerates all ``(G+1)^D``, exponential in the detections ``D``), ``gn_max_steps`` (Gauss-Newton
+    budget of the update), ``classifier`` (a model name or object replacing the scenario's),
+    ``max_detections`` (detection slots per step; ``None``: the scenario's largest step), ``max_steps``
+    (the history length; ``None``: the scenario's steps), ``smoother`` (:class:`~.smoothing.Full`,
+    the default: the whole trajectory relinearized at every step, associations decided online;
+    :class:`~.smoothing.Filter`: the joint Gaussian over ``[x_k, objects]`` only).
+    """
 
-def view(state: GaussianState) -> Mixture:
-    """The belief as a one-component :class:`~.base.Mixture` (classes: MAP of Eq. 4.17, -1 if unobserved)."""
-    classes = jnp.where(state.observed, jnp.argmax(state.class_log_post, axis=-1), -1).astype(jnp.int32)
-    return Mixture(
-        log_weights=jnp.zeros(1, state.mean.dtype), mean=state.mean[None, :3], cov=state.cov[None, :3, :3],
-        classes=classes[None], history=state.history[None], k=state.k,
-    )
+    candidates: int = eqx.field(default=3, static=True)
+    gate_probability: float = eqx.field(default=0.999, static=True)
+    max_hypotheses: int | None = eqx.field(default=64, static=True)
+    gn_max_steps: int = eqx.field(default=20, static=True)
+    smoother: Smoother = Full()
+    classifier: str | ClassifierModel | None = None
+    max_detections: int | None = eqx.field(default=None, static=True)
+    max_steps: int | None = eqx.field(default=None, static=True)
 
+    title: ClassVar[str]
+    factor_mode: ClassVar[str] = "sum"  # how the smoother reads a detection's candidates (max-mixtures: "max")
 
-def describe(name: str, reference: str, settings: Settings) -> str:
-    return (
-        f"hybridslam {__version__} {name} ({reference}); classifier={settings.classifier or 'scenario'}, "
-        f"candidates={settings.option('candidates', DEFAULT_CANDIDATES)}, "
-        f"gate_probability={settings.option('gate_probability', DEFAULT_GATE):g}, gn_max_steps={settings.gn_max_steps}"
-    )
+    def __check_init__(self):
+        if self.max_hypotheses is not None and not (isinstance(self.max_hypotheses, int) and self.max_hypotheses >= 1):
+            raise ValueError(f"{type(self).__name__}.max_hypotheses: expected a positive int or None, "
+                             f"got {self.max_hypotheses!r}")
+        for name in ("candidates", "gn_max_steps"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+                raise ValueError(f"{type(self).__name__}.{name}: expected a positive int, got {value!r}")
+        chi2_gate(self.gate_probability)
+        if self.max_detections is not None and not (isinstance(self.max_detections, int) and self.max_detections >= 1):
+            raise ValueError(f"{type(self).__name__}.max_detections: expected a positive int or None, "
+                             f"got {self.max_detections!r}")
 
+    def init(self, scenario: Scenario) -> GaussianState:
+        """The belief before step 1: the priors of the scenario's objects, then uncreated slots."""
+        disc = scenario.discovery
+        n, m = scenario.num_objects, scenario.num_classes
+        n_max = n if disc is None else disc.max_objects
+        if n_max < 1:
+            raise ValueError("objects: the scenario has no objects and no discovery section to create any")
+        slots = self.max_detections or max(scenario.max_detections, 1)
+        if scenario.max_detections > slots:
+            raise ValueError(f"max_detections: {slots} slots, but a step of the scenario has "
+                             f"{scenario.max_detections} detections")
+        model = model_from_scenario(scenario.replace(discovery=None), self.classifier)
+        uniform = np.full(m, -math.log(m))
+        class_log_post = np.tile(uniform, (n_max, 1))
+        class_log_post[:n] = np.log(scenario.class_prior)
+        # One class prior row per slot, so the state's shapes depend on the capacity alone.
+        model = eqx.tree_at(lambda mod: mod.class_prior, model, jnp.asarray(np.exp(class_log_post)))
+        dim = 3 + 3 * n_max
+        mean = np.zeros(dim)
+        cov = np.eye(dim)
+        mean[:3], cov[:3, :3] = scenario.robot_prior_mean, scenario.robot_prior_cov
+        for i in range(n):  # host-side, once
+            mean[3 + 3 * i : 6 + 3 * i] = scenario.object_prior_means[i]
+            cov[3 + 3 * i : 6 + 3 * i, 3 + 3 * i : 6 + 3 * i] = scenario.object_prior_covs[i]
+        f = lambda a: jnp.asarray(a, dtype=float)  # noqa: E731
+        params = Params(
+            gate=f(chi2_gate(self.gate_probability)),
+            new_object_log_density=f(0.0 if disc is None else disc.new_object_log_density),
+            new_object_orientation_var=f(1.0 if disc is None else disc.new_object_orientation_var),
+            new_class_log_prior=f(uniform),
+        )
+        steps = history_length(self.max_steps, scenario)
+        g = min(self.candidates, n_max)
+        state = GaussianState(
+            mean=f(mean), cov=f(cov), num_created=jnp.asarray(n, dtype=jnp.int32),
+            class_log_post=f(class_log_post), observed=jnp.zeros(n_max, dtype=bool),
+            history=jnp.full((steps, slots), -1, dtype=jnp.int32),
+            k=jnp.zeros((), dtype=jnp.int32), model=model, params=params,
+            structure=Structure(disc is not None, g),
+        )
+        if isinstance(self.smoother, Filter):
+            return state
+        none = Factors(jnp.zeros((steps, slots, g), jnp.int32), jnp.full((steps, slots, g), -jnp.inf),
+                       jnp.full((steps, slots), -jnp.inf), jnp.zeros((steps, slots, g), jnp.int32))
+        return dataclasses.replace(state, poses=initial_trajectory(scenario, steps),
+                                   log=data_log(scenario, steps, slots, n_max), factors=none)
 
-def warnings(info: StepInfo) -> list[str]:
-    """One line per problem of a step: unassociated detections, rejected ones, a failed solve."""
-    k, out = int(info.k), []
-    if int(info.skipped):
-        out.append(f"step {k}: {int(info.skipped)} detection(s) left unassociated (no object inside the gate "
-                   "of a known map, or no free object slot: raise discovery.max_objects)")
-    if int(info.rejected):
-        out.append(f"step {k}: {int(info.rejected)} detection(s) explained by the null hypothesis at the solution "
-                   "(treated as outliers)")
-    if not bool(info.solver_result == optx.RESULTS.successful):
-        out.append(f"step {k}: the Gauss-Newton update did not converge")
-    return out
+    def trajectory(self, state: GaussianState):
+        """The smoothed ``x_0..x_T`` (``None`` without smoothing)."""
+        return state.poses
+
+    def view(self, state: GaussianState) -> Mixture:
+        """A one-component :class:`~.base.Mixture` (classes: MAP of Eq. 4.17, -1 if unobserved)."""
+        classes = jnp.where(state.observed, jnp.argmax(state.class_log_post, axis=-1), -1).astype(jnp.int32)
+        return Mixture(
+            log_weights=jnp.zeros(1, state.mean.dtype), mean=state.mean[None, :3], cov=state.cov[None, :3, :3],
+            classes=classes[None], history=state.history[None], k=state.k,
+        )
+
+    def describe(self, scenario: Scenario | None = None) -> str:
+        return (
+            f"hybridslam {__version__} {self.title} ({self.reference}); "
+            f"classifier={classifier_name(self.classifier, scenario)}, "
+            f"candidates={self.candidates}, gate_probability={self.gate_probability:g}, "
+            f"gn_max_steps={self.gn_max_steps}, max_hypotheses={self.max_hypotheses}, smoother={self.smoother.name}"
+        )
 
 
 # --------------------------------------------------------------------------- #
@@ -248,9 +291,14 @@ def _joint_log_likelihood(obj, used, inn: gating.Innovations, cov, geometric_cov
 
 
 def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, "D D"],
-              detections: Detections) -> Association:
-    """Gating, joint assignment probabilities and per-detection marginals at the propagated belief."""
-    cfg, params, sensor = state.config, state.params, state.model.sensor
+              detections: Detections, width: int | None = None) -> Association:
+    """Gating, joint assignment probabilities and per-detection marginals at the propagated belief.
+
+    ``width``: the joint assignments are built one detection at a time keeping the ``width`` best
+    (:func:`hybridslam.inference.beam.beam_search`: linear in the detections, exact while at most
+    ``width`` partial assignments are valid); ``None`` enumerates all ``(G+1)^Dmax`` (the reference).
+    """
+    cfg, params, sensor = state.structure, state.params, state.model.sensor
     n_max, g = state.max_objects, cfg.num_candidates
     dmax = detections.mask.shape[0]
     x, objs = mean[:3], _objects(mean)
@@ -273,10 +321,9 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
     sem_cand = sem[slots[:, None], candidates]  # (Dmax, G)
     null_w = params.new_object_log_density + logsumexp(params.new_class_log_prior[None] + new_class_loglik, axis=-1)
 
-    options = jnp.asarray(gating.joint_options(g, dmax))
-
-    def row(opts):
-        occupied = detections.mask
+    def row(opts, upto):
+        """Validity, new / skipped slots and joint log weight of the assignment ``opts`` of slots ``0..upto``."""
+        occupied = detections.mask & (slots <= upto)
         used = occupied & (opts < g)
         pick = jnp.minimum(opts, g - 1)
         obj = candidates[slots, pick]
@@ -290,7 +337,18 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
                  + jnp.sum(jnp.where(used, sem_cand[slots, pick], 0.0)) + jnp.sum(jnp.where(new, null_w, 0.0)))
         return ok, new, null & ~new, log_w
 
-    ok, new, skip, log_w = jax.vmap(row)(options)
+    if width is None:  # every joint assignment: the exhaustive reference, (G+1)^Dmax rows
+        options = jnp.asarray(gating.joint_options(g, dmax))
+        dropped, kept = jnp.zeros((), jnp.int32), jnp.ones(options.shape[0], bool)
+    else:  # built one detection at a time, `width` kept (inference.beam); skips rank last
+        def score(opts, upto):
+            ok, _, skip, log_w = row(opts, upto)
+            return jnp.where(ok, log_w, -jnp.inf), jnp.sum(skip)
+
+        found = beam_search(score, dmax, g + 1, width, fill=g)
+        options, dropped, kept = found.options, found.dropped, found.valid
+    ok, new, skip, log_w = jax.vmap(row, (0, None))(options, dmax - 1)
+    ok &= kept  # a row the beam did not fill is no hypothesis (it may repeat another)
     num_skip = jnp.sum(skip, axis=-1)
     ok &= num_skip == jnp.min(jnp.where(ok, num_skip, dmax + 1))  # the all-null row is always ok
     log_w = jnp.where(ok, log_w, -jnp.inf)
@@ -298,7 +356,7 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
     onehot = options[:, :, None] == jnp.arange(g + 1)[None, None, :]  # (R, Dmax, G+1)
     marginals = jnp.einsum("r,rdo->do", jnp.exp(log_prob), onehot.astype(mean.dtype))
     return Association(candidates, candidate_ok, options, log_prob, new, skip, marginals,
-                       class_loglik, new_class_loglik)
+                       class_loglik, new_class_loglik, dropped)
 
 
 # --------------------------------------------------------------------------- #
@@ -347,7 +405,7 @@ def create_likeliest_new(state: GaussianState, mean, cov, assoc: Association, de
     new-detection mask and the slot each creates (-1 elsewhere).
     """
     best = jnp.argmax(assoc.marginals, axis=-1)
-    wants_new = detections.mask & (best == assoc.num_candidates) if state.config.discovery \
+    wants_new = detections.mask & (best == assoc.num_candidates) if state.structure.discovery \
         else jnp.zeros_like(detections.mask)
     new = fits(state, wants_new)
     created = new_slots(state, new)
@@ -368,14 +426,14 @@ def _weighted_residuals(y, args):
 
 
 def weighted_update(state: GaussianState, mean, cov, obj: Int[Array, " F"], geo: Float[Array, "F 2"],
-                    weight: Float[Array, " F"]):
+                    weight: Float[Array, " F"], max_steps: int):
     """Gauss-Newton with factors ``√w_f W (z_f − h(x_k, o_{obj_f}))`` (``w_f = 0``: no factor).
 
     ``w = 1`` is an ordinary factor (ML); fractional weights scale its information (GPDA, Eq. 3.7).
     """
     args = (state.model.sensor, jnp.maximum(obj, 0), geo, weight)
     # Kalman-form Gauss-Newton: O(D² m) per iterate, not a dense solve over the whole map.
-    value, new_cov, result = prior_gauss_newton(_weighted_residuals, mean, cov, args, state.config.gn_max_steps,
+    value, new_cov, result = prior_gauss_newton(_weighted_residuals, mean, cov, args, max_steps,
                                                 support_of(obj))
     return wrap_angles(value), new_cov, result
 
@@ -400,24 +458,47 @@ def update_classes(state: GaussianState, assoc: Association, prob: Float[Array, 
     return post - logsumexp(post, axis=-1, keepdims=True)
 
 
-def commit(state: GaussianState, mean, cov, class_log_post, assigned: Int[Array, " Dmax"],
-           used: Bool[Array, " Dmax"], detections: Detections, num_new, info: dict) -> tuple[GaussianState, StepInfo]:
-    """Write the step's results into the state.
+def commit(est: SingleGaussian, state: GaussianState, mean, cov, class_log_post, assigned: Int[Array, " Dmax"],
+           used: Bool[Array, " Dmax"], detections: Detections, num_new, info: dict, odometry: Float[Array, "3"],
+           factors: tuple[Int[Array, "Dmax G"], Float[Array, "Dmax G"], Float[Array, " Dmax"]],
+           ) -> tuple[GaussianState, StepInfo]:
+    """Write the step's results into the state (and, with ``est.smoother = Full()``, smooth it).
 
     ``assigned`` is the object recorded per detection in the history (a result file needs one for
     every detection, so a skipped one records its nearest object); ``used`` marks the detections that
-    really were associated (their objects count as observed).
+    really were associated (their objects count as observed). ``factors``: the step's measurement
+    factors for the smoother, per detection slot its candidate objects, their log weights (``-inf``:
+    none) and the null component's (:class:`~.smoothing.Factors`).
     """
     assigned = jnp.where(detections.mask, assigned, -1).astype(jnp.int32)
     hit = (assigned[:, None] == jnp.arange(state.max_objects)[None, :]) & (used & detections.mask)[:, None]
     observed = state.observed | jnp.any(hit, axis=0)
     num_created = (state.num_created + num_new).astype(jnp.int32)
+    result = info["solver_result"]
+    poses, log, stored = state.poses, state.log, state.factors
+    if isinstance(est.smoother, Full):
+        # The whole trajectory and map relinearized with every factor so far (smoothing.py); the
+        # step's associations stay as decided online.
+        log = state.log.record(state.k, odometry, detections)
+        objs, log_w, null = factors
+        stored = Factors(state.factors.objects.at[state.k].set(objs.astype(jnp.int32)),
+                         state.factors.log_weight.at[state.k].set(log_w),
+                         state.factors.null_log_weight.at[state.k].set(null), state.factors.classes)
+        g = smoothing_graph(log, stored, state.k + 1, num_created, state.model.sensor, state.model.motion_cov,
+                            semantic=False, mode=est.factor_mode)
+        out = smooth(est.smoother, g, state.poses, mean, state.k + 1)
+        mean, cov, result, poses = out.mean, out.cov, out.result, out.poses
     new_state = dataclasses.replace(
         state, mean=mean, cov=0.5 * (cov + cov.T), num_created=num_created, class_log_post=class_log_post,
-        observed=observed, history=state.history.at[state.k].set(assigned), k=state.k + 1,
+        observed=observed, history=state.history.at[state.k].set(assigned), k=state.k + 1, poses=poses, log=log,
+        factors=stored,
     )
     zero = jnp.zeros((), jnp.int32)
-    step_info = StepInfo(k=state.k + 1, skipped=info.get("skipped", zero).astype(jnp.int32),
-                         rejected=info.get("rejected", zero).astype(jnp.int32), num_created=num_created,
-                         solver_result=info["solver_result"])
+    step_info = StepInfo(
+        k=(state.k + 1).astype(jnp.int32), num_components=jnp.ones((), jnp.int32),
+        skipped=info.get("skipped", zero).astype(jnp.int32), rejected=info.get("rejected", zero).astype(jnp.int32),
+        dropped_budget=info.get("dropped", zero).astype(jnp.int32),
+        solver_failures=(result != optx.RESULTS.successful).astype(jnp.int32),
+        details=GaussianDetails(num_created, result),
+    )
     return new_state, step_info

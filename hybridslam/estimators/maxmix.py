@@ -19,25 +19,21 @@ the solution is an outlier and moves nothing (counted in ``StepInfo.rejected``).
 New objects: a detection whose most probable option is the null hypothesis creates one (initialized
 from it) and gets no factor. Class estimates: Eq. 4.17, from the association probabilities (the
 "component weights of the max-mixture factors"). The history records the component active at the
-solution (the likeliest object where the null component is). Options as in :mod:`.ml`.
+solution (the likeliest object where the null component is). Settings: :class:`.gaussian.SingleGaussian`.
 """
 
 from __future__ import annotations
+
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from ..belief import Detections
+from ..models.measurement import Detections
 from . import gaussian
-from .gaussian import GaussianState, StepInfo
-from .base import Settings
-
-NAME = "max-mixture"
-
-
-def init(scenario, settings: Settings) -> GaussianState:
-    return gaussian.init_state(scenario, settings)
+from .base import StepInfo
+from .gaussian import GaussianState, SingleGaussian
 
 
 def component_costs(sensor, y, obj: Int[Array, " G"], geo: Float[Array, "2"], log_w: Float[Array, " G1"],
@@ -73,25 +69,35 @@ def _residuals(y, args):
     return rows.reshape(-1)
 
 
-@jax.jit
-def step(state: GaussianState, odometry: Float[Array, "3"], detections: Detections,
-         key: jax.Array) -> tuple[GaussianState, StepInfo]:
-    """One filter step; ``key`` is unused (the estimator is deterministic)."""
-    del key
+class MaxMixture(SingleGaussian):
+    """Max-mixtures semantic SLAM (see the module docstring)."""
+
+    name: ClassVar[str] = "max-mixture"
+    title: ClassVar[str] = "max-mixtures semantic SLAM"
+    reference: ClassVar[str] = "Doherty thesis Ch. 4, Eq. 4.16"
+    factor_mode: ClassVar[str] = "max"
+
+    def step(self, state: GaussianState, odometry: Float[Array, "3"], detections: Detections,
+             key: jax.Array) -> tuple[GaussianState, StepInfo]:
+        """One filter step; ``key`` is unused (the estimator is deterministic)."""
+        return _step(self, state, odometry, detections)
+
+
+def _step(est: MaxMixture, state: GaussianState, odometry, detections: Detections) -> tuple[GaussianState, StepInfo]:
     mean, cov = gaussian.predict(state, odometry)
-    assoc = gaussian.associate(state, mean, cov, detections)
+    assoc = gaussian.associate(state, mean, cov, detections, est.max_hypotheses)
     g = assoc.num_candidates
     mean, cov, new, created = gaussian.create_likeliest_new(state, mean, cov, assoc, detections)
 
     w = assoc.marginals
-    null_ok = jnp.full((w.shape[0], 1), state.config.discovery)
+    null_ok = jnp.full((w.shape[0], 1), state.structure.discovery)
     valid = jnp.concatenate([assoc.candidate_ok, null_ok], axis=-1) & (w > 0) & ~new[:, None] & detections.mask[:, None]
     log_w = jnp.log(jnp.where(valid, w, 1.0))
     null_ld = state.params.new_object_log_density
     args = (state.model.sensor, assoc.candidates, detections.geo, log_w, valid, null_ld)
     # The prior enters in Kalman form (update.prior_gauss_newton); the active components are
     # re-chosen at every iterate, as in Eq. 4.16.
-    value, cov, result = gaussian.prior_gauss_newton(_residuals, mean, cov, args, state.config.gn_max_steps,
+    value, cov, result = gaussian.prior_gauss_newton(_residuals, mean, cov, args, est.gn_max_steps,
                                                      gaussian.support_of(assoc.candidates))
     mean = gaussian.wrap_angles(value)
 
@@ -109,13 +115,14 @@ def step(state: GaussianState, odometry: Float[Array, "3"], detections: Detectio
     prob = jnp.einsum("dg,dgn->dn", p, onehot.astype(p.dtype))
     classes = gaussian.update_classes(state, assoc, prob, created)
     info = {"skipped": jnp.sum(detections.mask & ~live & ~new),
-            "rejected": jnp.sum(live & ~on_object), "solver_result": result}
-    return gaussian.commit(state, mean, cov, classes, assigned, on_object | new, detections, jnp.sum(new), info)
-
-
-view = gaussian.view
-warnings = gaussian.warnings
-
-
-def describe(settings: Settings) -> str:
-    return gaussian.describe("max-mixtures semantic SLAM", "Doherty thesis Ch. 4, Eq. 4.16", settings)
+            "rejected": jnp.sum(live & ~on_object), "solver_result": result, "dropped": assoc.dropped}
+    # The smoother's factors: the same max-mixture (candidates with their weights, and the null
+    # component's weight times its density), its active component re-chosen at every iterate over the
+    # whole trajectory; a detection that created its object is that object's factor.
+    first = jnp.arange(g) == 0
+    factor_obj = jnp.where(new[:, None], jnp.maximum(created, 0)[:, None], assoc.candidates)
+    factor_w = jnp.where(new[:, None], jnp.where(first[None, :], 0.0, -jnp.inf),
+                         jnp.where(valid[:, :g], log_w[:, :g], -jnp.inf))
+    null = jnp.where(valid[:, g] & ~new, log_w[:, g] + null_ld, -jnp.inf)
+    return gaussian.commit(est, state, mean, cov, classes, assigned, on_object | new, detections, jnp.sum(new), info,
+                           odometry, (factor_obj, factor_w, null))

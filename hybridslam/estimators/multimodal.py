@@ -25,7 +25,7 @@ a squared Mahalanobis distance ``merge_threshold`` that has the same number of c
 there, and separated modes stay separate components as long as there are at most ``K`` of them.
 Only the ``children`` best children (a static count, ranked by the linearized likelihood below) get
 a Gauss-Newton update and a Monte Carlo weight: the linearized mass of the rest is reported in
-``Info.dropped_mass`` and as a warning, never silently.
+``StepInfo.dropped_mass`` and as a warning, never silently.
 
 Association probabilities (Eq. 5.9-5.10). ``L_ij`` integrates the joint likelihood of the step's
 detections over the pose and the associated objects, ``y = [x_k, o_{d_1}, ...]``, by Monte Carlo:
@@ -66,16 +66,18 @@ posterior, which is updated with ``P(z^s | c, viewpoint)`` at the child's poster
 objects: averaged over their sampled orientations). ``view`` reports per component the argmax class
 of every object the component has associated, ``-1`` otherwise.
 
-Options (``Settings.option``): ``candidates`` (3), ``children`` (``2·capacity``),
+Settings (:class:`Multimodal`): ``candidates`` (3), ``children`` (``2·capacity``),
 ``merge_threshold`` (4.0, squared Mahalanobis distance over the whole state), ``association_prior``
-(``"mc"`` or ``"uniform"``), ``proposal`` (``"posterior"`` or ``"prior"``). ``Settings.num_samples``
-(draws per child) defaults to 256.
+(``"mc"`` or ``"uniform"``), ``proposal`` (``"posterior"`` or ``"prior"``), ``samples``
+(draws per child, 256).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+from functools import partial
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -85,14 +87,19 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from .. import discovery, gating, geometry, motion
-from ..belief import Detections
-from ..classifier import ClassifierModel
-from ..measurement import SensorModel, log_visibility
-from ..model import Model, model_from_scenario
-from ..scenario import Scenario
-from ..update import prior_gauss_newton, support_of, wrap_angles
-from .base import Mixture, Settings
+from ..inference import discovery, gating
+from ..inference.beam import beam_search
+from ..inference.update import prior_gauss_newton, support_of, wrap_angles
+from ..io.scenario import Scenario
+from ..models import geometry, motion
+from ..models.classifier import ClassifierModel
+from ..models.measurement import Detections, SensorModel, log_visibility
+from ..models.model import Model, model_from_scenario
+from .. import __version__
+from ..inference.batching import map_live
+from .base import AbstractEstimator, Mixture, StepInfo, classifier_name, history_length
+from .smoothing import DataLog, Filter, Full, Smoother, data_log, history_factors, initial_trajectory, smooth
+from .smoothing import graph as smoothing_graph
 
 NAME = "multimodal"
 
@@ -116,8 +123,9 @@ def _chunked(fn, *args, batch_size: int = LAPACK_CHUNK):
 
 
 @dataclasses.dataclass(frozen=True)
-class Config:
-    """Static settings: each fixes a shape or a code path."""
+class Structure:
+    """What the :class:`Multimodal` settings and the scenario fix about a state (static: each fixes a
+    shape or a code path), resolved once by :meth:`Multimodal.init`."""
 
     capacity: int  # K components
     max_objects: int  # Nmax object slots
@@ -130,6 +138,7 @@ class Config:
     discovery: bool  # whether the null / new-object hypothesis exists
     association_prior: str  # "mc" (thesis Eq. 5.11) or "uniform"
     proposal: str  # "posterior" (importance sampling) or "prior" (Eq. 5.10 as written)
+    beam: int | None = None  # joint assignments kept per component while they are built (None: all)
 
 
 class Params(eqx.Module):
@@ -153,19 +162,19 @@ class State(eqx.Module):
     k: Int[Array, ""]
     model: Model
     params: Params
-    config: Config = eqx.field(static=True)
+    config: Structure = eqx.field(static=True)
+    # Smoothing (smoother=Full()): each component's trajectory x_0..x_T, and the data so far.
+    poses: Float[Array, "K T1 3"] | None = None
+    log: DataLog | None = None
 
 
-class Info(eqx.Module):
-    """Diagnostics of one step, over the ``C`` children that were updated."""
+class Details(eqx.Module):
+    """The multimodal estimator's own diagnostics of one step (``StepInfo.details``), over the ``C``
+    children that were updated."""
 
     parent: Int[Array, " C"]  # the component each child came from
     assoc_objects: Int[Array, "C Dmax"]  # object of each detection; -1 for an empty slot
     assoc_log_probs: Float[Array, " C"]  # log p_j of Eq. 5.9 for that object tuple; -inf infeasible
-    dropped_mass: Float[Array, ""]  # linearized mass of children beyond the ``children`` budget
-    solver_failures: Int[Array, ""]  # relevant children whose Gauss-Newton solve did not succeed
-    overflow: Bool[Array, ""]  # a relevant component had no room for a new object, or no child survived
-    num_components: Int[Array, ""]
 
 
 # --------------------------------------------------------------------------- #
@@ -375,7 +384,7 @@ def sampled_log_likelihood(
     return jax.nn.logsumexp(log_lik + log_ratio) - math.log(eps.shape[0])
 
 
-def draws(key: jax.Array, cfg: Config, params: Params) -> tuple[Float[Array, "S P"], Float[Array, "S Dmax"]]:
+def draws(key: jax.Array, cfg: Structure, params: Params) -> tuple[Float[Array, "S P"], Float[Array, "S Dmax"]]:
     """Standard-normal draws for the joint samples, and new objects' orientations ``~ N(0, var)``
     (fixed by ``key``; shared by every child: common random numbers make their weights comparable)."""
     k_state, k_orient = jax.random.split(key)
@@ -423,6 +432,7 @@ class Children(eqx.Module):
     log_prob: Float[Array, " C"]  # log p_j (Eq. 5.9)
     log_weight: Float[Array, " C"]  # log w_i + log L_ij (+ log p_j with association_prior="mc")
     dropped_mass: Float[Array, ""]  # linearized mass of the children not selected
+    beam_dropped: Int[Array, ""]  # partial assignments the beam dropped near the best (0 if exhaustive)
 
 
 def _residuals(y, args):
@@ -457,20 +467,36 @@ def hypotheses(
     best by Gauss-Newton and weigh them by Monte Carlo (Eq. 5.9-5.11). ``mean`` / ``cov`` are the
     components at the current pose (after propagation)."""
     cfg, sensor, params = state.config, state.model.sensor, state.params
-    choices = jnp.asarray(gating.joint_options(cfg.candidates, cfg.max_detections))
+    table = jnp.asarray(gating.joint_options(cfg.candidates, cfg.max_detections))
+    slots = jnp.arange(cfg.max_detections)
 
     def per_component(m, c, class_lp, created):
         pred = gating.innovations(sensor, m, c, detections)
         cand = gate(pred.d2, created, cfg.candidates)
-        objects, new, feasible = assignment_objects(choices, cand, detections.mask, created, cfg.max_objects, cfg.discovery)
-        screen = jax.vmap(screen_log_likelihood, (None, None, None, None, None, None, 0, 0, None))(
-            sensor, params, pred, m, c, class_lp, objects, new, detections)
-        return objects, new, jnp.where(feasible, screen, -jnp.inf)
+        screen_one = partial(screen_log_likelihood, sensor, params, pred, m, c, class_lp)
+        if cfg.beam is None:  # every joint assignment: (G+1)^Dmax rows, the reference
+            choices, dropped = table, jnp.zeros((), jnp.int32)
+        else:  # built one detection at a time, the `beam` best kept (inference.beam)
+            def score(opts, j):
+                mask = detections.mask & (slots <= j)
+                objects, new, feasible = assignment_objects(opts[None], cand, mask, created, cfg.max_objects,
+                                                            cfg.discovery)
+                return jnp.where(feasible[0], screen_one(objects[0], new[0], detections), -jnp.inf), jnp.zeros(
+                    (), jnp.int32)
 
-    per_batch = max(1, SMALL_LAPACK_BATCH // (choices.shape[0] * cfg.max_detections))
-    objects, new, screen = _chunked(per_component, mean, cov, state.class_log_probs, state.num_created,
-                                    batch_size=per_batch)
-    num_assign = choices.shape[0]
+            found = beam_search(score, cfg.max_detections, cfg.candidates + 1, cfg.beam, fill=cfg.candidates)
+            choices, dropped = found.options, found.dropped
+        objects, new, feasible = assignment_objects(choices, cand, detections.mask, created, cfg.max_objects, cfg.discovery)
+        screen = jax.vmap(screen_one, (0, 0, None))(objects, new, detections)
+        if cfg.beam is not None:
+            feasible &= found.valid  # a row the beam did not fill is no hypothesis (it may repeat another)
+        return objects, new, jnp.where(feasible, screen, -jnp.inf), dropped
+
+    rows = table.shape[0] if cfg.beam is None else cfg.beam
+    per_batch = max(1, SMALL_LAPACK_BATCH // (rows * cfg.max_detections))
+    objects, new, screen, beam_dropped = _chunked(per_component, mean, cov, state.class_log_probs, state.num_created,
+                                                  batch_size=per_batch)
+    num_assign = rows
     screen_w = (state.log_weights[:, None] + screen).reshape(-1)
     sel_w, sel = jax.lax.top_k(screen_w, cfg.children)
     parent, a = sel // num_assign, sel % num_assign
@@ -494,7 +520,9 @@ def hypotheses(
     log_prob = tuple_log_probs(objects, log_mass, cfg.max_objects)
     log_weight = log_mass + log_prob if cfg.association_prior == "mc" else log_mass
     dropped = jnp.maximum(-jnp.expm1(jax.nn.logsumexp(sel_w) - jax.nn.logsumexp(screen_w)), 0.0)
-    return Children(parent, objects, new, post_mean, post_cov, result, log_lik, log_prob, log_weight, dropped)
+    alive = state.log_weights > -jnp.inf
+    return Children(parent, objects, new, post_mean, post_cov, result, log_lik, log_prob, log_weight, dropped,
+                    jnp.sum(jnp.where(alive, beam_dropped, 0), dtype=jnp.int32))
 
 
 @jax.jit
@@ -620,80 +648,150 @@ def merge(
 
 
 # --------------------------------------------------------------------------- #
-# The estimator contract
+# The estimator
 # --------------------------------------------------------------------------- #
 
 
-def _config(scenario: Scenario, settings: Settings) -> Config:
-    n_max = scenario.discovery.max_objects if scenario.discovery is not None else scenario.num_objects
-    if n_max < 1:
-        raise ValueError("multimodal: the scenario has no objects and no discovery section (nothing to associate)")
-    capacity = settings.capacity
-    samples = DEFAULT_SAMPLES if settings.num_samples is None else settings.num_samples
-    candidates = min(int(settings.option("candidates", DEFAULT_CANDIDATES)), n_max)
-    prior = settings.option("association_prior", "mc")
-    if prior not in ASSOCIATION_PRIORS:
-        raise ValueError(f"multimodal: association_prior must be one of {ASSOCIATION_PRIORS}, got {prior!r}")
-    proposal = settings.option("proposal", "posterior")
-    if proposal not in PROPOSALS:
-        raise ValueError(f"multimodal: proposal must be one of {PROPOSALS}, got {proposal!r}")
-    assignments = (candidates + 1) ** settings.max_detections
-    children = min(int(settings.option("children", 2 * capacity)), capacity * assignments)
-    for name, value in (("capacity", capacity), ("num_samples", samples), ("candidates", candidates),
-                        ("children", children)):
-        if value < 1:
-            raise ValueError(f"multimodal: {name} must be at least 1, got {value}")
-    if (n_max + 1) ** settings.max_detections >= 2**62:
-        raise ValueError(f"multimodal: {settings.max_detections} detection slots over {n_max} objects "
-                         "overflow the int64 association codes")
-    return Config(capacity, n_max, settings.max_detections, settings.max_steps, samples, candidates, children,
-                  settings.gn_max_steps, scenario.discovery is not None, prior, proposal)
+class Multimodal(AbstractEstimator):
+    """Sum-mixture semantic SLAM (Doherty's thesis Ch. 5): see the module docstring.
+
+    Settings: ``capacity`` (``K`` components), ``samples`` (Monte Carlo draws per child, Eq. 5.10),
+    ``max_assignments`` (joint assignments kept per component while they are built one detection
+    at a time, :func:`hybridslam.inference.beam.beam_search`; ``None``: all ``(G+1)^D``),
+    ``candidates`` (``G`` gated objects per detection, plus the null hypothesis), ``children``
+    (children that get a Gauss-Newton update; ``None``: ``2·capacity``), ``merge_threshold``
+    (squared Mahalanobis distance over the whole state), ``association_prior`` (``"mc"``: thesis
+    Eq. 5.11; ``"uniform"``), ``proposal`` (``"posterior"`` or ``"prior"``), ``gn_max_steps``,
+    ``classifier``, ``max_detections``, ``max_steps`` and ``smoother`` (:class:`~.smoothing.Full` by
+    default: each component's trajectory relinearized at every step, the thesis's mm-iSAM in spirit;
+    :class:`~.smoothing.Filter`) as in every estimator.
+    """
+
+    capacity: int = eqx.field(default=64, static=True)
+    samples: int = eqx.field(default=DEFAULT_SAMPLES, static=True)
+    candidates: int = eqx.field(default=DEFAULT_CANDIDATES, static=True)
+    children: int | None = eqx.field(default=None, static=True)
+    merge_threshold: float = eqx.field(default=DEFAULT_MERGE_THRESHOLD, static=True)
+    max_assignments: int | None = eqx.field(default=64, static=True)
+    association_prior: str = eqx.field(default="mc", static=True)
+    proposal: str = eqx.field(default="posterior", static=True)
+    gn_max_steps: int = eqx.field(default=20, static=True)
+    smoother: Smoother = Full()
+    classifier: str | ClassifierModel | None = None
+    max_detections: int | None = eqx.field(default=None, static=True)
+    max_steps: int | None = eqx.field(default=None, static=True)
+
+    name: ClassVar[str] = "multimodal"
+    reference: ClassVar[str] = "Doherty thesis Ch. 5, Eq. 5.9-5.11"
+
+    def __check_init__(self):
+        for field in ("capacity", "samples", "candidates", "gn_max_steps"):
+            value = getattr(self, field)
+            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+                raise ValueError(f"Multimodal.{field}: must be at least 1, got {value!r}")
+        if self.max_assignments is not None and not (isinstance(self.max_assignments, int) and self.max_assignments >= 1):
+            raise ValueError(f"Multimodal.max_assignments: must be at least 1 or None, got {self.max_assignments!r}")
+        if self.children is not None and not (isinstance(self.children, int) and self.children >= 1):
+            raise ValueError(f"Multimodal.children: must be at least 1, got {self.children!r}")
+        if self.association_prior not in ASSOCIATION_PRIORS:
+            raise ValueError(f"Multimodal.association_prior: must be one of {ASSOCIATION_PRIORS}, "
+                             f"got {self.association_prior!r}")
+        if self.proposal not in PROPOSALS:
+            raise ValueError(f"Multimodal.proposal: must be one of {PROPOSALS}, got {self.proposal!r}")
+        if not (isinstance(self.merge_threshold, (int, float)) and self.merge_threshold > 0):
+            raise ValueError(f"Multimodal.merge_threshold: must be positive, got {self.merge_threshold!r}")
+
+    def _structure(self, scenario: Scenario) -> Structure:
+        n_max = scenario.discovery.max_objects if scenario.discovery is not None else scenario.num_objects
+        if n_max < 1:
+            raise ValueError("multimodal: the scenario has no objects and no discovery section (nothing to associate)")
+        slots = self.max_detections or max(scenario.max_detections, 1)
+        if scenario.max_detections > slots:
+            raise ValueError(f"max_detections: {slots} slots, but a step of the scenario has "
+                             f"{scenario.max_detections} detections")
+        candidates = min(self.candidates, n_max)
+        assignments = (candidates + 1) ** slots if self.max_assignments is None else self.max_assignments
+        children = min(2 * self.capacity if self.children is None else self.children, self.capacity * assignments)
+        if (n_max + 1) ** slots >= 2**62:
+            raise ValueError(f"multimodal: {slots} detection slots over {n_max} objects "
+                             "overflow the int64 association codes")
+        return Structure(self.capacity, n_max, slots, history_length(self.max_steps, scenario), self.samples, candidates, children,
+                         self.gn_max_steps, scenario.discovery is not None, self.association_prior, self.proposal,
+                         self.max_assignments)
+
+    def init(self, scenario: Scenario) -> State:
+        """One component of weight 1: the robot and object priors, uncreated slots ``N(0, I)`` (Eq. 3)."""
+        cfg = self._structure(scenario)
+        model = model_from_scenario(scenario.replace(discovery=None), self.classifier)
+        n, n_max, m = scenario.num_objects, cfg.max_objects, scenario.num_classes
+        dim = 3 + 3 * n_max
+        mean = np.zeros(dim)
+        mean[:3] = scenario.robot_prior_mean
+        mean[3:3 + 3 * n] = np.asarray(scenario.object_prior_means).reshape(-1)
+        cov = np.eye(dim)
+        cov[:3, :3] = scenario.robot_prior_cov
+        for i in range(n):  # once, at init
+            cov[3 + 3 * i:6 + 3 * i, 3 + 3 * i:6 + 3 * i] = scenario.object_prior_covs[i]
+        class_lp = np.full((n_max, m), -math.log(m))
+        with np.errstate(divide="ignore"):
+            class_lp[:n] = np.log(scenario.class_prior)
+        disc = scenario.discovery
+        params = Params(
+            jnp.asarray(disc.new_object_log_density if disc else -jnp.inf, dtype=float),
+            jnp.asarray(disc.new_object_orientation_var if disc else 1.0, dtype=float),
+            jnp.asarray(float(self.merge_threshold), dtype=float),
+        )
+        # The class prior padded to Nmax rows: runs with the same capacities share one compiled step.
+        model = eqx.tree_at(lambda mo: mo.class_prior, model, jnp.asarray(np.exp(class_lp)))
+        k = cfg.capacity
+        smoothing = {} if isinstance(self.smoother, Filter) else dict(
+            poses=jnp.broadcast_to(initial_trajectory(scenario, cfg.max_steps), (k, cfg.max_steps + 1, 3)),
+            log=data_log(scenario, cfg.max_steps, cfg.max_detections, n_max))
+        return State(
+            log_weights=jnp.full((k,), -jnp.inf).at[0].set(0.0),
+            mean=jnp.broadcast_to(jnp.asarray(mean), (k, dim)),
+            cov=jnp.broadcast_to(jnp.asarray(cov), (k, dim, dim)),
+            class_log_probs=jnp.broadcast_to(jnp.asarray(class_lp), (k, n_max, m)),
+            observed=jnp.zeros((k, n_max), dtype=bool),
+            num_created=jnp.full((k,), n, dtype=jnp.int32),
+            history=jnp.full((k, cfg.max_steps, cfg.max_detections), -1, dtype=jnp.int32),
+            k=jnp.zeros((), dtype=jnp.int32),
+            model=model,
+            params=params,
+            config=cfg,
+            **smoothing,
+        )
+
+    def trajectory(self, state: State):
+        """The smoothed ``x_0..x_T`` of the best component (``None`` without smoothing)."""
+        return None if state.poses is None else state.poses[jnp.argmax(state.log_weights)]
+
+    def step(self, state: State, odometry: Float[Array, "3"], detections: Detections,
+             key: jax.Array) -> tuple[State, StepInfo]:
+        """Propagate (Eq. 5.7's odometry factor), weigh the (component, joint assignment) children by
+        Eq. 5.9-5.11, update them and merge them back to ``K`` components."""
+        return _step(state, odometry, detections, key, self.smoother)
+
+    def view(self, state: State) -> Mixture:
+        """The robot-pose mixture, per-component argmax classes of associated objects (else -1), histories."""
+        classes = jnp.where(state.observed, jnp.argmax(state.class_log_probs, axis=-1), -1).astype(jnp.int32)
+        # Kept in the state, but a weight that underflows to 0 is no component of the reported belief.
+        log_w = jnp.where(jnp.exp(state.log_weights) > 0, state.log_weights, -jnp.inf)
+        return Mixture(log_w, state.mean[:, :3], state.cov[:, :3, :3], classes, state.history, state.k)
+
+    def describe(self, scenario: Scenario | None = None) -> str:
+        return (
+            f"hybridslam {__version__} multimodal sum-mixture semantic SLAM ({self.reference}); "
+            f"classifier={classifier_name(self.classifier, scenario)}, "
+            f"capacity={self.capacity}, num_samples={self.samples}, candidates={self.candidates}, "
+            f"children={2 * self.capacity if self.children is None else self.children}, "
+            f"merge_threshold={self.merge_threshold}, association_prior={self.association_prior}, "
+            f"proposal={self.proposal}, gn_max_steps={self.gn_max_steps}, smoother={self.smoother.name}"
+        )
 
 
-def init(scenario: Scenario, settings: Settings) -> State:
-    """One component of weight 1: the robot and object priors, uncreated slots ``N(0, I)`` (Eq. 3)."""
-    cfg = _config(scenario, settings)
-    model = model_from_scenario(scenario.replace(discovery=None), settings.classifier)
-    n, n_max, m = scenario.num_objects, cfg.max_objects, scenario.num_classes
-    dim = 3 + 3 * n_max
-    mean = np.zeros(dim)
-    mean[:3] = scenario.robot_prior_mean
-    mean[3:3 + 3 * n] = np.asarray(scenario.object_prior_means).reshape(-1)
-    cov = np.eye(dim)
-    cov[:3, :3] = scenario.robot_prior_cov
-    for i in range(n):  # once, at init
-        cov[3 + 3 * i:6 + 3 * i, 3 + 3 * i:6 + 3 * i] = scenario.object_prior_covs[i]
-    class_lp = np.full((n_max, m), -math.log(m))
-    with np.errstate(divide="ignore"):
-        class_lp[:n] = np.log(scenario.class_prior)
-    disc = scenario.discovery
-    params = Params(
-        jnp.asarray(disc.new_object_log_density if disc else -jnp.inf, dtype=float),
-        jnp.asarray(disc.new_object_orientation_var if disc else 1.0, dtype=float),
-        jnp.asarray(float(settings.option("merge_threshold", DEFAULT_MERGE_THRESHOLD)), dtype=float),
-    )
-    # The class prior padded to Nmax rows: runs with the same capacities share one compiled step.
-    model = eqx.tree_at(lambda mo: mo.class_prior, model, jnp.asarray(np.exp(class_lp)))
-    k = cfg.capacity
-    return State(
-        log_weights=jnp.full((k,), -jnp.inf).at[0].set(0.0),
-        mean=jnp.broadcast_to(jnp.asarray(mean), (k, dim)),
-        cov=jnp.broadcast_to(jnp.asarray(cov), (k, dim, dim)),
-        class_log_probs=jnp.broadcast_to(jnp.asarray(class_lp), (k, n_max, m)),
-        observed=jnp.zeros((k, n_max), dtype=bool),
-        num_created=jnp.full((k,), n, dtype=jnp.int32),
-        history=jnp.full((k, cfg.max_steps, cfg.max_detections), -1, dtype=jnp.int32),
-        k=jnp.zeros((), dtype=jnp.int32),
-        model=model,
-        params=params,
-        config=cfg,
-    )
-
-
-@jax.jit
-def step(state: State, odometry: Float[Array, "3"], detections: Detections, key: jax.Array) -> tuple[State, Info]:
-    """Propagate (Eq. 5.7's odometry factor), weigh the (component, joint assignment) children by
-    Eq. 5.9-5.11, update them and merge them back to ``K`` components."""
+def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key: jax.Array,
+          smoother: Smoother) -> tuple[State, StepInfo]:
     cfg = state.config
     mean, cov = jax.vmap(motion.propagate, (0, 0, None, None))(state.mean, state.cov, odometry, state.model.motion_cov)
     ch = hypotheses(state, mean, cov, detections, key)
@@ -703,65 +801,60 @@ def step(state: State, odometry: Float[Array, "3"], detections: Detections, key:
         state, ch.mean, ch.cov, state.class_log_probs[ch.parent], state.observed[ch.parent],
         state.num_created[ch.parent], ch.objects, ch.new, detections, theta)
     c_hist = state.history[ch.parent].at[:, state.k].set(jnp.where(detections.mask[None, :], ch.objects, -1))
+    poses, log, c_poses, smooth_failed = state.poses, state.log, None, jnp.zeros((), jnp.int32)
+    if isinstance(smoother, Full):
+        # Each child's whole trajectory and map relinearized with every factor of its history
+        # (smoothing.py) before the children are merged; a merged component keeps its centre's.
+        log = state.log.record(state.k, odometry, detections)
+
+        def smoothed(poses_i, mean_i, history_i, created_i):
+            g = smoothing_graph(log, history_factors(history_i), state.k + 1, created_i, state.model.sensor,
+                                state.model.motion_cov, semantic=False)
+            return smooth(smoother, g, poses_i, mean_i, state.k + 1)
+
+        live = ch.log_weight > -jnp.inf
+        out = map_live(smoothed, live, state.poses[ch.parent], c_mean, c_hist, c_created)
+        c_mean = jnp.where(live[:, None], out.mean, c_mean)
+        c_cov = jnp.where(live[:, None, None], out.cov, c_cov)
+        c_poses = out.poses
+        relevant_live = live & (ch.log_weight > jnp.max(ch.log_weight) - RELEVANT_NATS)
+        smooth_failed = jnp.sum(relevant_live & (out.result != optx.RESULTS.successful), dtype=jnp.int32)
     centres, log_w, wn, m_mean, m_cov = merge(ch.log_weight, c_mean, c_cov, c_created, state.params.merge_threshold,
                                               cfg.capacity)
+    if c_poses is not None:
+        poses = c_poses[centres]
     # Warnings concern hypotheses within RELEVANT_NATS of the best; the rest carry no visible mass.
     relevant = state.log_weights > jnp.max(state.log_weights) - RELEVANT_NATS
     no_room = cfg.discovery & jnp.any(detections.mask) & jnp.any(relevant & (state.num_created >= cfg.max_objects))
     relevant_child = ch.log_weight > jnp.max(ch.log_weight) - RELEVANT_NATS
-    info = Info(
-        parent=ch.parent,
-        assoc_objects=ch.objects,
-        assoc_log_probs=ch.log_prob,
+    # No child explains the step (e.g. no room for a new object, or no feasible joint assignment): the
+    # step's detections are skipped, and counted, and every component stays, propagated, with its
+    # weight and no association for this step, rather than the belief lost.
+    explained = jnp.any(log_w > -jnp.inf)
+    info = StepInfo(
+        k=(state.k + 1).astype(jnp.int32),
+        num_components=jnp.where(explained, jnp.sum(log_w > -jnp.inf, dtype=jnp.int32),
+                                 jnp.sum(state.log_weights > -jnp.inf, dtype=jnp.int32)),
         dropped_mass=ch.dropped_mass,
-        solver_failures=jnp.sum(relevant_child & (ch.result != optx.RESULTS.successful)),
-        overflow=no_room | ~jnp.any(log_w > -jnp.inf),
-        num_components=jnp.sum(log_w > -jnp.inf),
+        dropped_budget=ch.beam_dropped,
+        solver_failures=jnp.sum(relevant_child & (ch.result != optx.RESULTS.successful), dtype=jnp.int32)
+        + smooth_failed,
+        skipped=jnp.where(explained, 0, jnp.sum(detections.mask, dtype=jnp.int32)),
+        object_overflow=no_room,
+        details=Details(ch.parent, ch.objects, ch.log_prob),
     )
+    keep = lambda new, old: jnp.where(explained, new, old)  # noqa: E731
     new_state = dataclasses.replace(
         state,
-        log_weights=log_w - jax.nn.logsumexp(log_w),
-        mean=m_mean,
-        cov=m_cov,
-        class_log_probs=jnp.log(jnp.einsum("kc,cnm->knm", wn, jnp.exp(c_class))),
-        observed=jnp.any((wn > 0)[:, :, None] & c_obs[None, :, :], axis=1),
-        num_created=c_created[centres],
-        history=c_hist[centres],
+        log_weights=keep(log_w - jax.nn.logsumexp(jnp.where(explained, log_w, 0.0)), state.log_weights),
+        mean=keep(m_mean, mean),
+        cov=keep(m_cov, cov),
+        class_log_probs=keep(jnp.log(jnp.einsum("kc,cnm->knm", wn, jnp.exp(c_class))), state.class_log_probs),
+        observed=keep(jnp.any((wn > 0)[:, :, None] & c_obs[None, :, :], axis=1), state.observed),
+        num_created=keep(c_created[centres], state.num_created),
+        history=keep(c_hist[centres], state.history.at[:, state.k].set(-1)),
         k=state.k + 1,
+        poses=poses if poses is None else keep(poses, state.poses),
+        log=log,
     )
     return new_state, info
-
-
-def view(state: State) -> Mixture:
-    """The robot-pose mixture, per-component argmax classes of associated objects (else -1), histories."""
-    classes = jnp.where(state.observed, jnp.argmax(state.class_log_probs, axis=-1), -1).astype(jnp.int32)
-    # Kept in the state, but a weight that underflows to 0 is no component of the reported belief.
-    log_w = jnp.where(jnp.exp(state.log_weights) > 0, state.log_weights, -jnp.inf)
-    return Mixture(log_w, state.mean[:, :3], state.cov[:, :3, :3], classes, state.history, state.k)
-
-
-def describe(settings: Settings) -> str:
-    samples = DEFAULT_SAMPLES if settings.num_samples is None else settings.num_samples
-    return (
-        f"multimodal (sum-mixture semantic SLAM, Doherty thesis Ch. 5, Eq. 5.9-5.11; hybridslam): "
-        f"capacity={settings.capacity}, num_samples={samples}, "
-        f"candidates={settings.option('candidates', DEFAULT_CANDIDATES)}, "
-        f"children={settings.option('children', 2 * settings.capacity)}, "
-        f"merge_threshold={settings.option('merge_threshold', DEFAULT_MERGE_THRESHOLD)}, "
-        f"association_prior={settings.option('association_prior', 'mc')}, "
-        f"proposal={settings.option('proposal', 'posterior')}, gn_max_steps={settings.gn_max_steps}"
-    )
-
-
-def warnings(info: Info) -> list[str]:
-    """Mass not updated (children beyond the budget), failed solves, object capacity overflow."""
-    out = []
-    if float(info.dropped_mass) > 1e-6:
-        out.append(f"multimodal: {float(info.dropped_mass):.2e} of the posterior mass lay in children beyond "
-                   "the 'children' budget and was dropped (raise children or capacity)")
-    if int(info.solver_failures):
-        out.append(f"multimodal: {int(info.solver_failures)} Gauss-Newton solves did not converge")
-    if bool(info.overflow):
-        out.append("multimodal: object capacity full (or no feasible association): a detection could not "
-                   "create a new object (raise discovery.max_objects)")
-    return out

@@ -1,0 +1,168 @@
+"""Is an estimator's covariance honest, and did it associate right? Checks against ground truth.
+
+A filter that reports too small a covariance gates out the right object, or accepts a wrong one,
+when a loop closes. These host-side checks make that visible on simulated runs:
+
+* :func:`pose_nees`: the normalized estimation error squared ``eᵀ Σ⁻¹ e`` of a pose (3 degrees
+  of freedom: mean 3 for a consistent estimator, above 11.34 in 1% of its steps);
+* :func:`heading_bound`: the Cramér-Rao bound on the heading of ``x_k``: the batch Fisher
+  information of every factor up to step ``k`` (the prior on ``x_0``, the odometry of Eq. 11 and
+  the range-bearing detections of Eq. 10, true associations), linearized at the true poses. No
+  estimator can be more certain; a filter that reports less is overconfident;
+* :func:`association_audit`: per detection, whether the estimator assigned it to the object it
+  made of the same landmark's first detection (a loop closure, for a landmark first seen long
+  ago), to an object that another landmark created (a wrong merge), or to a new object;
+* :func:`loop_closure_report`: the audit and the pose's consistency, for one scenario and one result file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import numpy as np
+
+from ..io.result import Result
+from ..io.scenario import Scenario
+from ..models import geometry
+from ..models.motion import odometry_residual
+
+NEES_BOUND_99 = 11.34  # chi-square 99% quantile, 3 degrees of freedom
+
+_odometry_jacobians = jax.jit(jax.vmap(jax.jacfwd(odometry_residual, argnums=(0, 1))))  # Eq. 11
+_detection_jacobians = jax.jit(jax.vmap(jax.jacfwd(geometry.range_bearing, argnums=(0, 1))))  # Eq. 10
+
+
+def pose_nees(true_pose: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> float:
+    """``eᵀ Σ⁻¹ e`` with ``e = x_true − x̂`` (heading wrapped to (−π, π]); dimensionless."""
+    e = np.asarray(true_pose, float) - np.asarray(mean, float)
+    e[2] = (e[2] + math.pi) % (2.0 * math.pi) - math.pi
+    return float(e @ np.linalg.solve(np.asarray(cov, float), e))
+
+
+def dead_reckoning_heading_var(scenario: Scenario, k: int) -> float:
+    """Heading variance of ``x_k`` from the prior and odometry alone (rad²): ``Σ₀[θ,θ] + k Λ_t[θ,θ]``."""
+    return float(scenario.robot_prior_cov[2, 2] + k * scenario.motion_cov[2, 2])
+
+
+def heading_bound(scenario: Scenario, k: int) -> float:
+    """The Cramér-Rao bound on the heading standard deviation of ``x_k`` given steps ``1..k`` (rad).
+
+    The information matrix is ``Jᵀ W J`` over the poses ``x_0..x_k`` and the positions of the
+    landmarks detected up to ``k``, with ``J`` the Jacobians of the factors at the truth and ``W``
+    their inverse covariances (Eq. 10-11); landmark orientations are not observed and left out.
+    Needs the scenario's ground truth (``robot.true_poses``, ``true_object`` per detection and the
+    objects' true poses).
+    """
+    poses, landmarks = _truth(scenario)
+    if not 0 <= k <= scenario.num_steps:
+        raise ValueError(f"k: expected a step in 0..{scenario.num_steps}, got {k}")
+    step_of = np.array([j + 1 for j, step in enumerate(scenario.steps[:k]) for _ in step.detections], dtype=int)
+    seen = np.array([d.true_object for step in scenario.steps[:k] for d in step.detections], dtype=int)
+    slot = np.unique(seen, return_inverse=True)[1] if seen.size else seen  # landmark -> column block
+    n = 3 * (k + 1) + 2 * (int(slot.max()) + 1 if seen.size else 0)
+    odometry = np.array([s.odometry for s in scenario.steps]).reshape(-1, 3)
+    ja, jb = (np.asarray(a)[:k] for a in _odometry_jacobians(poses[:-1], poses[1:], odometry))
+    # Padded to a power of two so that runs of one study share a few compiled shapes.
+    pad = 1 << max(seen.size - 1, 0).bit_length()
+    jx, jo = (np.asarray(a)[:seen.size] for a in _detection_jacobians(
+        poses[np.resize(step_of, pad)] if seen.size else np.zeros((1, 3)),
+        landmarks[np.resize(seen, pad)] if seen.size else np.zeros((1, 3))))
+    # Whitened by the square-root information, so that the information is jacᵀ jac.
+    w_odo = np.linalg.cholesky(np.linalg.inv(scenario.motion_cov)).T
+    w_geo = np.linalg.cholesky(np.linalg.inv(scenario.geometric_cov)).T
+    ja, jb, jx, jo = w_odo @ np.asarray(ja), w_odo @ np.asarray(jb), w_geo @ np.asarray(jx), w_geo @ np.asarray(jo)
+    jac = np.zeros((3 * k + 2 * seen.size, n))
+    rows = np.arange(3 * k).reshape(k, 3)
+    for block, col in ((ja, 3 * np.arange(k)), (jb, 3 * np.arange(1, k + 1))):
+        jac[rows[:, :, None], col[:, None, None] + np.arange(3)] = block
+    rows = 3 * k + np.arange(2 * seen.size).reshape(-1, 2)
+    jac[rows[:, :, None], 3 * step_of[:, None, None] + np.arange(3)] = jx
+    jac[rows[:, :, None], 3 * (k + 1) + 2 * slot[:, None, None] + np.arange(2)] = jo[:, :, :2]
+    info = jac.T @ jac
+    info[:3, :3] += np.linalg.inv(scenario.robot_prior_cov)
+    e = np.zeros(n)
+    e[3 * k + 2] = 1.0
+    return float(math.sqrt(np.linalg.solve(info, e)[3 * k + 2]))
+
+
+def _truth(scenario: Scenario) -> tuple[np.ndarray, np.ndarray]:
+    if scenario.true_robot_poses is None:
+        raise ValueError("robot.true_poses: the scenario has no ground truth for the robot")
+    if scenario.true_objects is not None:
+        landmarks = np.array([pose for pose, _ in scenario.true_objects])
+    elif scenario.true_object_poses is not None:
+        landmarks = np.asarray(scenario.true_object_poses)
+    else:
+        raise ValueError("true_objects: the scenario has no ground-truth object poses")
+    for j, step in enumerate(scenario.steps):
+        for i, d in enumerate(step.detections):
+            if d.true_object is None:
+                raise ValueError(f"steps[{j}].detections[{i}].true_object: missing (ground truth is needed)")
+    return np.asarray(scenario.true_robot_poses), landmarks
+
+
+@dataclasses.dataclass(frozen=True)
+class Audit:
+    """Counts over one run's detections (see :func:`association_audit`)."""
+
+    redetections: int  # detections of a landmark first detected more than ``gap`` steps earlier
+    closed: int  # ... assigned to the object made of that landmark's first detection
+    wrong: int  # detections assigned to an object that another landmark's detection made first
+    objects: int  # distinct objects the estimator used
+    landmarks: int  # distinct true landmarks detected
+    first_redetection: int | None  # step (1-based) of the first re-detection, None if none
+
+
+def association_audit(true_objects: list[list[int]], associations: list[list[int]], gap: int = 20) -> Audit:
+    """Compare an association history with the truth, detection by detection.
+
+    ``true_objects[j]`` / ``associations[j]``: the true landmark and the estimator's object of each
+    detection of step ``j + 1`` (a result file component's ``associations``). An object *belongs*
+    to the landmark of the first detection assigned to it.
+    """
+    if len(true_objects) != len(associations):
+        raise ValueError(f"associations: {len(associations)} steps, the truth has {len(true_objects)}")
+    owner: dict[int, int] = {}
+    first: dict[int, tuple[int, int]] = {}  # landmark -> (step, object) of its first detection
+    redet = closed = wrong = 0
+    first_redetection = None
+    for k, (truth, objs) in enumerate(zip(true_objects, associations), start=1):
+        if len(truth) != len(objs):
+            raise ValueError(f"associations[{k - 1}]: {len(objs)} detections, the truth has {len(truth)}")
+        for t, o in zip(truth, objs):
+            wrong += owner.get(o, t) != t
+            if t in first and k - first[t][0] > gap:
+                redet += 1
+                closed += o == first[t][1]
+                first_redetection = first_redetection or k
+            owner.setdefault(o, t)
+            first.setdefault(t, (k, o))
+    return Audit(redet, closed, wrong, len(owner), len(first), first_redetection)
+
+
+@dataclasses.dataclass(frozen=True)
+class LoopClosureReport:
+    """:class:`Audit` of the top component, and its pose just before the first re-detection."""
+
+    audit: Audit
+    nees: float | None  # pose NEES of the highest-weight component after step first_redetection − 1
+    heading_z: float | None  # |heading error| / its reported standard deviation there
+    heading_sd_ratio: float | None  # reported heading sd / dead-reckoning sd there
+
+
+def loop_closure_report(scenario: Scenario, result: Result, gap: int = 20) -> LoopClosureReport:
+    """Audit the highest-weight final component of ``result`` on ``scenario``'s ground truth."""
+    poses, _ = _truth(scenario)
+    truth = [[d.true_object for d in step.detections] for step in scenario.steps]
+    top = max(result.steps[-1].components, key=lambda c: c.weight)
+    audit = association_audit(truth, top.associations, gap)
+    if audit.first_redetection is None or audit.first_redetection < 2:
+        return LoopClosureReport(audit, None, None, None)
+    k = audit.first_redetection - 1
+    comp = max(result.steps[k - 1].components, key=lambda c: c.weight)
+    cov = np.asarray(comp.pose_cov)
+    err = (poses[k][2] - comp.pose_mean[2] + math.pi) % (2.0 * math.pi) - math.pi
+    return LoopClosureReport(audit, pose_nees(poses[k], comp.pose_mean, cov), abs(err) / math.sqrt(cov[2, 2]),
+                             math.sqrt(cov[2, 2] / dead_reckoning_heading_var(scenario, k)))

@@ -1,0 +1,59 @@
+"""The ``hybridslam`` command: one module per subcommand, :func:`main` is the entry point.
+
+    hybridslam simulate --seed 0 --steps 10 --alpha 0.25 -o scenario.json
+    hybridslam run scenario.json -o result.json [--estimator hybrid|ml|gpda|max-mixture|multimodal] ...
+    hybridslam sweep [--alphas 0,0.25,0.5] [--models mirror,independent,none] [--tracks 8] -o runs/sweep
+    hybridslam sweep --scenarios 'logs/*.json' [--estimator ...] -o runs/logs
+    hybridslam plot runs/sweep
+    hybridslam demo [-o runs/demo] [--tracks 4] [--steps 10]
+    hybridslam hallway -o runs/hallway [--levels ...] [--seeds 5] [--steps 60] [--known-map]
+    hybridslam import mrclam DATASET_DIR --robot N -o FILE [--start S] [--duration D] [--unknown-map]
+
+Every user error (bad option, missing or malformed file, invalid setting, unwritable output) ends
+with exit status 2 and one line ``hybridslam: error: <message>`` on stderr. Compiled steps are kept
+in JAX's persistent cache between runs (:mod:`.cache`; ``HYBRIDSLAM_NO_CACHE=1`` turns it off).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from ..io.scenario import ScenarioError
+from . import cache, demo, importers, run, simulate, sweep
+from .common import PROG, CLIError, Parser
+from .tables import alpha_summary as alpha_summary
+from .tables import summary_table as summary_table
+
+__all__ = ["CLIError", "alpha_summary", "build_parser", "main", "summary_table"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = Parser(prog=PROG, description="Semantic SLAM with ambiguous data association.")
+    sub = parser.add_subparsers(dest="command", required=True,
+                                metavar="{simulate,run,demo,sweep,plot,hallway,import}")
+    simulate.add_parsers(sub)
+    run.add_parser(sub)
+    demo.add_parser(sub)
+    sweep.add_parsers(sub)
+    importers.register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``hybridslam`` console script; returns the exit status."""
+    try:
+        args = build_parser().parse_args(argv)
+        cache.enable()
+        return args.func(args)
+    except (CLIError, ScenarioError) as e:
+        message = str(e)
+    except OSError as e:
+        target = f" {e.filename!r}" if e.filename else ""
+        message = f"cannot access{target}: {e.strerror or e}"
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return 130
+    print(f"{PROG}: error: {' '.join(message.split())}", file=sys.stderr)
+    return 2

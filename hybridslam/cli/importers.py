@@ -1,0 +1,143 @@
+"""``hybridslam import``: real-robot logs written as scenario files.
+
+    hybridslam import mrclam DATASET_DIR --robot N -o FILE [--start S] [--duration D] [--dt 0.5]
+        [--unknown-map] [--max-range R] [--fov F] [--motion-cov a,b,c] [--geometric-cov a,b]
+        [--robot-prior-cov a,b,c] [--correct-range-bias] [--no-motion-compensation] [--odometry-delay S]
+
+:func:`register` adds the ``import`` command to the ``hybridslam`` parser; its errors are
+:class:`~hybridslam.cli.CLIError` (one line, exit status 2) like every other command's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+import numpy as np
+
+from ..io.mrclam import MRCLAMError, import_mrclam
+from ..io.scenario import Scenario, save_scenario
+from .common import CLIError, check_writable
+
+_GAP_NOTE_S = 0.5  # a longer stretch without odometry or ground truth is worth a line
+_DRIFT_NOTE = 2.0  # block-sum sd / calibrated sd above this is worth a line
+
+
+def _variances(text: str | None, n: int, option: str) -> np.ndarray | None:
+    """``n`` comma-separated positive variances (a diagonal covariance), or None."""
+    if text is None:
+        return None
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != n or not all(math.isfinite(v) and v > 0 for v in values):
+        raise CLIError(f"{option}: expected {n} positive comma-separated variances, got {text!r}")
+    return np.diag(values)
+
+
+def _sds(cov: np.ndarray) -> str:
+    return ", ".join(f"{s:.3g}" for s in np.sqrt(np.diag(cov)))
+
+
+def mrclam_summary(path: str, s: Scenario) -> str:
+    """The lines ``hybridslam import mrclam`` prints about the scenario it wrote to ``path``."""
+    g = s.metadata["generator"]
+    cal, counts, dr, data = g["calibration"], g["counts"], g["dead_reckoning"], g["data"]
+    per_step = [len(st.detections) for st in s.steps]
+    seen = {d.true_object for st in s.steps for d in st.detections}
+    num_landmarks = s.num_objects if s.discovery is None else len(s.true_objects or ())
+    start, bias = g["start_s"], cal["range_bias_m"]
+    corrected = "corrected" if cal["range_bias_corrected"] else "not corrected: --correct-range-bias"
+    end = start + g["duration_s"]
+    window = (f"wrote {path}: {g['dataset']} robot {g['robot']}, {start:g}-{end:g} s after "
+              f"its first odometry record, {s.num_steps} steps of {g['dt_s']:g} s, {g['map']} map of "
+              f"{num_landmarks} landmarks")
+    detections = (f"detections: {sum(per_step)} of {len(seen)} landmarks, "
+                  f"{np.mean(per_step):.2f} per step (max {max(per_step)}); dropped "
+                  f"{counts['robot_robot']} robot-robot, {counts['unknown_barcode']} unknown barcode, "
+                  f"{counts['beyond_sensor']} beyond the sensor, {counts['superseded']} superseded "
+                  "(same landmark, same step)")
+    geometric = (f"geometric_cov ({cal['geometric_cov']}): sd {_sds(s.geometric_cov)} (m, rad); "
+                 f"range bias {bias:+.3f} m ({corrected})")
+    dead_reckoning = (f"dead reckoning at the end of the window: {dr['final_position_error_m']:.3f} m, "
+                      f"{dr['final_heading_error_rad']:+.3f} rad off the ground truth "
+                      f"(path {dr['path_length_m']:.2f} m)")
+    lines = [
+        window, detections, f"sensor: max_range {s.max_range:g} m, fov {s.fov:g} rad",
+        f"motion_cov ({cal['motion_cov']}): sd {_sds(s.motion_cov)} (m, m, rad per step)",
+        geometric, dead_reckoning,
+    ]
+    gaps = [f"{name} {data[key]:.2f} s" for name, key in (("odometry", "odometry_max_gap_s"),
+                                                          ("ground truth", "groundtruth_max_gap_s"))
+            if data[key] > _GAP_NOTE_S]
+    drift = cal.get("odometry_drift_sd_per_step")
+    if drift and np.any(np.asarray(drift["sd"]) > _DRIFT_NOTE * np.sqrt(np.diag(s.motion_cov))):
+        sds = ", ".join(f"{v:.3g}" for v in drift["sd"])
+        block = drift["block_steps"]
+        lines.append(f"note: odometry errors are correlated in time: summed over {block} steps "
+                     f"they grow like sd {sds} per step, more than {_DRIFT_NOTE:g}x motion_cov's; dead "
+                     "reckoning drifts faster than it says (--motion-cov)")
+    if gaps:
+        lines.append(f"note: longest gap without records in the window: {', '.join(gaps)}")
+    return "\n".join(lines)
+
+
+def cmd_import_mrclam(args: argparse.Namespace) -> int:
+    """Write one robot's MRCLAM log as a scenario file and print a summary."""
+    covs = {"motion_cov": _variances(args.motion_cov, 3, "--motion-cov"),
+            "geometric_cov": _variances(args.geometric_cov, 2, "--geometric-cov"),
+            "robot_prior_cov": _variances(args.robot_prior_cov, 3, "--robot-prior-cov")}
+    check_writable(args.output)
+    try:
+        scenario = import_mrclam(
+            args.dataset, args.robot, start=args.start, duration=args.duration, dt=args.dt,
+            unknown_map=args.unknown_map, max_range=args.max_range, fov=args.fov,
+            correct_range_bias=args.correct_range_bias, motion_compensation=args.motion_compensation,
+            odometry_delay=args.odometry_delay, **covs)
+    except MRCLAMError as e:
+        raise CLIError(str(e)) from None
+    save_scenario(scenario, args.output)
+    print(mrclam_summary(args.output, scenario))
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``import`` (with its ``mrclam`` subcommand) to the ``hybridslam`` subcommands."""
+    p = subparsers.add_parser("import", help="write a real-robot log as a scenario file (MRCLAM)")
+    sources = p.add_subparsers(dest="source", required=True, metavar="{mrclam}")
+    m = sources.add_parser(
+        "mrclam", help="one robot of a UTIAS MRCLAM dataset folder",
+        description="One robot's log of a UTIAS MRCLAM dataset folder as a scenario: a step every --dt "
+                    "seconds, exact odometry arcs, landmark detections, noise calibrated from the ground "
+                    "truth.")
+    m.add_argument("dataset", metavar="DATASET_DIR",
+                   help="folder with Barcodes.dat, Landmark_Groundtruth.dat, "
+                        "RobotN_{Odometry,Measurement,Groundtruth}.dat")
+    m.add_argument("--robot", type=int, required=True, help="robot 1-5")
+    m.add_argument("-o", "--output", required=True, help="scenario file to write")
+    m.add_argument("--start", type=float, default=0.0,
+                   help="x_0 this many seconds after the robot's first odometry record (default 0)")
+    m.add_argument("--duration", type=float, default=None,
+                   help="seconds of steps (default: to the end of the data)")
+    m.add_argument("--dt", type=float, default=0.5, help="seconds between steps (default 0.5)")
+    m.add_argument("--unknown-map", action="store_true",
+                   help="no prior objects: a discovery section, the landmarks under true_objects")
+    m.add_argument("--max-range", type=float, default=None,
+                   help="sensor range in metres; farther detections are dropped (default: from the data)")
+    m.add_argument("--fov", type=float, default=None,
+                   help="field of view in radians; detections outside are dropped (default: from the data)")
+    m.add_argument("--motion-cov", default=None, metavar="VXX,VYY,VTT",
+                   help="odometry variances per step (m^2, m^2, rad^2) instead of the calibrated ones")
+    m.add_argument("--geometric-cov", default=None, metavar="VRR,VBB",
+                   help="range and bearing variances (m^2, rad^2) instead of the calibrated ones")
+    m.add_argument("--robot-prior-cov", default=None, metavar="VXX,VYY,VTT",
+                   help="variances of the prior on x_0 (default 1e-4 each)")
+    m.add_argument("--correct-range-bias", action="store_true",
+                   help="subtract the median range residual (against the ground truth) from the ranges")
+    m.add_argument("--no-motion-compensation", dest="motion_compensation", action="store_false",
+                   help="write each detection as measured, not re-expressed from the step's pose")
+    m.add_argument("--odometry-delay", type=float, default=0.0,
+                   help="seconds added to the odometry times (its velocity commands lead the ground truth "
+                        "by ~0.17 s); default 0")
+    m.set_defaults(func=cmd_import_mrclam)

@@ -1,0 +1,178 @@
+"""``hybridslam sweep`` (a resumable study over simulated tracks or scenario files) and ``plot``."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from collections.abc import Sequence
+
+from tqdm import tqdm
+
+from ..analysis import plot
+from ..io.scenario import ScenarioError
+from ..studies import study
+from ..studies.batch import device_mesh
+from .common import (
+    CLASSIFIERS,
+    CLIError,
+    add_estimator_options,
+    check_folder,
+    estimator_from_args,
+    floats,
+    warn,
+)
+from .tables import alpha_summary, summary_table
+
+SWEEP_DEFAULTS = {"alphas": "0,0.25,0.5", "tracks": 8, "steps": 10, "K": 15.0}
+SWEEP_CAPACITY = 16  # small: a batch pays for the largest live set of any of its tracks
+
+
+def _models(text: str | None) -> tuple[str, ...] | None:
+    if text is None:
+        return None
+    names = tuple(m.strip() for m in text.split(",") if m.strip())
+    bad = [m for m in names if m not in CLASSIFIERS and not m.startswith(study.LEARNED_PREFIX)]
+    if not names or bad:
+        raise CLIError(f"--models: unknown model(s) {', '.join(bad) or repr(text)} "
+                       f"(known: {', '.join(CLASSIFIERS)}, learned:PATH)")
+    for m in names:
+        if m.startswith(study.LEARNED_PREFIX):
+            try:
+                study.resolve_model(m)
+            except ValueError as e:
+                raise CLIError(f"--models {m}: {e}") from None
+    return names
+
+
+def draw(folder: str, rows: Sequence[dict]) -> list[str]:
+    """The study's plots from its table rows; returns the files written."""
+    if not rows:
+        return []
+    if "alpha" in rows[0]:
+        path = os.path.join(folder, "alpha_sweep.png")
+        plot.plot_alpha_sweep(rows, path)
+    else:
+        path = os.path.join(folder, "metrics.png")
+        plot.plot_metrics(rows, path)
+    return [path]
+
+
+def _spec(args: argparse.Namespace, models, estimator) -> tuple[study.AlphaStudy | study.FileStudy, str]:
+    if args.scenarios is not None:
+        given = [f"--{k}" for k in SWEEP_DEFAULTS if getattr(args, k) is not None]
+        if given:
+            raise CLIError(f"{', '.join(given)}: only for simulated studies; scenario files carry their own settings")
+        spec = study.FileStudy(tuple(study.scenario_paths(args.scenarios)), models, args.seed, estimator)
+        return spec, f"{len(spec.paths)} scenario file(s) x {', '.join(models) if models else 'their own model'}"
+    opts = {k: SWEEP_DEFAULTS[k] if getattr(args, k) is None else getattr(args, k) for k in SWEEP_DEFAULTS}
+    spec = study.AlphaStudy(
+        alphas=floats(str(opts["alphas"]), "--alphas"), models=models or CLASSIFIERS,
+        tracks=int(opts["tracks"]), steps=int(opts["steps"]), K=float(opts["K"]), seed=args.seed,
+        estimator=estimator)
+    return spec, f"{len(spec.alphas)} alpha(s) x {len(spec.models)} model(s) x {spec.tracks} tracks of {spec.steps} steps"
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    """A study: alphas x models x simulated tracks (Fig. 5), or runs over scenario files; resumable."""
+    capacity = args.capacity
+    if capacity is None and args.estimator in ("hybrid", "multimodal"):
+        capacity = SWEEP_CAPACITY
+    estimator = estimator_from_args(args, capacity=capacity)
+    models = _models(args.models)
+    folder = args.output
+    check_folder(folder)
+    try:
+        spec, what = _spec(args, models, estimator)
+        os.makedirs(folder, exist_ok=True)
+        # Refuses records made with other settings, or a study already writing there; released for the run.
+        with study.Records(folder, spec.header()) as records:
+            done = sum(c in records for c in spec.cells()) if isinstance(spec, study.AlphaStudy) else 0
+        mesh = device_mesh()
+        print(f"sweep: {what}; estimator={estimator.name}; {estimator.describe().split('; ', 1)[-1]}, "
+              f"seed={args.seed}; {mesh.size} device(s) ({mesh.devices.flat[0].platform}); writing to {folder}",
+              flush=True)
+        t_start = time.perf_counter()
+        cells = len(spec.cells()) if isinstance(spec, study.AlphaStudy) else None
+        bar = tqdm(total=cells, desc="sweep", unit="cell", file=sys.stderr, dynamic_ncols=True)
+        compile_s = run_s = 0.0
+
+        def on_cell(label: str, record: dict | None) -> None:
+            nonlocal compile_s, run_s
+            if record is None:
+                bar.set_postfix_str(label)
+                return
+            compile_s += record["compile_s"]
+            run_s += record["run_s"]
+            for line in study.cell_warnings(record):
+                warn(f"{label}: {line}", stream=sys.stderr)
+            if (record.get("batches") or 1) > 1:
+                tqdm.write(f"{label}: split into {record['batches']} batches to fit in memory "
+                           f"({record['batch_gib']:.2f} GiB per device each)", file=sys.stderr)
+            bar.update(1)
+
+        with bar:
+            if isinstance(spec, study.AlphaStudy):
+                bar.update(done)
+                rows = study.run_alpha_study(spec, folder, mesh=mesh, on_cell=on_cell)
+            else:
+                rows = study.run_file_study(spec, folder, mesh=mesh, on_cell=on_cell)
+    except study.StudyError as e:
+        raise CLIError(str(e)) from None
+    except ValueError as e:
+        if isinstance(e, ScenarioError):
+            raise
+        raise CLIError(str(e)) from None
+    written = draw(folder, rows)
+    print(f"wrote {os.path.join(folder, study.TABLE)} ({len(rows)} rows), {study.RECORDS}"
+          + "".join(f", {os.path.basename(p)}" for p in written)
+          + (", results/" if isinstance(spec, study.FileStudy) else ""))
+    if isinstance(spec, study.AlphaStudy):
+        print(f"\nmean over tracks of each track's mean over steps 1-{spec.steps} (± 95% half-width)")
+        print(alpha_summary(rows))
+    else:
+        print("\nmean over scenario files at each file's last step")
+        print(summary_table(rows, list(dict.fromkeys(r["model"] for r in rows))))
+    total = time.perf_counter() - t_start
+    print(f"\nsweep finished in {total:.1f} s (this session: compile {compile_s:.1f} s, batched runs "
+          f"{run_s:.1f} s; {len(rows)} track-steps in the table)")
+    return 0
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    """Redraw a study's plots from its table."""
+    path = os.path.join(args.folder, study.TABLE)
+    if not os.path.isfile(path):
+        raise CLIError(f"{args.folder!r}: no {study.TABLE} (run hybridslam sweep -o {args.folder} first)")
+    rows = study.read_table(path)
+    if not rows:
+        raise CLIError(f"{path}: the table is empty (no finished cell yet)")
+    written = draw(args.folder, rows)
+    print("wrote " + ", ".join(written))
+    return 0
+
+
+def add_parsers(sub) -> None:
+    p = sub.add_parser("sweep", help="a resumable study: alphas x models x tracks (Fig. 5), or scenario files")
+    p.add_argument("-o", "--output", default=os.path.join("runs", "sweep"),
+                   help="output folder (a folder with a finished or interrupted study resumes it)")
+    p.add_argument("--alphas", default=None,
+                   help=f"alphas of Eq. 18, comma-separated (default {SWEEP_DEFAULTS['alphas']})")
+    p.add_argument("--models", default=None,
+                   help="classifier models, comma-separated: mirror, independent, none, or learned:PATH (a "
+                        "model file of scripts/fit_classifier.py) (default: mirror,independent,none; with "
+                        "--scenarios: each file's own)")
+    p.add_argument("--tracks", type=int, default=None,
+                   help=f"simulated tracks per cell (default {SWEEP_DEFAULTS['tracks']})")
+    p.add_argument("--steps", type=int, default=None, help=f"steps per track (default {SWEEP_DEFAULTS['steps']})")
+    p.add_argument("--K", type=float, default=None, help=f"classifier K of Eq. 18 (default {SWEEP_DEFAULTS['K']:g})")
+    p.add_argument("--scenarios", default=None, metavar="DIR_OR_GLOB",
+                   help="run over these scenario files instead of simulating (files of equal shape are batched)")
+    add_estimator_options(p, seed_help="track t is simulated with seed + t and weighed with PRNG seed seed + t",
+                          capacity_default=str(SWEEP_CAPACITY))
+    p.set_defaults(func=cmd_sweep)
+
+    p = sub.add_parser("plot", help="redraw a study's plots from its table.csv")
+    p.add_argument("folder", help="the study's output folder")
+    p.set_defaults(func=cmd_plot)

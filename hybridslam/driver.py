@@ -1,0 +1,238 @@
+"""One driver for every estimator: a ``lax.scan`` over steps, and a thin host loop on top of it.
+
+:func:`scan` advances any :class:`~hybridslam.estimators.AbstractEstimator` over a stack of
+steps and returns the stacked :class:`Trace` (per step: the belief's :class:`~hybridslam.estimators.Mixture`
+view, the paper's metrics, the :class:`~hybridslam.estimators.StepInfo`). It is pure: the studies
+``vmap`` it over tracks (:mod:`hybridslam.studies.batch`), and gradients and planning run the same
+body. :func:`run` is the host loop: it compiles the scan ahead of time for one step (compile
+time is measured apart from step time), calls it once per step of a scenario, and turns each step
+into a result-file record, calling ``on_step`` for progress and warnings.
+
+Step ``k`` (1-based) draws with the key ``fold_in(key, k - 1)`` on every path, so a seed gives the
+same numbers alone, in a batch, under ``jax.grad`` or inside a planner.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int, PRNGKeyArray
+
+from .analysis.metrics import Metrics, metrics
+from .estimators.base import AbstractEstimator, Mixture, StepInfo
+from .io.result import ComponentRecord, Result, StepRecord
+from .io.scenario import Scenario, stack_steps
+from .models.measurement import Detections
+
+
+class Inputs(eqx.Module):
+    """The inputs of ``T`` steps of one run, each leaf with a leading time axis ``T``."""
+
+    odometry: Float[Array, "T 3"]
+    detections: Detections  # leaves (T, Dmax, ...)
+    steps: Int[Array, " T"]  # k - 1 of each step: its PRNG key is fold_in(key, k - 1)
+    truth: Float[Array, "T 3"]  # the true x_k, NaN where unknown (the errors are then NaN)
+    active: Bool[Array, " T"]  # False: padding (a shorter run in a batch of longer ones), the state stays
+
+
+class Trace(eqx.Module):
+    """What each step leaves behind (leaves stacked on a leading ``T`` axis by :func:`scan`)."""
+
+    view: Mixture
+    metrics: Metrics
+    info: StepInfo
+
+
+def inputs_from_scenario(scenario: Scenario, max_detections: int, first_step: int = 0,
+                         num_steps: int | None = None) -> Inputs:
+    """The scenario's steps as :class:`Inputs` with ``max_detections`` slots per step, padded with
+    inactive steps to ``num_steps`` (default: the scenario's)."""
+    stacked = stack_steps(scenario, max_detections)
+    t = scenario.num_steps
+    total = t if num_steps is None else num_steps
+    if total < t:
+        raise ValueError(f"num_steps: {total}, but the scenario has {t} steps")
+    pad = lambda a: np.concatenate([a, np.zeros((total - t,) + a.shape[1:], a.dtype)])  # noqa: E731
+    truth = np.full((t, 3), np.nan) if scenario.true_robot_poses is None else scenario.true_robot_poses[1:]
+    return Inputs(
+        odometry=jnp.asarray(pad(np.asarray(stacked.odometry, float).reshape(t, 3))),
+        detections=Detections(jnp.asarray(pad(stacked.geo), dtype=float), jnp.asarray(pad(stacked.scores), dtype=float),
+                              jnp.asarray(pad(stacked.mask))),
+        steps=jnp.arange(first_step, first_step + total, dtype=jnp.int32),
+        truth=jnp.asarray(pad(np.asarray(truth, float).reshape(t, 3))),
+        active=jnp.arange(total) < t,
+    )
+
+
+def step_body(estimator: AbstractEstimator, key: PRNGKeyArray, state: Any, xs) -> tuple[Any, Trace]:
+    """One step of any estimator and what it leaves behind (the body of :func:`scan`); an inactive
+    (padding) step leaves the state as it was."""
+    odometry, detections, k, truth, active = xs
+    new, info = estimator.step(state, odometry, detections, jax.random.fold_in(key, k))
+    state = jax.tree.map(lambda a, b: jnp.where(active, a, b), new, state)
+    view = estimator.view(state)
+    return state, Trace(view, metrics(view, truth), info)
+
+
+def scan(estimator: AbstractEstimator, state: Any, inputs: Inputs, key: PRNGKeyArray) -> tuple[Any, Trace]:
+    """Run ``estimator`` over every step of ``inputs`` (``lax.scan``; pure, jittable, vmappable)."""
+    xs = (inputs.odometry, inputs.detections, inputs.steps, inputs.truth, inputs.active)
+    return jax.lax.scan(lambda s, x: step_body(estimator, key, s, x), state, xs)
+
+
+# --------------------------------------------------------------------------- #
+# Compilation
+# --------------------------------------------------------------------------- #
+
+_COMPILED: dict = {}  # one executable per (estimator settings, state structure, shapes): equal runs share it
+
+
+def compiled(fn: Callable, *args) -> tuple[Callable, float]:
+    """``eqx.filter_jit(fn)`` compiled ahead of time for these arguments' structure and shapes, and
+    the seconds spent compiling (0 when an equal program was compiled before in this process)."""
+    dynamic, static = eqx.partition(args, eqx.is_array)
+    leaves, treedef = jax.tree_util.tree_flatten(dynamic)
+    key = (fn, treedef, tuple((x.shape, x.dtype, getattr(x, "sharding", None)) for x in leaves))
+    try:
+        key = key + (static,)
+        hash(key)
+    except TypeError:  # an unhashable static part: compile every time, correctly
+        key = None
+    if key is not None and key in _COMPILED:
+        return _COMPILED[key], 0.0
+    t0 = time.perf_counter()
+    executable = eqx.filter_jit(fn).lower(*args).compile()
+    seconds = time.perf_counter() - t0
+    if key is not None:
+        _COMPILED[key] = executable
+    return executable, seconds
+
+
+# --------------------------------------------------------------------------- #
+# Records of the result file
+# --------------------------------------------------------------------------- #
+
+
+def record_from_arrays(
+    k: int, log_weights: np.ndarray, classes: np.ndarray, history: np.ndarray, pose_mean: np.ndarray,
+    pose_cov: np.ndarray, num_detections: list[int], m, *, has_truth: bool,
+) -> StepRecord:
+    """A :class:`StepRecord` from host arrays of one belief view (``K`` slots) and its metrics ``m``.
+
+    Components with non-zero weight, sorted by weight (highest first, ties by slot), weights
+    renormalized to sum to one; ``history[:, j, :num_detections[j]]`` are the associations of step
+    ``j + 1``.
+    """
+    w = np.exp(np.asarray(log_weights))
+    order = [i for i in np.argsort(-w, kind="stable") if w[i] > 0]
+    total = float(np.sum(w[order]))
+    components = [
+        ComponentRecord(
+            weight=float(w[i] / total),
+            associations=[[int(o) for o in history[i, j, : num_detections[j]]] for j in range(k)],
+            classes=[int(c) for c in classes[i]],
+            pose_mean=np.asarray(pose_mean[i], dtype=float),
+            pose_cov=0.5 * (np.asarray(pose_cov[i], dtype=float) + np.asarray(pose_cov[i], dtype=float).T),
+        )
+        for i in order
+    ]
+    values = {"entropy": float(m.entropy), "det_cov": float(m.det_cov), "num_components": len(components)}
+    if has_truth:
+        values.update(err_wmax=float(m.err_wmax), err_wavg=float(m.err_wavg))
+    return StepRecord(k=k, components=components, metrics=values)
+
+
+def trace_record(trace: Trace, num_detections: list[int], has_truth: bool) -> StepRecord:
+    """The result-file record of one step of a host-side trace (no leading axis)."""
+    v = trace.view
+    return record_from_arrays(int(v.k), v.log_weights, v.classes, v.history, v.mean, v.cov, num_detections,
+                              trace.metrics, has_truth=has_truth)
+
+
+# --------------------------------------------------------------------------- #
+# The host loop
+# --------------------------------------------------------------------------- #
+
+
+@dataclasses.dataclass
+class Run:
+    """What :func:`run` returns: the result file's content, the per-step infos and the final state."""
+
+    result: Result
+    infos: list[StepInfo]  # host-side, one per step
+    state: Any  # the estimator's final state
+
+    @property
+    def belief(self) -> Any:  # the hybrid belief's name for its state
+        return self.state
+
+
+def _first(tree):
+    return jax.tree.map(lambda x: x[0], tree)
+
+
+def run(
+    estimator: AbstractEstimator,
+    scenario: Scenario,
+    *,
+    seed: int = 0,
+    on_step: Callable[[StepRecord, StepInfo, float], None] | None = None,
+) -> Run:
+    """Run ``estimator`` over every step of ``scenario``; returns a :class:`Run` (writes nothing).
+
+    ``on_step(record, info, seconds)`` is called after each step (the CLI prints its table row and
+    the info's warnings). The same estimator, scenario and seed give the same result.
+    """
+    state = estimator.init(scenario)
+    history = estimator.view(state).history
+    if scenario.num_steps > history.shape[-2]:
+        raise ValueError(f"history is full: the state has room for {history.shape[-2]} steps, the scenario has "
+                         f"{scenario.num_steps} (max_steps)")
+    slots = history.shape[-1]
+    inputs = inputs_from_scenario(scenario, slots)
+    key = jax.random.PRNGKey(seed)
+    num_det = [len(s.detections) for s in scenario.steps]
+    has_truth = scenario.true_robot_poses is not None
+
+    def one(k: int) -> Inputs:
+        return jax.tree.map(lambda x: x[k : k + 1], inputs)
+
+    step_fn, compile_s = compiled(scan, estimator, state, one(0), key) if scenario.num_steps else (None, 0.0)
+    records, infos, step_s = [], [], []
+    for k in range(scenario.num_steps):
+        xs = one(k)
+        t0 = time.perf_counter()
+        state, trace = jax.block_until_ready(step_fn(estimator, state, xs, key))
+        step_s.append(time.perf_counter() - t0)
+        trace = jax.device_get(_first(trace))
+        records.append(trace_record(trace, num_det, has_truth))
+        infos.append(trace.info)
+        if on_step is not None:
+            on_step(records[-1], trace.info, step_s[-1])
+    extra = {}
+    trajectory = estimator.trajectory(state)
+    if trajectory is not None:
+        # x_0..x_T of this scenario: a history longer than the scenario (max_steps) holds padding after it.
+        extra["trajectory"] = np.asarray(trajectory, dtype=float)[: scenario.num_steps + 1]
+    result = Result(estimator=f"{estimator.describe(scenario)}, seed={seed}", steps=records,
+                    timing={"compile_s": compile_s, "step_s": step_s}, **extra)
+    return Run(result, infos, state)
+
+
+def run_estimator(scenario: Scenario, estimator: str | AbstractEstimator = "hybrid", *, seed: int = 0,
+                  on_step: Callable[[StepRecord, StepInfo, float], None] | None = None, **options) -> Run:
+    """:func:`run` with the estimator given by name and options (:func:`hybridslam.estimators.make_estimator`)."""
+    from .estimators.registry import make_estimator
+
+    if isinstance(estimator, str):
+        estimator = make_estimator(estimator, **options)
+    elif options:
+        raise TypeError(f"run_estimator: options {sorted(options)} given with an estimator object; set them on it")
+    return run(estimator, scenario, seed=seed, on_step=on_step)

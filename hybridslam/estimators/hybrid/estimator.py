@@ -1,0 +1,152 @@
+"""The hybrid belief as an estimator: ``Hybrid(weights=LaplaceIS(), capacity=64, ...)``."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import ClassVar
+
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float, PRNGKeyArray
+
+from ... import __version__
+from ...io.scenario import Scenario
+from ...models.classifier import ClassifierModel
+from ...models.measurement import Detections
+from ...models.model import model_from_scenario
+from ..smoothing import Filter, Full, Smoother, data_log, initial_trajectory
+from ..base import AbstractEstimator, Mixture, StepInfo, classifier_name, history_length
+from .belief import Belief, init_belief, priors_from_scenario
+from .branching import Beam, Branching, Exhaustive
+from .step import hybrid_step
+from .weighers import AbstractWeigher, LaplaceIS
+
+
+def _positive_int(name: str, value, allow_none: bool = False) -> None:
+    if allow_none and value is None:
+        return
+    if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+        raise ValueError(f"Hybrid.{name}: expected a positive int{' or None' if allow_none else ''}, got {value!r}")
+
+
+class Hybrid(AbstractEstimator):
+    """The hybrid belief of Tchuiev, Feldman & Indelman (IROS 2019): Algorithm 1 over weighted
+    Gaussian components indexed by (class realization C, association history β_1:k).
+
+    Settings (all static: each fixes a shape or a code path):
+
+    * ``weights`` — the PropWeights estimator of Eq. 16 (:class:`~.weighers.LaplaceIS` by default,
+      :class:`~.weighers.Sampled` is the paper's, :class:`~.weighers.Linearized` is deterministic);
+    * ``branching`` — how parents split into children (Algorithm 1, line 2):
+      :class:`~.branching.Exhaustive` (every assignment × class realization, exponential in the
+      detections) or :class:`~.branching.Beam` (built one detection at a time, ``width`` kept);
+    * ``capacity`` — ``K``, the most components kept after pruning;
+    * ``prune_ratio`` — drop children below ``w_max / prune_ratio`` (Sec. V: 150); traced (it lives
+      in the state's model), so changing it does not recompile;
+    * ``gate`` — association gating (thesis Sec. 3.2.1): a detection may only be associated with the
+      ``gate`` objects of lowest Mahalanobis distance per component (or a new object); ``None``
+      enumerates every object exactly;
+    * ``clutter`` — with a :class:`~.branching.Beam`, each detection may also be clutter (a false
+      detection of no object): the log density of its ``[range, bearing]`` under that hypothesis
+      (prior probability of clutter included; e.g. ``log(0.01 / (max_range · fov))``), its scores
+      of no known class; ``None``: every detection is of an object (the paper's model);
+    * ``gn_max_steps`` — Gauss-Newton iteration budget of the update (Eq. 9);
+    * ``smoother`` — :class:`~..smoothing.Full` (default): every component keeps its trajectory
+      and re-solves it, relinearized, at every step (:mod:`..smoothing`); :class:`~..smoothing.Filter`:
+      the joint Gaussian over ``[x_k, objects]`` only (past poses marginalized, never relinearized);
+    * ``classifier`` — a classifier model name or object replacing the scenario's (``None``: the file's);
+    * ``max_detections`` — detection slots per step (``None``: the scenario's largest step);
+    * ``max_steps`` — the length of the association history (``None``: the scenario's steps; a larger
+      value lets scenarios of different lengths share one compiled step);
+    * ``visibility_temperature`` — ``τ_r`` or ``(τ_r, τ_b)`` for the smooth object observation model
+      (``docs/gradients.md``); ``None`` is the paper's 0/1 footprint;
+    * ``batch_axis`` — the name of an enclosing ``jax.vmap`` over beliefs (set by the studies):
+      the step then skips component slots that are empty in every belief of the batch.
+    """
+
+    weights: AbstractWeigher = LaplaceIS()
+    branching: Branching = Beam()
+    capacity: int = eqx.field(default=64, static=True)
+    prune_ratio: float = eqx.field(default=150.0, static=True)
+    gate: int | None = eqx.field(default=None, static=True)
+    clutter: float | None = eqx.field(default=None, static=True)
+    gn_max_steps: int = eqx.field(default=20, static=True)
+    smoother: Smoother = Full()
+    classifier: str | ClassifierModel | None = None
+    max_detections: int | None = eqx.field(default=None, static=True)
+    max_steps: int | None = eqx.field(default=None, static=True)
+    visibility_temperature: float | tuple[float, float] | None = eqx.field(default=None, static=True)
+    batch_axis: str | None = eqx.field(default=None, static=True)
+
+    name: ClassVar[str] = "hybrid"
+    reference: ClassVar[str] = "Tchuiev et al. 2019, Alg. 1"
+
+    def __check_init__(self):
+        if not isinstance(self.branching, (Exhaustive, Beam)):
+            raise ValueError(f"Hybrid.branching: expected Exhaustive() or Beam(width), got {self.branching!r}")
+        if not isinstance(self.smoother, (Filter, Full)):
+            raise ValueError(f"Hybrid.smoother: expected Full() or Filter(), got {self.smoother!r}")
+        if self.clutter is not None and not isinstance(self.branching, Beam):
+            raise ValueError("Hybrid.clutter: the clutter hypothesis needs branching=Beam(...)")
+        if self.clutter is not None and not (isinstance(self.clutter, (int, float)) and math.isfinite(self.clutter)):
+            raise ValueError(f"Hybrid.clutter: expected a finite log density, got {self.clutter!r}")
+        if not isinstance(self.weights, AbstractWeigher):
+            raise ValueError(f"Hybrid.weights: expected a weigher (LaplaceIS(), Sampled(), Linearized()), "
+                             f"got {self.weights!r}")
+        _positive_int("capacity", self.capacity)
+        _positive_int("gate", self.gate, allow_none=True)
+        _positive_int("gn_max_steps", self.gn_max_steps)
+        _positive_int("max_detections", self.max_detections, allow_none=True)
+        _positive_int("max_steps", self.max_steps, allow_none=True)
+        if not (isinstance(self.prune_ratio, (int, float)) and self.prune_ratio >= 1.0):
+            raise ValueError(f"Hybrid.prune_ratio: must be >= 1, got {self.prune_ratio!r}")
+        if self.batch_axis is not None and not isinstance(self.batch_axis, str):
+            raise ValueError(f"Hybrid.batch_axis: expected a vmap axis name (str) or None, got {self.batch_axis!r}")
+
+    def init(self, scenario: Scenario) -> Belief:
+        """One component of weight 1, every class open (Eq. 3), sized for ``scenario``."""
+        model = model_from_scenario(scenario, self.classifier, self.prune_ratio, self.visibility_temperature)
+        slots = self.max_detections or max(scenario.max_detections, 1)
+        if scenario.max_detections > slots:
+            raise ValueError(f"max_detections: {slots} slots, but a step of the scenario has "
+                             f"{scenario.max_detections} detections")
+        steps = history_length(self.max_steps, scenario)
+        belief = init_belief(priors_from_scenario(scenario), model, self.capacity, steps, slots)
+        if isinstance(self.smoother, Filter):
+            return belief
+        log = data_log(scenario, steps, slots, belief.num_objects)
+        poses = jnp.broadcast_to(initial_trajectory(scenario, steps), (self.capacity, steps + 1, 3))
+        return eqx.tree_at(lambda b: (b.poses, b.log), belief, (poses, log), is_leaf=lambda x: x is None)
+
+    def step(
+        self, state: Belief, odometry: Float[Array, "3"], detections: Detections, key: PRNGKeyArray
+    ) -> tuple[Belief, StepInfo]:
+        """Propagate, split, weigh (Eq. 16), prune, update: Algorithm 1 (:func:`.step.hybrid_step`)."""
+        return hybrid_step(self, state, odometry, detections, key)
+
+    def view(self, state: Belief) -> Mixture:
+        return Mixture(state.log_weights, state.mean[:, :3], state.cov[:, :3, :3], state.classes, state.history,
+                       state.k)
+
+    def trajectory(self, state: Belief):
+        """The smoothed ``x_0..x_T`` of the best component (``None`` without smoothing)."""
+        if state.poses is None:
+            return None
+        return state.poses[jnp.argmax(state.log_weights)]
+
+    def describe(self, scenario: Scenario | None = None) -> str:
+        return (
+            f"hybridslam {__version__} hybrid belief ({self.reference}); "
+            f"classifier={classifier_name(self.classifier, scenario)}, "
+            f"weights={self.weights.name}, samples={self.weights.draws}, capacity={self.capacity}, "
+            f"prune_ratio={self.prune_ratio:g}"
+            + ("" if self.gate is None else f", gate_candidates={self.gate}")
+            + ("" if isinstance(self.branching, Exhaustive) else f", branching=beam({self.branching.width})")
+            + ("" if self.clutter is None else f", clutter={self.clutter:g}")
+            + f", smoother={self.smoother.name}"
+        )
+
+    def with_batch_axis(self, axis_name: str | None) -> Hybrid:
+        return dataclasses.replace(self, batch_axis=axis_name)

@@ -1,0 +1,270 @@
+"""One inference step of the hybrid belief: Algorithm 1 as one pure function (``Hybrid.step``).
+
+:func:`hybrid_step` is pure; ``jax.vmap`` it over a leading axis of beliefs to run many tracks (or
+many parameter settings: the model lives in the belief) at once. Compiles once per (capacity,
+history length, detection slots, objects, classes, weigher, classifier type, hard or smooth
+visibility, known or unknown map, gating); model parameters are traced. Differentiable in every
+continuous input (``docs/gradients.md``).
+
+Unknown maps (``model.discovery``): a child may give a detection a new object (the null /
+new-landmark hypothesis, thesis Sec. 3.2.1). Its weight gets that detection's
+:func:`~hybridslam.weights.new_object_log_likelihood`; its Gaussian gets the object from
+:func:`~hybridslam.discovery.create_object` *before* the Gauss-Newton update, in which that
+detection is then no factor: the back-projection already used it, and using it again would count
+it twice. (The detection's scores are not used on the new object's orientation either, a small
+loss of information: the weight integrates them over the unknown viewpoint instead.)
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import TYPE_CHECKING, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+from jax.scipy.special import logsumexp
+from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
+
+from ...inference.batching import map_live
+from ...inference.discovery import create_object
+from ...inference.gating import gate
+from ...inference.update import gauss_newton_update
+from ...models.measurement import Detections
+from ...models.model import NewObjects
+from ...models.motion import propagate
+from ..base import StepInfo
+from ..smoothing import Full, history_factors, smooth
+from ..smoothing import graph as smoothing_graph
+from .belief import Belief
+from .branching import Beam, beam_children
+from .hypotheses import Children, children, hypothesis_table
+from .prune import PruneStats, prune
+from .weighers import AbstractWeigher, Context
+from .weights import new_object_log_likelihood
+
+if TYPE_CHECKING:
+    from .estimator import Hybrid as HybridSettings
+
+
+class HybridDetails(eqx.Module):
+    """The hybrid belief's own diagnostics of one step (``StepInfo.details``)."""
+
+    prune: PruneStats
+    parent: Int[Array, " K"]  # slot of each new component's parent in the previous belief
+    solver_result: optx.RESULTS  # Gauss-Newton outcome per component (Eq. 9)
+    ess: Float[Array, " K"]  # normalized effective sample size of each kept weight (1 = exact; NaN if empty)
+
+
+def _realize(classes: Int[Array, " N"], assign: Int[Array, " Dmax"], slot_class: Int[Array, " Dmax"], new):
+    """Write the classes of newly associated objects (Sec. IV-D); all others are unchanged."""
+    target = jnp.where(new, assign, classes.shape[0])  # out of bounds -> dropped
+    return classes.at[target].set(slot_class, mode="drop")
+
+
+def _create_and_update(sensor, discovery, mean, cov, assign, creates, slot_class, detections: Detections, max_steps):
+    """Write the objects a child creates into its Gaussian (:func:`~hybridslam.discovery.create_object`),
+    then update it with the detections of its other slots (Eq. 9-10)."""
+    for j in range(assign.shape[0]):  # detection slots (static, a few)
+        made = create_object(mean, cov, jnp.maximum(assign[j], 0), detections.geo[j], sensor.geometric_cov,
+                             discovery.orientation_var)
+        mean, cov = (jnp.where(creates[j], new, old) for new, old in zip(made, (mean, cov)))
+    return gauss_newton_update(sensor, mean, cov, jnp.where(creates, -1, assign), slot_class, detections, max_steps)
+
+
+def _new_object_terms(belief: Belief, mean, cov, detections: Detections, kids: Children) -> Float[Array, "K A Mc"]:
+    """Σ over a child's creating slots of :func:`~hybridslam.weights.new_object_log_likelihood`."""
+    sensor = belief.model.sensor
+    lik = jax.vmap(new_object_log_likelihood, (None, 0, 0, None, None))(
+        sensor, mean[:, :3], cov[:, :3, :3], detections, belief.model.discovery
+    )  # (K, Dmax, M)
+    pick = kids.slot_class[..., None] == jnp.arange(lik.shape[-1]).reshape(1, 1, 1, 1, -1)  # (K, A, Mc, Dmax, M)
+    picked = jnp.sum(jnp.where(pick, lik[:, None, None], 0.0), axis=-1)
+    return jnp.sum(jnp.where(kids.creates[:, :, None, :], picked, 0.0), axis=-1)
+
+
+class _Scored(NamedTuple):
+    """The weighed children of a step, flat (one row per child), whichever way they were branched."""
+
+    log_w: Float[Array, " C"]  # -inf: impossible
+    possible: Bool[Array, " C"]
+    prior: Float[Array, " C"]
+    log_lik_free: Float[Array, " C"]
+    ess: Float[Array, " C"]
+    converged: Bool[Array, " C"]
+    parent: Int[Array, " C"]
+    assign: Int[Array, "C Dmax"]
+    creates: Bool[Array, "C Dmax"]
+    new: Bool[Array, "C Dmax"]
+    slot_class: Int[Array, "C Dmax"]
+    dropped: Int[Array, ""]
+
+
+def _exhaustive(settings, belief: Belief, mean, cov, detections: Detections, candidates, realize, discovery, key):
+    """Every child of the static table (:mod:`.hypotheses`), weighed on the ``(K, A, Mc)`` grid."""
+    model = belief.model
+    num_candidates = candidates.shape[-1] if candidates is not None else belief.num_objects
+    table = hypothesis_table(num_candidates, belief.max_detections, model.num_classes if realize else 1, discovery,
+                             candidates is not None)
+    kids = jax.vmap(children, (None, 0, None, None, None, 0, 0))(
+        table, belief.classes, detections.mask, model.class_prior, realize, belief.num_created, candidates
+    )
+    # `prior` holds every factor of a child's weight that does not depend on the objects' Gaussian
+    # (so the laplace-is screen ranks by it too).
+    prior = belief.log_weights[:, None, None] + kids.log_prior
+    if discovery:
+        prior = prior + _new_object_terms(belief, mean, cov, detections, kids)
+    ctx = Context(model.sensor, belief.alive, mean, cov, detections, table, kids, prior, settings.gn_max_steps,
+                  settings.batch_axis)
+    log_lik, log_lik_free, ess, converged = settings.weights.weigh(ctx, key)
+    possible = kids.valid & belief.alive[:, None, None]
+    # `where`, not `+`: empty slots may carry non-finite likelihoods that must not leak.
+    log_w = jnp.where(possible, prior + log_lik, -jnp.inf)
+    parent, a, m = (x.reshape(-1) for x in jnp.meshgrid(*(jnp.arange(d) for d in log_w.shape), indexing="ij"))
+    flat = lambda x: x.reshape(-1)  # noqa: E731
+    return _Scored(flat(log_w), flat(possible), flat(prior), flat(log_lik_free), flat(ess), flat(converged), parent,
+                   kids.assign[parent, a], kids.creates[parent, a], kids.new[parent, a, m],
+                   kids.slot_class[parent, a, m], jnp.zeros((), jnp.int32))
+
+
+def _beam(settings, belief: Belief, mean, cov, detections: Detections, candidates, realize, discovery, key):
+    """The children built one detection at a time (:mod:`.branching`), weighed one by one."""
+    model = belief.model
+    new_terms = None
+    if discovery:
+        new_terms = jax.vmap(new_object_log_likelihood, (None, 0, 0, None, None))(
+            model.sensor, mean[:, :3], cov[:, :3, :3], detections, model.discovery)  # (K, Dmax, M)
+    clutter_terms = None
+    if settings.clutter is not None:
+        clutter = NewObjects(jnp.asarray(settings.clutter, mean.dtype), jnp.asarray(jnp.pi**2, mean.dtype))
+        per_class = jax.vmap(new_object_log_likelihood, (None, 0, 0, None, None))(
+            model.sensor, mean[:, :3], cov[:, :3, :3], detections, clutter)  # (K, Dmax, M)
+        clutter_terms = logsumexp(per_class, axis=-1) - jnp.log(per_class.shape[-1])  # scores of no known class
+    ch = beam_children(belief, mean, cov, detections, candidates, new_terms, realize, settings.branching.width,
+                       settings.batch_axis, clutter_terms)
+    log_lik, log_lik_free, ess, converged = settings.weights.weigh_children(
+        model.sensor, belief.alive, mean, cov, detections, ch, settings.gn_max_steps, settings.batch_axis, key)
+    log_w = jnp.where(ch.valid, ch.prior + log_lik, -jnp.inf)
+    return _Scored(log_w, ch.valid, ch.prior, log_lik_free, ess, converged, ch.parent, ch.assign, ch.creates,
+                   ch.new, ch.slot_class, ch.dropped)
+
+
+def hybrid_step(
+    settings: HybridSettings, belief: Belief, odometry: Float[Array, "3"], detections: Detections, key: PRNGKeyArray
+) -> tuple[Belief, StepInfo]:
+    """Algorithm 1 (see :class:`~.estimator.Hybrid`); ``settings`` are the estimator's static settings."""
+    model = belief.model
+    realize = model.sensor.classifier.uses_scores
+    discovery = model.discovery is not None
+    if discovery and belief.num_created is None:
+        raise ValueError("belief.num_created: a model with discovery needs a belief built by init_belief with it")
+    # No eqx.error_if on a full history: its host callback would keep the step out of JAX's persistent
+    # compilation cache. The driver refuses more steps than the history holds before running any.
+    k = belief.k
+
+    # Algorithm 1, line 3: propagate every component with the motion model (Eq. 11).
+    mean, cov = jax.vmap(propagate, (0, 0, None, None))(belief.mean, belief.cov, odometry, model.motion_cov)
+
+    # Line 2 of PROPWEIGHTS: split each parent into (β_k, new class realizations), and line 5:
+    # PropWeights, Eq. 16 (gating, thesis Sec. 3.2.1: the G nearest objects per detection).
+    candidates = None
+    if settings.gate is not None:
+        candidates = jax.vmap(gate, (None, 0, 0, None, 0, None))(
+            model.sensor, mean, cov, detections, belief.num_created, min(settings.gate, belief.num_objects)
+        )
+    branch = _beam if isinstance(settings.branching, Beam) else _exhaustive
+    sc = branch(settings, belief, mean, cov, detections, candidates, realize, discovery, key)
+    # No hypothesis puts every detected object in view: the 0/1 visibility model cannot explain
+    # this step, so weigh it by the measurement likelihood alone rather than lose the belief.
+    visibility_ignored = ~jnp.any(sc.log_w > -jnp.inf) & jnp.any(sc.possible)
+    log_w = jnp.where(visibility_ignored, jnp.where(sc.possible, sc.prior + sc.log_lik_free, -jnp.inf), sc.log_w)
+
+    # Line 7: PruneAndNormalize.
+    index, new_log_w, stats = prune(log_w, belief.capacity, model.prune_ratio)
+    index = jnp.minimum(index, log_w.shape[0] - 1)  # fewer children than slots: prune pads with dead ones
+    parent, assign, creates, slot_class = sc.parent[index], sc.assign[index], sc.creates[index], sc.slot_class[index]
+    new, ess, converged = sc.new[index], sc.ess[index], sc.converged[index]
+    # No child at all (more detections than objects that could explain them, a full object capacity):
+    # the step's detections are skipped, and counted, rather than the belief lost. Each parent stays,
+    # propagated, with its weight and no association for this step.
+    explained = jnp.any(new_log_w > -jnp.inf)
+    slots_k = jnp.arange(belief.capacity)
+    new_log_w = jnp.where(explained, new_log_w, belief.log_weights)
+    parent = jnp.where(explained, parent, slots_k)
+    assign = jnp.where(explained, assign, -1)
+    creates = creates & explained
+    new = new & explained
+    slot_class = jnp.where(explained, slot_class, 0)
+    ess = jnp.where(explained, ess, 1.0)
+    converged = converged | ~explained
+
+    # Line 11: update every kept child with its measurement factors (Eq. 9-10).
+    alive = new_log_w > -jnp.inf
+    if discovery:
+        update = partial(_create_and_update, model.sensor, model.discovery, detections=detections,
+                         max_steps=settings.gn_max_steps)
+        args = (mean[parent], cov[parent], assign, creates, slot_class)
+    else:
+        update = partial(gauss_newton_update, model.sensor, detections=detections, max_steps=settings.gn_max_steps)
+        args = (mean[parent], cov[parent], assign, slot_class)
+    new_mean, new_cov, result = map_live(update, alive, *args, axis_name=settings.batch_axis)
+    classes = jax.vmap(_realize)(belief.classes[parent], assign, slot_class, new)
+    history = belief.history[parent].at[:, k, :].set(assign)
+    num_created = None if not discovery else belief.num_created[parent] + jnp.sum(creates, axis=-1, dtype=jnp.int32)
+    poses, log = belief.poses, belief.log
+    if isinstance(settings.smoother, Full):
+        if belief.log is None:
+            raise ValueError("Hybrid(smoother=Full()): this belief carries no data log (built by init_belief, "
+                             "not Hybrid.init); build it with Hybrid.init(scenario) or use smoother=Filter()")
+        # Relinearize each kept component's whole trajectory and map (smoothing.py), warm-started
+        # from its parent's trajectory and the filter update; its marginal over [x_k, objects]
+        # replaces the filter's Gaussian.
+        log = belief.log.record(k, odometry, detections)
+        created = num_created if discovery else jnp.full((belief.capacity,), belief.num_objects, jnp.int32)
+
+        def smoothed(poses_i, mean_i, history_i, classes_i, created_i):
+            factors = history_factors(history_i, classes_i if realize else None)
+            g = smoothing_graph(log, factors, k + 1, created_i, model.sensor, model.motion_cov, semantic=True)
+            return smooth(settings.smoother, g, poses_i, mean_i, k + 1)
+
+        out = map_live(smoothed, alive, belief.poses[parent], new_mean, history, classes, created,
+                       axis_name=settings.batch_axis)
+        new_mean, new_cov, result, poses = out.mean, out.cov, out.result, out.poses
+    # Empty slots copy the best component so later batched math on them stays finite.
+    new_mean = jnp.where(alive[:, None], new_mean, new_mean[:1])
+    new_cov = jnp.where(alive[:, None, None], new_cov, new_cov[:1])
+    if poses is not None:
+        poses = jnp.where(alive[:, None, None], poses, poses[:1])
+
+    new_belief = Belief(
+        log_weights=new_log_w,
+        mean=new_mean,
+        cov=new_cov,
+        classes=classes,
+        history=history,
+        k=k + 1,
+        model=model,
+        num_created=num_created,
+        poses=poses,
+        log=log,
+    )
+    kept_ess = jnp.where(alive, ess, jnp.nan)
+    info = StepInfo(
+        k=k + 1,
+        num_components=jnp.sum(alive, dtype=jnp.int32),
+        log_evidence=logsumexp(log_w),
+        dropped_capacity=stats.dropped_capacity.astype(jnp.int32),
+        dropped_budget=sc.dropped,
+        skipped=jnp.where(explained, 0, jnp.sum(detections.mask, dtype=jnp.int32)),
+        rejected=jnp.sum(jnp.where(alive[:, None] & (new_log_w[:, None] == jnp.max(new_log_w)),
+                                   detections.mask[None, :] & (assign < 0), False), dtype=jnp.int32)
+        if settings.clutter is not None else jnp.zeros((), jnp.int32),
+        visibility_ignored=visibility_ignored,
+        solver_failures=jnp.sum(alive & (result != optx.RESULTS.successful), dtype=jnp.int32),
+        is_failures=jnp.sum(alive & ~converged, dtype=jnp.int32),
+        # The ESS of a visibility-ignored step is that of an estimate the step did not use.
+        min_ess=jnp.where(visibility_ignored | ~jnp.any(alive), jnp.nan, jnp.min(jnp.where(alive, kept_ess, jnp.inf))),
+        details=HybridDetails(stats, parent, result, kept_ess),
+    )
+    return new_belief, info

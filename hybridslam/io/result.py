@@ -1,0 +1,165 @@
+"""Result files (`hybridslam-result/1`): the belief an estimator records after every step.
+
+Layout: "Result file" in SCENARIO_FORMAT.md. Malformed input raises
+`hybridslam.scenario.ScenarioError` with the field path, e.g.
+``steps[2].components[0].weight: expected a number in (0, 1], got 1.5``.
+Pure numpy + stdlib json, built from the validation helpers of `scenario`.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from . import jsonfields as jf
+
+RESULT_FORMAT = "hybridslam-result/1"
+
+
+@dataclass(eq=False)
+class ComponentRecord:
+    """One belief component after step k."""
+
+    weight: float
+    associations: list[list[int]]  # per step j, object index of each detection of step j+1
+    classes: list[int]  # per object, -1 = open
+    pose_mean: np.ndarray  # (3,) mean of x_k
+    pose_cov: np.ndarray  # (3, 3) covariance of x_k
+    __eq__ = jf.dataclass_eq
+
+
+@dataclass(eq=False)
+class StepRecord:
+    """The belief after step k: components sorted by weight (highest first) and metrics."""
+
+    k: int
+    components: list[ComponentRecord]
+    metrics: dict[str, float]  # entropy, det_cov, num_components; optional err_wmax, err_wavg
+    __eq__ = jf.dataclass_eq
+
+
+@dataclass(eq=False)
+class Result:
+    """A result file: the estimator's description and one StepRecord per step."""
+
+    estimator: str
+    steps: list[StepRecord]
+    timing: dict | None = None  # {"compile_s": float, "step_s": [float] * T}
+    trajectory: np.ndarray | None = None  # (T+1, 3) smoothed x_0..x_T of the final best component (smoothers)
+    objects: np.ndarray | None = None  # (N, 3) final object estimates of that component, indexed like classes
+    __eq__ = jf.dataclass_eq
+
+
+def _weight(obj: Any, path: str) -> float:
+    w = jf.number(obj, path)
+    if not 0.0 < w <= 1.0 + jf.PROB_TOL:
+        jf.fail(path, f"expected a number in (0, 1], got {w!r}")
+    return w
+
+
+def _component(obj: Any, path: str, k: int) -> ComponentRecord:
+    obj = jf.as_object(obj, path)
+    assoc = jf.get(obj, "associations", path, jf.as_list)
+    if len(assoc) != k:
+        jf.fail(f"{path}.associations", f"expected {k} lists (one per step so far), got {len(assoc)}")
+    return ComponentRecord(
+        weight=jf.get(obj, "weight", path, _weight),
+        # -1: the component left the detection unassociated (clutter / outlier hypothesis)
+        associations=[jf.integers(a, f"{path}.associations[{j}]", -1) for j, a in enumerate(assoc)],
+        classes=jf.get(obj, "classes", path, jf.integers, -1),
+        pose_mean=jf.get(obj, "pose_mean", path, jf.vector, 3),
+        pose_cov=jf.get(obj, "pose_cov", path, jf.symmetric, 3),
+    )
+
+
+def _metrics(obj: Any, path: str, num_components: int) -> dict[str, float]:
+    obj = jf.as_object(obj, path)
+    n = jf.get(obj, "num_components", path, jf.integer)
+    if n != num_components:
+        jf.fail(f"{path}.num_components", f"{n}, but the step has {num_components} components")
+    out: dict[str, float] = {key: jf.get(obj, key, path, jf.number) for key in ("entropy", "det_cov")}
+    out.update({key: jf.number(v, f"{path}.{key}") for key, v in obj.items() if key not in out})
+    return out | {"num_components": n}
+
+
+def _step(obj: Any, path: str, k: int) -> StepRecord:
+    obj = jf.as_object(obj, path)
+    got = jf.get(obj, "k", path, jf.integer)
+    if got != k:
+        jf.fail(f"{path}.k", f"expected {k} (steps in order from 1), got {got}")
+    raw = jf.get(obj, "components", path, jf.as_list)
+    if not raw:
+        jf.fail(f"{path}.components", "empty (weights must sum to 1)")
+    comps = [_component(c, f"{path}.components[{i}]", k) for i, c in enumerate(raw)]
+    weights = [c.weight for c in comps]
+    for i in range(1, len(weights)):
+        if weights[i] > weights[i - 1]:
+            jf.fail(f"{path}.components[{i}].weight",
+                  f"{weights[i]!r} exceeds the previous weight {weights[i - 1]!r} "
+                  "(components must be sorted by weight, highest first)")
+    if abs(sum(weights) - 1.0) > jf.PROB_TOL:
+        jf.fail(f"{path}.components", f"weights sum to {sum(weights):.9g}, expected 1")
+    return StepRecord(k, comps, jf.get(obj, "metrics", path, _metrics, len(comps)))
+
+
+def _timing(obj: Any, path: str, num_steps: int) -> dict:
+    obj = jf.as_object(obj, path)
+    return {"compile_s": jf.get(obj, "compile_s", path, jf.number),
+            "step_s": jf.get(obj, "step_s", path, jf.vector, num_steps).tolist()}
+
+
+def parse_result(obj: Any) -> Result:
+    """Validate a decoded JSON object and return the Result it describes."""
+    top = jf.as_object(obj, "<root>")
+    jf.check_format(top, RESULT_FORMAT)
+    steps = jf.get(top, "steps", "", jf.as_list)
+    return Result(
+        estimator=jf.get(top, "estimator", "", jf.string),
+        steps=[_step(s, f"steps[{i}]", i + 1) for i, s in enumerate(steps)],
+        timing=jf.maybe(top, "timing", "", _timing, len(steps)),
+        trajectory=jf.maybe(top, "trajectory", "", jf.matrix, len(steps) + 1, 3),
+        objects=jf.maybe(top, "objects", "", jf.matrix, None, 3),
+    )
+
+
+def _component_json(c: ComponentRecord) -> dict:
+    return {
+        "weight": float(c.weight),
+        "associations": [[int(i) for i in a] for a in c.associations],
+        "classes": [int(i) for i in c.classes],
+        "pose_mean": jf.floats(c.pose_mean),
+        "pose_cov": jf.floats(c.pose_cov),
+    }
+
+
+def result_to_json(r: Result) -> dict:
+    """The JSON object for `r` (inverse of `parse_result`)."""
+    out: dict[str, Any] = {"format": RESULT_FORMAT, "estimator": r.estimator, "steps": [
+        {"k": int(s.k),
+         "components": [_component_json(c) for c in s.components],
+         "metrics": {key: int(v) if key == "num_components" else float(v)
+                     for key, v in s.metrics.items()}}
+        for s in r.steps]}
+    if r.timing is not None:
+        out["timing"] = {"compile_s": float(r.timing["compile_s"]),
+                         "step_s": jf.floats(r.timing["step_s"])}
+    if r.trajectory is not None:
+        out["trajectory"] = jf.floats(r.trajectory)
+    if r.objects is not None:
+        out["objects"] = jf.floats(r.objects)
+    return out
+
+
+def load_result(path: str | os.PathLike) -> Result:
+    """Read and validate a result file."""
+    return parse_result(jf.read_json(path))
+
+
+def save_result(r: Result, path: str | os.PathLike) -> None:
+    """Validate `r` and write it as a result file."""
+    obj = result_to_json(r)
+    parse_result(obj)
+    jf.write_json(obj, path)

@@ -1,0 +1,1 @@
+"""Simulators that write scenario files: the paper's Sec. V setup and the thesis's hallway."""

@@ -1,0 +1,119 @@
+"""The speed goals of the project, measured: per-step time of every estimator on the workloads users bring.
+
+Prints one table row per (workload, estimator, smoother): compile seconds, then the median and mean
+wall time of a step after compilation (``hybridslam.run``'s ``timing.step_s``), against the goal.
+Asserts nothing (benchmarks never fail a build); run it on an idle machine.
+
+Workloads:
+
+* ``paper4``: the paper's map (6 objects, two classes, ``mirror`` classifier), 10 steps, a detector
+  that reports up to 4 objects (range 12 m): the hybrid belief's branching at 3-4 detections per step.
+* ``paper``: the paper setup itself (2 detections at most), smoother against filter.
+* ``hallway``: the thesis's hallway (60 steps, 60 landmarks, object capacity 70, unknown map).
+* ``mrclam``: a real log, UTIAS MRCLAM (15 identical landmarks, up to 8 detections per 0.5 s step,
+  200 steps; ``--mrclam DIR`` names a dataset folder, e.g. ``MRCLAM_Dataset7``; skipped without it).
+* ``files``: 16 ten-step paper-layout files through the study machinery (``hybridslam sweep
+  --scenarios``): seconds of batched work after compilation.
+
+    python scripts/bench_goals.py [--workloads paper4,paper,hallway,mrclam,files] [--mrclam DIR] [--repeats 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import tempfile
+import time
+
+import numpy as np
+
+import hybridslam as hs
+from hybridslam.estimators.smoothing import Filter, Full
+from hybridslam.sim import hallway
+from hybridslam.studies import study
+
+GOALS_MS = {  # (workload, estimator, smoother) -> goal in ms per step (issues 13 and 14)
+    ("paper4", "hybrid", "filter"): 15, ("paper4", "hybrid", "full"): 15 * 1.5,
+    ("hallway", "ml", "full"): 20, ("hallway", "gpda", "full"): 20, ("hallway", "max-mixture", "full"): 20,
+    ("hallway", "hybrid", "full"): 100, ("hallway", "multimodal", "full"): 100, ("hallway", "hybrid", "filter"): 50,
+    ("mrclam", "ml", "full"): 20, ("mrclam", "gpda", "full"): 20, ("mrclam", "max-mixture", "full"): 20,
+    ("mrclam", "hybrid", "full"): 100, ("mrclam", "multimodal", "full"): 100,
+}
+HALLWAY = {"hybrid": dict(capacity=16, gate=3, weights="linearized"), "multimodal": dict(capacity=16)}
+MRCLAM = {"hybrid": dict(capacity=16, gate=3, weights="linearized"), "multimodal": dict(capacity=16)}
+
+
+def _row(workload, name, smoother, scenario, options, repeats):
+    est = hs.make_estimator(name, smoother=smoother, **options)
+    compile_s, steps = 0.0, []
+    for _ in range(repeats):
+        r = hs.run(est, scenario)
+        compile_s = max(compile_s, r.result.timing["compile_s"])
+        steps += r.result.timing["step_s"]
+    ms = 1e3 * np.asarray(steps)
+    goal = GOALS_MS.get((workload, name, smoother))
+    verdict = "" if goal is None else ("meets" if np.median(ms) <= goal else "misses")
+    print(f"{workload:<8} {name:<12} {smoother:<7} {compile_s:>9.1f} {np.median(ms):>10.1f} {np.mean(ms):>9.1f} "
+          f"{'' if goal is None else goal:>8} {verdict}", flush=True)
+
+
+def _paper4(seed: int) -> hs.Scenario:
+    return hs.simulate(seed, steps=10, setup=hs.PaperSetup(max_detections=4, max_range=12.0))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--workloads", default="paper4,paper,hallway,mrclam,files")
+    parser.add_argument("--estimators", default="hybrid,ml,gpda,max-mixture,multimodal")
+    parser.add_argument("--mrclam", default=None, help="an MRCLAM dataset folder (skip the workload without it)")
+    parser.add_argument("--repeats", type=int, default=1)
+    a = parser.parse_args()
+    workloads, names = a.workloads.split(","), a.estimators.split(",")
+    print(f"{'workload':<8} {'estimator':<12} {'smoother':<7} {'compile s':>9} {'median ms':>10} {'mean ms':>9} "
+          f"{'goal ms':>8}")
+    if "paper4" in workloads:
+        s = _paper4(0)
+        print(f"# paper4: {s.num_steps} steps, detections per step {[len(st.detections) for st in s.steps]}")
+        for smoother in ("filter", "full"):
+            _row("paper4", "hybrid", smoother, s, {}, a.repeats)
+    if "paper" in workloads:
+        s = hs.simulate(0, steps=10)
+        for name in names:
+            for smoother in ("filter", "full"):
+                _row("paper", name, smoother, s, {"capacity": 16} if name in ("hybrid", "multimodal") else {},
+                     a.repeats)
+    if "hallway" in workloads:
+        s = hallway.hallway(0, 0.021)
+        for name in names:
+            for smoother in ("full", "filter"):
+                _row("hallway", name, smoother, s, HALLWAY.get(name, {}), a.repeats)
+    if "mrclam" in workloads and a.mrclam:
+        from hybridslam.io.mrclam import import_mrclam
+
+        s = import_mrclam(a.mrclam, 3, start=20.0, duration=100.0)
+        print(f"# mrclam: robot 3, {s.num_steps} steps, up to {s.max_detections} detections per step")
+        for name in names:
+            _row("mrclam", name, "full", s, MRCLAM.get(name, {}), a.repeats)
+    if "files" in workloads:
+        with tempfile.TemporaryDirectory() as tmp:
+            paths = []
+            for seed in range(16):
+                path = os.path.join(tmp, f"track{seed:02d}.json")
+                hs.save_scenario(hs.simulate(seed, steps=10), path)
+                paths.append(path)
+            est = dataclasses.replace(hs.Hybrid(capacity=16, weights=hs.Sampled(1000)), smoother=Full())
+            for label, smoother in (("full", Full()), ("filter", Filter())):
+                spec = study.FileStudy(tuple(paths), None, 0, dataclasses.replace(est, smoother=smoother))
+                t0 = time.perf_counter()
+                calls = []
+                study.run_file_study(spec, os.path.join(tmp, f"out-{label}"), on_cell=lambda *c: calls.append(c))
+                wall = time.perf_counter() - t0
+                record = [c[1] for c in calls if c[1] is not None][0]
+                print(f"files    hybrid       {label:<7} {record['compile_s']:>9.1f} "
+                      f"{'':>10} {'':>9} {'':>8} batched work {record['run_s']:.2f} s for 16 x 10 steps "
+                      f"(goal 1.1 s); end to end {wall:.1f} s", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,54 @@
+"""Several processes: a study across two local processes (``jax.distributed`` on CPU, gloo collectives)
+gives the same table as one process. The README's cluster recipe runs the same code under SLURM."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+
+import pytest
+
+SCRIPT = """
+import sys
+import jax
+pid, n, port, folder = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], sys.argv[4]
+if n > 1:
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.distributed.initialize(coordinator_address=f"localhost:{port}", num_processes=n, process_id=pid)
+import hybridslam as hs
+from hybridslam.studies import study
+spec = study.AlphaStudy(alphas=(0.1, 0.4), models=("mirror",), tracks=4, steps=3,
+                        estimator=hs.Hybrid(weights=hs.Linearized(), capacity=4, smoother=hs.estimators.smoothing.Filter()))
+rows = study.run_alpha_study(spec, folder)
+print("process", jax.process_index(), "of", jax.process_count(), "devices", len(jax.devices()), "rows", len(rows))
+"""
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        return s.getsockname()[1]
+
+
+def test_two_processes_give_the_single_process_table(tmp_path, shared_compilation_cache):
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}  # one CPU device per process
+    one, two = tmp_path / "one", tmp_path / "two"
+    alone = subprocess.run([sys.executable, "-c", SCRIPT, "0", "1", "0", str(one)], env=env, capture_output=True,
+                           text=True, timeout=600)
+    assert alone.returncode == 0, alone.stderr
+    port = str(_free_port())
+    procs = [subprocess.Popen([sys.executable, "-c", SCRIPT, str(i), "2", port, str(two)], env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
+    outs = [p.communicate(timeout=600) for p in procs]
+    for p, (out, err) in zip(procs, outs):
+        assert p.returncode == 0, err
+        assert "of 2 devices 2 rows 24" in out, out
+    assert (two / "table.csv").read_text() == (one / "table.csv").read_text()
+    records = (two / "cells.jsonl").read_text().splitlines()
+    assert len(records) == 1 + 2 and all('"devices": 2' in line for line in records[1:])
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(pytest.main([__file__]))

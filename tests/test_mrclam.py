@@ -1,0 +1,485 @@
+"""Tests of the MRCLAM importer (``hybridslam.io.mrclam``) and ``hybridslam import mrclam``.
+
+Real data: ``tests/data/mrclam`` is a 45 s excerpt of dataset 7, robot 1 (its README). Pure numpy,
+no JAX compiles; the whole file runs in a few seconds.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+import hybridslam as hs
+from hybridslam import cli
+from hybridslam.io import mrclam
+from hybridslam.io.mrclam import MRCLAMError, import_mrclam
+
+DATA = os.path.join(os.path.dirname(__file__), "data", "mrclam")
+CHI2_3_999 = 16.266  # 99.9% quantile of chi-square with 3 degrees of freedom
+
+
+@pytest.fixture(scope="module")
+def known() -> hs.Scenario:
+    return import_mrclam(DATA, 1)
+
+
+@pytest.fixture(scope="module")
+def unknown() -> hs.Scenario:
+    return import_mrclam(DATA, 1, unknown_map=True)
+
+
+@pytest.fixture
+def copy(tmp_path) -> str:
+    """A writable copy of the excerpt, for the broken-file cases."""
+    path = str(tmp_path / "mrclam")
+    shutil.copytree(DATA, path)
+    return path
+
+
+def _one_line(error: pytest.ExceptionInfo) -> str:
+    message = str(error.value)
+    assert "\n" not in message and message
+    return message
+
+
+# --------------------------------------------------------------------------- #
+# The excerpt as a file format
+# --------------------------------------------------------------------------- #
+
+
+def test_excerpt_keeps_the_original_format():
+    with open(os.path.join(DATA, "Robot1_Odometry.dat"), "rb") as f:
+        lines = f.read().split(b"\r\n")
+    assert lines[0].startswith(b"# UTIAS Multi-Robot") and sum(x.startswith(b"#") for x in lines) == 4
+    assert b"\t" in lines[4]  # tab-and-space separated columns, CRLF line ends
+    log = mrclam.read_robot(DATA, 1)
+    assert log.odometry.rows.shape[1] == 3 and log.measurements.rows.shape[1] == 4
+    assert log.odometry.lines[0] == 5  # 1-based file lines, after the 4 comment lines
+    assert mrclam.read_barcodes(DATA)[5] == 1 and len(mrclam.read_landmarks(DATA).rows) == 15
+
+
+# --------------------------------------------------------------------------- #
+# Odometry
+# --------------------------------------------------------------------------- #
+
+
+def _euler(times, v, omega, query, h):
+    """Forward Euler with step ``h`` of the held-sample unicycle, poses at ``query`` (on the grid)."""
+    n = round((query[-1] - query[0]) / h)
+    grid = query[0] + h * np.arange(n)
+    active = np.searchsorted(times, grid + 1e-12, side="right") - 1  # the grid's own sample
+    heading = np.concatenate([[0.0], np.cumsum(omega[active] * h)])
+    xy = np.concatenate([np.zeros((1, 2)), np.cumsum(
+        (v[active] * h)[:, None] * np.column_stack([np.cos(heading[:-1]), np.sin(heading[:-1])]), axis=0)])
+    at = np.round((query - query[0]) / h).astype(int)
+    return np.column_stack([xy[at], mrclam.wrap(heading[at])])
+
+
+def test_exact_integrator_matches_fine_euler():
+    """Irregular samples, a duplicated time (the later counts), ω = 0 and a tiny ω (Taylor branch),
+    queries between samples. Euler's global error is ≈ v·ω·h·T/2 ≈ 3e-8 m at h = 1e-6 s."""
+    times = np.array([0.0, 0.013, 0.3, 0.3, 0.71, 1.2, 1.2001, 1.6])
+    v = np.array([0.086, 0.05, 0.9, 0.07, 0.0, 0.086, 0.03, 0.08])
+    omega = np.array([-0.398, 0.0, 5.0, 0.561, 0.4, 1e-7, -0.2, 0.3])
+    query = np.array([0.05, 0.2, 0.3, 0.65, 0.9, 1.2, 1.5, 1.9])
+    exact = mrclam.integrate_odometry(times, v, omega, query)
+    np.testing.assert_allclose(exact, _euler(times, v, omega, query, 1e-6), atol=1e-6, rtol=0)
+    np.testing.assert_array_equal(exact[0], np.zeros(3))
+
+
+def test_integrator_is_exact_on_one_arc():
+    """Constant (v, ω) for 2 s from a query point: the closed-form circle, and composing the steps."""
+    v, w = 0.08, 0.5
+    query = np.linspace(0.5, 2.5, 9)
+    poses = mrclam.integrate_odometry(np.array([0.0]), np.array([v]), np.array([w]), query)
+    t = query - query[0]
+    expected = np.column_stack([v / w * np.sin(w * t), v / w * (1 - np.cos(w * t)), w * t])
+    np.testing.assert_allclose(poses, expected, atol=1e-14)
+    steps = mrclam.between(poses[:-1], poses[1:])
+    composed = poses[0]
+    for u in steps:
+        composed = mrclam.compose(composed, u)
+    np.testing.assert_allclose(composed, poses[-1], atol=1e-14)
+
+
+def _propagate(s: hs.Scenario) -> tuple[np.ndarray, np.ndarray]:
+    """Dead reckoning from the prior and its first-order covariance under ``motion_cov``."""
+    x, cov = s.robot_prior_mean.copy(), s.robot_prior_cov.copy()
+    for step in s.steps:
+        u, (c, sn) = step.odometry, (math.cos(x[2]), math.sin(x[2]))
+        f = np.array([[1, 0, -sn * u[0] - c * u[1]], [0, 1, c * u[0] - sn * u[1]], [0, 0, 1]])
+        x = mrclam.compose(x, u)
+        g = np.eye(3)
+        g[:2, :2] = [[math.cos(x[2]), -math.sin(x[2])], [math.sin(x[2]), math.cos(x[2])]]
+        cov = f @ cov @ f.T + g @ s.motion_cov @ g.T
+    return x, cov
+
+
+def test_odometry_follows_the_ground_truth(known):
+    """The odometry is velocity *commands* (the dataset's own description), so it is checked for what
+    commands can promise. Per step: travelled distance within 15% of the ground truth's over the
+    window (the full logs of datasets 6-7 overshoot by 4-12%: a speed scale error) and heading
+    changes correlated with the true ones (0.78 here, 0.80-0.91 over the full logs; a sign or
+    frame error gives ≤ 0). Composed over the window: the final dead-reckoning error inside the
+    99.9% chi-square bound of the covariance that the calibrated motion_cov propagates."""
+    u = np.array([step.odometry for step in known.steps])
+    truth = mrclam.between(known.true_robot_poses[:-1], known.true_robot_poses[1:])
+    ratio = np.hypot(u[:, 0], u[:, 1]).sum() / np.hypot(truth[:, 0], truth[:, 1]).sum()
+    assert 0.85 < ratio < 1.15
+    assert np.corrcoef(u[:, 2], truth[:, 2])[0, 1] > 0.6
+    x, cov = _propagate(known)
+    e = x - known.true_robot_poses[-1]
+    e[2] = mrclam.wrap(e[2])
+    assert e @ np.linalg.solve(cov, e) < CHI2_3_999
+    dr = known.metadata["generator"]["dead_reckoning"]
+    assert dr["final_position_error_m"] == pytest.approx(np.hypot(e[0], e[1]), abs=1e-8)
+
+
+def test_steps_and_true_poses(known):
+    g = known.metadata["generator"]
+    log = mrclam.read_robot(DATA, 1)
+    origin = log.odometry.rows[0, 0]
+    last = min(log.odometry.rows[-1, 0], log.groundtruth.rows[-1, 0])
+    assert g["time_origin_unix_s"] == origin == g["t0_unix_s"]
+    assert known.num_steps == math.floor((last - origin) / 0.5) == 90
+    times = origin + 0.5 * np.arange(known.num_steps + 1)
+    expected = mrclam.interpolate_groundtruth(log.groundtruth.rows, times)
+    np.testing.assert_allclose(known.true_robot_poses, expected)
+    np.testing.assert_array_equal(known.robot_prior_mean, known.true_robot_poses[0])
+    # Linear in the unwrapped heading: across the ±π seam it stays between its neighbours.
+    gt = np.array([[0.0, 0, 0, math.pi - 0.1], [1.0, 0, 0, -math.pi + 0.1]])
+    assert mrclam.interpolate_groundtruth(gt, np.array([0.5]))[0, 2] == pytest.approx(math.pi)
+    later = import_mrclam(DATA, 1, start=10.25, duration=20, dt=0.25)
+    assert later.num_steps == 80
+    np.testing.assert_allclose(later.true_robot_poses[0],
+                               mrclam.interpolate_groundtruth(log.groundtruth.rows, [origin + 10.25])[0])
+
+
+# --------------------------------------------------------------------------- #
+# Detections
+# --------------------------------------------------------------------------- #
+
+
+def test_detections_are_the_closest_landmark_measurements_of_each_step():
+    """Without motion compensation every detection is a line of the measurement file: a landmark's
+    barcode, within dt/2 of its step's time, the closest such line of that landmark."""
+    s = import_mrclam(DATA, 1, motion_compensation=False)
+    rows = mrclam.read_robot(DATA, 1).measurements.rows
+    barcodes = mrclam.read_barcodes(DATA)
+    subject = np.array([barcodes[int(b)] for b in rows[:, 1]])
+    t0 = s.metadata["generator"]["t0_unix_s"]
+    for k, step in enumerate(s.steps, 1):
+        tk = t0 + 0.5 * k
+        near = (rows[:, 0] > tk - 0.25) & (rows[:, 0] <= tk + 0.25)
+        objects = [d.true_object for d in step.detections]
+        assert sorted(objects) == sorted({n - 6 for n in subject[near] if n >= 6})
+        for d in step.detections:
+            same = np.flatnonzero(near & (subject == d.true_object + 6))
+            best = same[np.argmin(np.abs(rows[same, 0] - tk))]
+            assert (d.range, d.bearing) == tuple(rows[best, 2:4])
+            np.testing.assert_array_equal(d.scores, [1.0])
+    counts = s.metadata["generator"]["counts"]
+    assert counts["kept"] == sum(len(st.detections) for st in s.steps) == 197
+    assert counts["robot_robot"] == 12 and counts["unknown_barcode"] == 0
+
+
+def test_association_truth_against_the_geometry(known):
+    """``true_object`` comes from the barcode. From the true pose, the landmark closest to the
+    back-projected detection is that one for 90% of the detections; the others pick a cluster
+    neighbour. This excerpt's landmarks stand in clusters (6-8, 9-10, 11-13) 0.18-0.33 m apart,
+    while a detection's position error at 5 m is ~0.1 m (range sd 7 cm, bearing 0.011 rad; the
+    range bias 6 cm): the data are ambiguous, which is what the library is for. A barcode that
+    named a landmark elsewhere (a gross mislabel) would fail the 0.35 m and 0.6 m bounds."""
+    landmarks = known.true_object_poses[:, :2]
+    pairwise = np.hypot(*(landmarks[:, None] - landmarks[None]).transpose(2, 0, 1))
+    matches, total = 0, 0
+    for pose, step in zip(known.true_robot_poses[1:], known.steps):
+        for d in step.detections:
+            direction = pose[2] + d.bearing
+            point = pose[:2] + d.range * np.array([math.cos(direction), math.sin(direction)])
+            dist = np.hypot(*(landmarks - point).T)
+            closest = int(np.argmin(dist))
+            total += 1
+            matches += closest == d.true_object
+            assert pairwise[closest, d.true_object] < 0.35 and dist[d.true_object] < 0.6
+    assert matches >= 0.9 * total
+
+
+def test_motion_compensation_moves_the_point_into_the_step_frame():
+    """A robot that turned by +0.1 rad and moved 0.02 m forward between the measurement and t_k sees
+    the same point from the step's pose: the compensated detection is the point re-expressed."""
+    m = mrclam.Measurements(time=np.array([0.0]), step=np.array([1]), landmark=np.array([0]),
+                            raw=np.array([[2.0, 0.3]]), counts={})
+    at_steps = np.array([[0.0, 0.0, 0.0], [0.02, 0.0, 0.1]])
+    out = mrclam.compensate(m, at_steps, np.zeros((1, 3)))
+    point = 2.0 * np.array([math.cos(0.3), math.sin(0.3)])
+    expected = mrclam.range_bearing(at_steps[1:], point[None])
+    np.testing.assert_allclose(out, expected, atol=1e-14)
+    same = mrclam.compensate(m, at_steps, at_steps[1:])  # measured at t_k: unchanged
+    np.testing.assert_allclose(same, m.raw, atol=1e-14)
+
+
+def test_max_range_and_fov_drop_detections(known):
+    s = import_mrclam(DATA, 1, max_range=3.0, fov=0.6)
+    ranges = np.array([d.range for st in s.steps for d in st.detections])
+    bearings = np.array([d.bearing for st in s.steps for d in st.detections])
+    assert s.max_range == 3.0 and s.fov == 0.6
+    assert ranges.max() <= 3.0 and np.abs(bearings).max() <= 0.3
+    assert 0 < len(ranges) < known.metadata["generator"]["counts"]["kept"]
+    assert s.metadata["generator"]["counts"]["beyond_sensor"] > 0
+    # Defaults: every written detection in view, with a 3-sd margin.
+    written = np.array([(d.range, d.bearing) for st in known.steps for d in st.detections])
+    sd = np.sqrt(np.diag(known.geometric_cov))
+    assert written[:, 0].max() + 3 * sd[0] <= known.max_range
+    assert np.abs(written[:, 1]).max() + 3 * sd[1] <= known.fov / 2
+
+
+# --------------------------------------------------------------------------- #
+# Calibration
+# --------------------------------------------------------------------------- #
+
+
+def test_robust_scale_ignores_outliers():
+    rng = np.random.default_rng(0)
+    r = np.concatenate([0.1 * rng.standard_normal((4000, 2)) + [0.05, 0.0], np.full((200, 2), 10.0)])
+    median, scale = mrclam.robust_location_scale(r)
+    np.testing.assert_allclose(scale, 0.1, rtol=0.1)
+    np.testing.assert_allclose(median, [0.05, 0.0], atol=0.01)
+    np.testing.assert_allclose(mrclam.robust_variance(r, 1e-3), scale**2 + median**2)
+    np.testing.assert_allclose(mrclam.robust_variance(np.zeros((5, 3)), 1e-3), 1e-6)
+
+
+def test_noise_is_calibrated_from_the_ground_truth(known):
+    cal = known.metadata["generator"]["calibration"]
+    log = mrclam.read_robot(DATA, 1)
+    u = np.array([step.odometry for step in known.steps])
+    res = mrclam.odometry_residuals(u, known.true_robot_poses)
+    np.testing.assert_allclose(np.diag(known.motion_cov), mrclam.robust_variance(res, mrclam.MOTION_SD_FLOOR))
+    assert cal["odometry_residuals"]["count"] == 90 and cal["measurement_residuals"]["count"] == 197
+    median, scale = (np.array(cal["measurement_residuals"][k]) for k in ("median", "scale"))
+    np.testing.assert_allclose(np.diag(known.geometric_cov), scale**2 + median**2, rtol=1e-6)
+    assert known.motion_cov[0, 1] == known.geometric_cov[0, 1] == 0.0
+    # MRCLAM's range bias: reported, not corrected.
+    assert cal["range_bias_m"] == median[0] and 0.03 < median[0] < 0.1 and not cal["range_bias_corrected"]
+    assert "1.4826*MAD" in cal["method"] and cal["motion_cov"] == "calibrated"
+    # The drift check: summed over 5 s the odometry errors grow faster than white noise would.
+    drift = cal["odometry_drift_sd_per_step"]
+    assert drift["block_steps"] == 10 and drift["sd"][2] > math.sqrt(known.motion_cov[2, 2])
+    assert log.odometry.rows.shape[0] > 0
+
+
+def test_overrides_and_range_bias_correction(known):
+    s = import_mrclam(DATA, 1, motion_cov=[1e-4, 2e-4, 3e-4], geometric_cov=np.diag([0.01, 0.002]),
+                      robot_prior_cov=[1.0, 1.0, 0.1], correct_range_bias=True)
+    np.testing.assert_array_equal(s.motion_cov, np.diag([1e-4, 2e-4, 3e-4]))
+    np.testing.assert_array_equal(s.geometric_cov, np.diag([0.01, 0.002]))
+    np.testing.assert_array_equal(s.robot_prior_cov, np.diag([1.0, 1.0, 0.1]))
+    cal = s.metadata["generator"]["calibration"]
+    assert cal["motion_cov"] == cal["geometric_cov"] == "given" and cal["range_bias_corrected"]
+    bias = known.metadata["generator"]["calibration"]["range_bias_m"]
+    before = [d.range for st in known.steps for d in st.detections]
+    after = [d.range for st in s.steps for d in st.detections]
+    np.testing.assert_allclose(np.subtract(before, after), bias, atol=1e-12)
+    assert abs(cal["measurement_residuals"]["median"][0]) < 1e-9
+
+
+def test_a_window_without_detections_needs_a_geometric_cov():
+    with pytest.raises(MRCLAMError) as e:
+        import_mrclam(DATA, 1, max_range=0.5)
+    assert _one_line(e).startswith("robot 1: no landmark measurement in the window to calibrate")
+    s = import_mrclam(DATA, 1, max_range=0.5, geometric_cov=[0.01, 0.001])
+    assert s.max_detections == 0 and s.metadata["generator"]["counts"]["kept"] == 0
+    assert s.metadata["generator"]["calibration"]["measurement_residuals"] == {"count": 0}
+
+
+# --------------------------------------------------------------------------- #
+# Maps and the file
+# --------------------------------------------------------------------------- #
+
+
+def test_known_map(known):
+    assert known.num_classes == 1 and known.classifier.model == "none" and known.num_objects == 15
+    lm = mrclam.read_landmarks(DATA).rows
+    np.testing.assert_array_equal(known.object_prior_means[:, :2], lm[:, 1:3])
+    np.testing.assert_array_equal(known.object_prior_means[:, 2], 0.0)
+    np.testing.assert_array_equal(known.true_object_poses, known.object_prior_means)
+    np.testing.assert_array_equal(known.true_classes, 0)
+    sd = np.sqrt(np.diagonal(known.object_prior_covs, axis1=1, axis2=2))
+    np.testing.assert_allclose(sd[:, :2], np.maximum(lm[:, 3:5], 0.01))  # survey sds are 40-650 µm
+    np.testing.assert_allclose(sd[:, 2], math.pi)
+    assert known.discovery is None and known.true_objects is None
+
+
+def test_unknown_map(unknown, known):
+    assert unknown.num_objects == 0 and unknown.discovery is not None
+    assert unknown.discovery.max_objects == 15 + 10
+    density = -math.log(unknown.max_range * unknown.fov)  # uniform in [range, bearing] over the footprint
+    assert unknown.discovery.new_object_log_density == pytest.approx(density)
+    assert unknown.discovery.new_object_orientation_var == pytest.approx(math.pi**2)
+    assert len(unknown.true_objects) == 15
+    np.testing.assert_array_equal(np.array([p for p, _ in unknown.true_objects]), known.true_object_poses)
+    assert {c for _, c in unknown.true_objects} == {0}
+    assert unknown.steps == known.steps and np.array_equal(unknown.motion_cov, known.motion_cov)
+    custom = import_mrclam(DATA, 1, unknown_map=True, discovery_margin=0, new_object_log_density=-3.0)
+    assert custom.discovery.max_objects == 15 and custom.discovery.new_object_log_density == -3.0
+
+
+@pytest.mark.parametrize("variant", ["known", "unknown"])
+def test_save_load_round_trip(variant, request, tmp_path):
+    s = request.getfixturevalue(variant)
+    path = tmp_path / "mrclam.json"
+    hs.save_scenario(s, path)
+    loaded = hs.load_scenario(path)
+    assert loaded == s
+    assert loaded.metadata["generator"]["name"] == "hybridslam.io.mrclam"
+
+
+# --------------------------------------------------------------------------- #
+# Errors: one line, naming the file and line, the robot, the window or the setting
+# --------------------------------------------------------------------------- #
+
+
+def test_missing_files(copy, tmp_path):
+    with pytest.raises(MRCLAMError) as e:
+        import_mrclam(str(tmp_path / "nowhere"), 1)
+    assert "nowhere: not a dataset folder" in _one_line(e)
+    os.remove(os.path.join(copy, "Robot1_Measurement.dat"))
+    with pytest.raises(MRCLAMError) as e:
+        import_mrclam(copy, 1)
+    assert _one_line(e) == f"{copy}/Robot1_Measurement.dat: no such file (robot 1 has no measurement log)"
+    os.remove(os.path.join(copy, "Barcodes.dat"))
+    with pytest.raises(MRCLAMError) as e:
+        import_mrclam(copy, 1)
+    assert _one_line(e) == f"{copy}/Barcodes.dat: no such file"
+
+
+@pytest.mark.parametrize("name, line, text", [
+    ("Robot1_Odometry.dat", 7, "1248446283.4 \t 0.086\r\n"),
+    ("Robot1_Groundtruth.dat", 100, "1248446283.4 \t 0.1 \t x \t 0.3\r\n"),
+    ("Robot1_Measurement.dat", 5, "1248446283.4 \t 63 \t nan \t 0.1\r\n"),
+    ("Landmark_Groundtruth.dat", 6, "7 1 2 3\r\n"),
+])
+def test_garbled_line(copy, name, line, text):
+    path = os.path.join(copy, name)
+    with open(path, newline="") as f:
+        lines = f.readlines()
+    lines[line - 1] = text
+    with open(path, "w", newline="") as f:
+        f.writelines(lines)
+    with pytest.raises(MRCLAMError) as e:
+        import_mrclam(copy, 1)
+    message = _one_line(e)
+    assert message.startswith(f"{path}:{line}: expected ") and repr(text.strip()) in message
+
+
+def test_records_out_of_time_order(copy):
+    path = os.path.join(copy, "Robot1_Odometry.dat")
+    with open(path, newline="") as f:
+        lines = f.readlines()
+    lines[9], lines[10] = lines[10], lines[9]
+    with open(path, "w", newline="") as f:
+        f.writelines(lines)
+    with pytest.raises(MRCLAMError) as e:
+        import_mrclam(copy, 1)
+    assert _one_line(e).startswith(f"{path}:11: time ") and "time order" in str(e.value)
+
+
+def test_unknown_robot():
+    with pytest.raises(MRCLAMError) as e:
+        import_mrclam(DATA, 6)
+    assert _one_line(e) == "robot 6: no such robot (MRCLAM robots are 1-5)"
+    with pytest.raises(MRCLAMError) as e:
+        import_mrclam(DATA, 2)  # the excerpt holds robot 1 only
+    assert _one_line(e) == f"{DATA}/Robot2_Odometry.dat: no such file (robot 2 has no odometry log)"
+
+
+@pytest.mark.parametrize("window, expected", [
+    ({"start": -1.0}, "start -1 s: outside the data; robot 1's data cover 0.000 to 45."),
+    ({"start": 50.0}, "start 50 s: outside the data; robot 1's data cover 0.000 to 45."),
+    ({"start": 10.0, "duration": 40.0}, "window 10 s + 40 s: ends at 50.000 s, after the data; robot 1's"),
+    ({"start": 45.3}, "window from 45.3 s: holds no step of dt = 0.5 s; robot 1's data cover"),
+    ({"duration": 0.0}, "duration: expected a positive number of seconds, got 0.0"),
+    ({"dt": 0.0}, "dt: expected a positive number of seconds, got 0.0"),
+    ({"dt": -0.5}, "dt: expected a positive number of seconds, got -0.5"),
+    ({"start": math.nan}, "start: expected a finite number of seconds, got nan"),
+])
+def test_window_outside_the_data(window, expected):
+    with pytest.raises(MRCLAMError) as e:
+        import_mrclam(DATA, 1, **window)
+    assert _one_line(e).startswith(expected)
+
+
+@pytest.mark.parametrize("settings, expected", [
+    ({"motion_cov": [1.0, -1.0, 1.0]}, "motion_cov: not symmetric positive definite"),
+    ({"geometric_cov": [1.0, 2.0, 3.0]}, "geometric_cov: expected 2 finite variances or a 2x2 matrix"),
+    ({"max_range": 0.0}, "max_range: expected a positive number of metres"),
+    ({"fov": 7.0}, "fov: expected radians in (0, 2*pi]"),
+    ({"discovery_margin": -1}, "discovery_margin: expected a non-negative integer"),
+])
+def test_bad_settings(settings, expected):
+    with pytest.raises(MRCLAMError) as e:
+        import_mrclam(DATA, 1, **settings)
+    assert _one_line(e).startswith(expected)
+
+
+# --------------------------------------------------------------------------- #
+# The command
+# --------------------------------------------------------------------------- #
+
+
+def test_cli_writes_a_valid_file_and_a_summary(tmp_path, capsys, known):
+    out = tmp_path / "robot1.json"
+    assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out)]) == 0
+    stdout = capsys.readouterr().out
+    assert hs.load_scenario(out) == known
+    assert stdout.startswith(f"wrote {out}: mrclam robot 1, 0-45 s after its first odometry record, 90 steps")
+    for text in ("197 of 8 landmarks", "2.19 per step (max 8)", "12 robot-robot",
+                 "motion_cov (calibrated): sd",
+                 "range bias +0.058 m (not corrected", "dead reckoning at the end of the window: 0.438 m"):
+        assert text in stdout, text
+    out = tmp_path / "unknown.json"
+    assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out), "--unknown-map",
+                     "--start", "5", "--duration", "20", "--dt", "0.25", "--max-range", "5",
+                     "--motion-cov", "1e-4,1e-4,1e-3", "--correct-range-bias", "--no-motion-compensation",
+                     "--odometry-delay", "0.17"]) == 0
+    s = hs.load_scenario(out)
+    g = s.metadata["generator"]
+    assert s.discovery is not None and s.num_steps == 80 and s.max_range == 5.0
+    assert g["odometry_delay_s"] == 0.17 and not g["motion_compensation"]
+    assert g["calibration"]["range_bias_corrected"]
+    np.testing.assert_array_equal(s.motion_cov, np.diag([1e-4, 1e-4, 1e-3]))
+    assert "unknown map of 15 landmarks" in capsys.readouterr().out
+
+
+def _error(capsys) -> str:
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("hybridslam: error: ")
+    return lines[0]
+
+
+@pytest.mark.parametrize("args, expected", [
+    (["--robot", "7"], "robot 7: no such robot"),
+    (["--robot", "1", "--start", "60"], "start 60 s: outside the data"),
+    (["--robot", "1", "--dt", "0"], "dt: expected a positive number of seconds"),
+    (["--robot", "1", "--motion-cov", "1,2"], "--motion-cov: expected 3 positive comma-separated variances"),
+    (["--robot", "x"], "argument --robot: invalid int value: 'x'"),
+])
+def test_cli_errors_are_one_line(tmp_path, capsys, args, expected):
+    assert cli.main(["import", "mrclam", DATA, "-o", str(tmp_path / "x.json"), *args]) == 2
+    assert expected in _error(capsys)
+    assert not (tmp_path / "x.json").exists()
+
+
+def test_cli_garbled_file_names_file_and_line(copy, tmp_path, capsys):
+    path = os.path.join(copy, "Robot1_Odometry.dat")
+    with open(path, newline="") as f:
+        lines = f.readlines()
+    lines[20] = "garbage\r\n"
+    with open(path, "w", newline="") as f:
+        f.writelines(lines)
+    assert cli.main(["import", "mrclam", copy, "--robot", "1", "-o", str(tmp_path / "x.json")]) == 2
+    assert f"{path}:21: expected 3 numbers (time, v, omega), got 'garbage'" in _error(capsys)

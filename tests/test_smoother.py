@@ -1,0 +1,219 @@
+"""The factor-graph smoother (hybridslam.inference.smoother) against closed forms.
+
+For a linear-Gaussian graph (linear odometry and measurement residuals) the minimizer is the
+least-squares solution of the stacked residuals, its covariance the inverse of ``JᵀJ``: both are
+computed here from an independently stacked residual vector (``jax.jacfwd`` of the whole thing and
+``numpy.linalg.lstsq``), not from the solver's own blocks.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pytest
+
+import hybridslam  # noqa: F401  (float64)
+from hybridslam.inference import smoother as sm
+from hybridslam.models import geometry, se2
+from hybridslam.models.motion import odometry_residual
+
+P, N, F, G = 5, 3, 7, 2
+W_ODO = np.diag([10.0, 10.0, 20.0])
+W_MEAS = np.array([[5.0, 1.0], [0.0, 4.0]])
+
+
+def linear_odometry(x_prev, x, u):
+    return x - x_prev - u
+
+
+class Offset(eqx.Module):
+    """``W (z − (o_xy − x_xy))``: a linear measurement of the object relative to the pose."""
+
+    sqrt_info: jnp.ndarray
+
+    def __call__(self, x, o, data, g):
+        del g
+        return self.sqrt_info @ (data - (o[:2] - x[:2])), jnp.asarray(0.0)
+
+
+def _graph(rng, mode="sum", poses=P, linear=True):
+    """A random graph: prior on x_0 and the map, odometry chain, F factors with G candidates."""
+    n0 = 3 + 3 * N
+    a = rng.normal(size=(n0, n0)) * 0.1
+    sqrt_info = np.linalg.cholesky(np.eye(n0) * 4.0 + a @ a.T).T
+    meas_objects = rng.integers(0, N, size=(F, G))
+    log_w = np.log(rng.uniform(0.2, 1.0, size=(F, G)))
+    log_w[0, 1] = -np.inf  # a padded candidate
+    return sm.FactorGraph(
+        prior_mean=jnp.asarray(rng.normal(size=n0) * 0.1),
+        prior_sqrt_info=jnp.asarray(sqrt_info),
+        odometry=jnp.asarray(rng.normal(size=(poses - 1, 3)) * 0.1),
+        odometry_active=jnp.ones(poses - 1, bool),
+        motion_sqrt_info=jnp.asarray(W_ODO),
+        meas_pose=jnp.asarray(rng.integers(0, poses, size=F)),
+        meas_objects=jnp.asarray(meas_objects),
+        meas_log_weight=jnp.asarray(log_w),
+        meas_null_log_weight=jnp.full(F, -jnp.inf) if mode == "sum" else jnp.asarray(np.log(rng.uniform(0.01, 0.1, F))),
+        meas_data=jnp.asarray(rng.normal(size=(F, 2)) * 0.2),
+        pose_active=jnp.ones(poses, bool),
+        object_active=jnp.ones(N, bool),
+        residual_fn=Offset(jnp.asarray(W_MEAS)) if linear else sm.RangeBearingResidual(jnp.asarray(W_MEAS)),
+        odometry_fn=linear_odometry if linear else odometry_residual,
+        mode=mode,
+    )
+
+
+def _stacked_residual(graph):
+    """Every whitened residual of a sum-mode graph, stacked: ``r(y)``, ``y = [poses, objects]``."""
+    p, n = graph.num_poses, graph.num_objects
+
+    def r(y):
+        poses, objects = y[: 3 * p].reshape(p, 3), y[3 * p :].reshape(n, 3)
+        parts = [graph.prior_sqrt_info @ (jnp.concatenate([poses[0], objects.reshape(-1)]) - graph.prior_mean)]
+        for i in range(1, p):
+            parts.append(graph.motion_sqrt_info @ graph.odometry_fn(poses[i - 1], poses[i], graph.odometry[i - 1]))
+        for f in range(graph.meas_pose.shape[0]):
+            for g in range(graph.meas_objects.shape[1]):
+                lw = float(graph.meas_log_weight[f, g])
+                if np.isfinite(lw):
+                    res, _ = graph.residual_fn(poses[graph.meas_pose[f]], objects[graph.meas_objects[f, g]],
+                                               graph.meas_data[f], g)
+                    parts.append(np.sqrt(np.exp(lw)) * res)
+        return jnp.concatenate(parts)
+
+    return r
+
+
+def _least_squares(graph):
+    """The exact minimizer and ``(JᵀJ)⁻¹`` of a linear sum-mode graph, by numpy."""
+    r = _stacked_residual(graph)
+    y0 = np.zeros(3 * graph.num_poses + 3 * graph.num_objects)
+    j = np.asarray(jax.jacfwd(r)(jnp.asarray(y0)))
+    y = y0 - np.linalg.lstsq(j, np.asarray(r(jnp.asarray(y0))), rcond=None)[0]
+    return y, np.linalg.inv(j.T @ j)
+
+
+@pytest.fixture(scope="module")
+def solve():
+    return jax.jit(lambda g, p0, o0: sm.solve(g, p0, o0, max_steps=20))
+
+
+def test_linear_graph_solution_is_the_least_squares_solution(solve):
+    graph = _graph(np.random.default_rng(0))
+    sol = solve(graph, jnp.zeros((P, 3)), jnp.zeros((N, 3)))
+    y, _ = _least_squares(graph)
+    assert sol.result == optx.RESULTS.successful
+    np.testing.assert_allclose(np.asarray(sol.poses).reshape(-1), y[: 3 * P], atol=1e-9)
+    np.testing.assert_allclose(np.asarray(sol.objects).reshape(-1), y[3 * P :], atol=1e-9)
+    hist = np.asarray(sol.history)
+    hist = hist[np.isfinite(hist)]
+    assert np.all(np.diff(hist) <= 1e-12), hist  # the LM cost never increases
+
+
+def test_structured_eliminations_match_the_dense_solve():
+    graph = _graph(np.random.default_rng(1))
+    lin = sm.linearize(graph, jnp.asarray(np.random.default_rng(2).normal(size=(P, 3)) * 0.1), jnp.zeros((N, 3)))
+    h, g = lin.dense()
+    ref = -np.linalg.solve(np.asarray(h), np.asarray(g))
+    for method in ("poses-first", "objects-first", "dense"):
+        d_p, d_o = sm.solve_normal(lin, method)
+        got = np.concatenate([np.asarray(d_p).reshape(-1), np.asarray(d_o).reshape(-1)])
+        np.testing.assert_allclose(got, ref, atol=1e-10, err_msg=method)
+    with pytest.raises(ValueError, match="method"):
+        sm.solve_normal(lin, "cholmod")
+
+
+@pytest.mark.parametrize("k", [0, 2, P - 1])
+def test_marginal_is_the_block_of_the_inverse_hessian(solve, k):
+    graph = _graph(np.random.default_rng(3))
+    sol = solve(graph, jnp.zeros((P, 3)), jnp.zeros((N, 3)))
+    mean, cov = sm.marginal(graph, sol, k)
+    _, full = _least_squares(graph)
+    idx = np.concatenate([np.arange(3 * k, 3 * k + 3), 3 * P + np.arange(3 * N)])
+    np.testing.assert_allclose(np.asarray(cov), full[np.ix_(idx, idx)], rtol=1e-8, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(mean[:3]), np.asarray(sol.poses[k]))
+
+
+def test_marginalizing_the_first_pose_is_exact_for_linear_factors(solve):
+    """Solving [x_1.., O] under the marginalized prior gives the full solution without x_0."""
+    graph = _graph(np.random.default_rng(4))
+    sol = solve(graph, jnp.zeros((P, 3)), jnp.zeros((N, 3)))
+    mean, sqrt_info = sm.marginalize_first(graph, sol)
+    keep = graph.meas_pose > 0
+    reduced = sm.FactorGraph(
+        prior_mean=mean, prior_sqrt_info=sqrt_info, odometry=graph.odometry[1:],
+        odometry_active=graph.odometry_active[1:], motion_sqrt_info=graph.motion_sqrt_info,
+        meas_pose=jnp.maximum(graph.meas_pose - 1, 0), meas_objects=graph.meas_objects,
+        meas_log_weight=jnp.where(keep[:, None], graph.meas_log_weight, -jnp.inf),
+        meas_null_log_weight=graph.meas_null_log_weight, meas_data=graph.meas_data,
+        pose_active=graph.pose_active[1:], object_active=graph.object_active,
+        residual_fn=graph.residual_fn, odometry_fn=graph.odometry_fn,
+    )
+    out = sm.solve(reduced, jnp.zeros((P - 1, 3)), jnp.zeros((N, 3)), max_steps=20)
+    np.testing.assert_allclose(np.asarray(out.poses), np.asarray(sol.poses[1:]), atol=1e-9)
+    np.testing.assert_allclose(np.asarray(out.objects), np.asarray(sol.objects), atol=1e-9)
+
+
+def test_max_mixture_picks_the_component_that_explains_the_data():
+    """A factor with a consistent candidate and an absurd one: "max" mode ignores the absurd one
+    (the result equals the graph with only the good candidate); a hopeless outlier takes the null."""
+    rng = np.random.default_rng(5)
+    base = _graph(rng, mode="max")
+    truth_objects = np.asarray(base.prior_mean[3:]).reshape(N, 3)
+    poses0 = np.zeros((P, 3))
+    # Factor f sees object good[f] exactly (relative offset), candidate 1 is another object.
+    good = np.arange(F) % N
+    data = truth_objects[good, :2] - poses0[np.asarray(base.meas_pose), :2]
+    data[-1] = [40.0, -40.0]  # an outlier: no candidate explains it
+    objs = np.stack([good, (good + 1) % N], axis=1)
+    lw = np.log(np.full((F, G), 0.5))
+    graph = sm.FactorGraph(**{**{f: getattr(base, f) for f in base.__dataclass_fields__},
+                              "meas_objects": jnp.asarray(objs), "meas_log_weight": jnp.asarray(lw),
+                              "meas_data": jnp.asarray(data)})
+    out = sm.solve(graph, jnp.asarray(poses0), jnp.asarray(truth_objects), max_steps=30)
+    active = np.asarray(out.active)
+    assert np.all(active[:-1] == 0), active
+    assert active[-1] == G, active  # the null component
+    only_good = sm.FactorGraph(**{**{f: getattr(graph, f) for f in graph.__dataclass_fields__},
+                                  "meas_log_weight": jnp.asarray(np.where(np.arange(G) == 0, 0.0, -np.inf)[None]
+                                                                 * np.ones((F, 1))).at[-1].set(-jnp.inf),
+                                  "mode": "sum"})
+    ref = sm.solve(only_good, jnp.asarray(poses0), jnp.asarray(truth_objects), max_steps=30)
+    np.testing.assert_allclose(np.asarray(out.poses), np.asarray(ref.poses), atol=1e-7)
+    np.testing.assert_allclose(np.asarray(out.objects), np.asarray(ref.objects), atol=1e-7)
+
+
+def test_nonlinear_graph_converges_to_a_stationary_point():
+    """Range-bearing factors and SE(2) odometry: LM converges and the gradient vanishes there."""
+    rng = np.random.default_rng(6)
+    true_poses = np.cumsum(np.tile([[1.0, 0.0, 0.1]], (P, 1)), axis=0)
+    objects = np.array([[3.0, 4.0, 0.0], [6.0, -3.0, 0.0], [1.0, -5.0, 0.0]])
+    base = _graph(rng, linear=False)
+    pose_of = np.asarray(base.meas_pose)
+    obj_of = np.asarray(base.meas_objects[:, 0])
+    z = np.stack([np.asarray(geometry.range_bearing(jnp.asarray(true_poses[i]), jnp.asarray(objects[j])))
+                  for i, j in zip(pose_of, obj_of)]) + rng.normal(size=(F, 2)) * 0.05
+    odo = np.stack([np.asarray(se2.between(jnp.asarray(true_poses[i]), jnp.asarray(true_poses[i + 1])))
+                    for i in range(P - 1)])
+    graph = sm.FactorGraph(**{**{f: getattr(base, f) for f in base.__dataclass_fields__},
+                              "meas_data": jnp.asarray(z), "odometry": jnp.asarray(odo),
+                              "meas_log_weight": jnp.where(jnp.arange(G) == 0, 0.0, -jnp.inf)[None].repeat(F, 0),
+                              "prior_mean": jnp.concatenate([jnp.asarray(true_poses[0]), jnp.asarray(objects).reshape(-1)])})
+    start = true_poses + rng.normal(size=(P, 3)) * 0.2
+    out = sm.solve(graph, jnp.asarray(start), jnp.asarray(objects), max_steps=50)
+    assert out.result == optx.RESULTS.successful
+    lin = sm.linearize(graph, out.poses, out.objects)
+    assert float(jnp.max(jnp.abs(lin.grad_pose))) < 1e-6
+    assert float(jnp.max(jnp.abs(lin.grad_object))) < 1e-6
+    assert float(jnp.max(jnp.abs(out.poses[:, :2] - true_poses[:, :2]))) < 0.3
+
+
+def test_bad_shapes_name_the_field():
+    graph = _graph(np.random.default_rng(7))
+    with pytest.raises(ValueError, match="poses"):
+        sm.solve(graph, jnp.zeros((P + 1, 3)), jnp.zeros((N, 3)))
+    with pytest.raises(ValueError, match="odometry"):
+        bad = sm.FactorGraph(**{**{f: getattr(graph, f) for f in graph.__dataclass_fields__},
+                                "odometry": graph.odometry[:-1]})
+        sm.solve(bad, jnp.zeros((P, 3)), jnp.zeros((N, 3)))
