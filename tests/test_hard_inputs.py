@@ -6,12 +6,14 @@ odometry that disagrees with everything seen after it, flat scores, near-singula
 covariances, a detection at zero range, no ground truth. Every estimator runs them through the
 ``hybridslam run`` command (in-process): it exits 0 with a valid result file whose every step holds
 at least one component, all numbers finite, or exits 2 with one line. Every file has the same
-shapes (4 objects, 6 steps, 12 detection slots: ``--max-detections 12``), so each estimator
-compiles once for the whole test.
+shapes (4 objects, 6 steps, 12 detection slots: ``--max-detections 12``); three of the estimators
+run them on an unknown map (no objects, a discovery section), two on the known one, so each
+estimator compiles once for the whole test.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -27,6 +29,8 @@ from hybridslam.io.scenario import Classifier, Detection, Discovery, Scenario, S
 STEPS, SLOTS, OBJECTS = 6, 12, 4
 ESTIMATORS = ("hybrid", "ml", "gpda", "max-mixture", "multimodal")
 SMALL = {"hybrid": ["--capacity", "4", "--max-children", "32"], "multimodal": ["--capacity", "4"]}
+# An unknown map (a discovery section) changes the shapes: each estimator gets one kind, so it compiles once.
+DISCOVERY = {"hybrid": True, "ml": True, "gpda": False, "max-mixture": True, "multimodal": False}
 
 
 def _scenario(dets_per_step, values, odometry_scale, flat, tiny_cov, discovery, truth) -> Scenario:
@@ -68,7 +72,7 @@ scenarios = st.builds(
     dets_per_step=st.lists(st.sampled_from([0, 0, 1, 2, 3, 12]), min_size=STEPS, max_size=STEPS),
     values=st.lists(detection, min_size=STEPS * 12, max_size=STEPS * 12),
     odometry_scale=st.sampled_from([0.3, 0.0, -2.0, 5.0]),  # the last two disagree with everything
-    flat=st.booleans(), tiny_cov=st.booleans(), discovery=st.booleans(), truth=st.booleans(),
+    flat=st.booleans(), tiny_cov=st.booleans(), discovery=st.just(False), truth=st.booleans(),
 )
 
 
@@ -83,9 +87,14 @@ def _finite(obj) -> bool:
 
 
 @pytest.mark.parametrize("estimator", ESTIMATORS)
-@settings(max_examples=4, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True)
+@settings(max_examples=3, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True)
 @given(scenario=scenarios)
 def test_hard_files_end_in_a_result_or_one_line(estimator, scenario, tmp_path_factory, capsys):
+    if DISCOVERY[estimator]:
+        scenario = dataclasses.replace(scenario, object_prior_means=scenario.object_prior_means[:0],
+                                       object_prior_covs=scenario.object_prior_covs[:0],
+                                       class_prior=scenario.class_prior[:0],
+                                       discovery=Discovery(OBJECTS + 4, -4.0, 9.87))
     folder = tmp_path_factory.mktemp("hard")
     path, out = folder / "s.json", folder / "r.json"
     save_scenario(scenario, path)

@@ -86,7 +86,7 @@ def test_laplace_is_weights_are_stable_across_seeds(scenario):
 def test_ess_diagnostic_exposes_the_paper_estimator_under_the_broad_prior(scenario):
     """Step 1 from Σ_p = diag(100, 100, 0.04): the paper's weights rest on ~1 draw of n_s, the
     Laplace-IS weights on most of theirs."""
-    kwargs = dict(classifier="none", capacity=8, max_detections=SLOTS)
+    kwargs = dict(classifier="none", capacity=8, max_detections=SLOTS, smoother="filter")
     sampled = hs.run_estimator(scenario, weights="sampled", samples=1000, **kwargs).infos[0]
     laplace = hs.run_estimator(scenario, weights="laplace-is", samples=SAMPLES, **kwargs).infos[0]
     alive = int(sampled.num_components)

@@ -22,7 +22,7 @@ def ambiguous():
     """A geometry-only belief after 1 step: several association hypotheses alive."""
     scenario = hs.simulate(0, steps=1)
     belief = hs.run_estimator(scenario, classifier="none", capacity=8, weights="linearized",
-                             max_detections=2).belief
+                             max_detections=2, smoother="filter").belief
     assert int(belief.alive.sum()) >= 2 and float(hs.association_entropy(belief)) > 0.3
     return scenario, planning.prepare(belief, HORIZON, capacity=4, weights="linearized", gn_max_steps=2)
 
@@ -79,7 +79,7 @@ def test_arc_candidates_shapes():
 def test_refinement_lowers_the_smooth_objective_within_bounds(ambiguous):
     scenario, _ = ambiguous
     belief = hs.run_estimator(scenario, classifier="none", capacity=8, weights="linearized",
-                             max_detections=2).belief
+                             max_detections=2, smoother="filter").belief
     smooth = planning.prepare(belief, HORIZON, capacity=2, weights="linearized", gn_max_steps=1,
                               visibility_temperature=0.5)
     hard = planning.prepare(belief, HORIZON, capacity=2, weights="linearized", gn_max_steps=1)

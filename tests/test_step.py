@@ -153,7 +153,8 @@ def test_viewpoint_dependent_model_lowers_entropy(weights):
         for seed in range(4):
             sc = hs.simulate(seed, steps=10)
             samples = 1000 if weights == "sampled" else None
-            run = hs.run_estimator(sc, classifier=clf, capacity=16, samples=samples, weights=weights, max_detections=SLOTS)
+            run = hs.run_estimator(sc, classifier=clf, capacity=16, samples=samples, weights=weights, max_detections=SLOTS,
+                                   smoother="filter")
             finals.append(run.result.steps[-1].metrics["entropy"])
         mean_entropy[clf] = np.mean(finals)
     assert mean_entropy["mirror"] < mean_entropy["none"] - 0.1, mean_entropy
