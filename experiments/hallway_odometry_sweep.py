@@ -57,10 +57,13 @@ SETTINGS: dict[str, dict] = {
 }
 
 
+SMOOTHER = "full"  # main(smoother=...): "full" (the papers' smoothers, the default) or "filter"
+
+
 def estimator(name: str, max_detections: int | None = None) -> AbstractEstimator:
-    """Estimator ``name`` with the study's :data:`SETTINGS`; ``max_detections`` pads every step to that
-    many detection slots (``None``: the scenario's largest step)."""
-    return make_estimator(name, max_detections=max_detections, **SETTINGS.get(name, {}))
+    """Estimator ``name`` with the study's :data:`SETTINGS` and :data:`SMOOTHER`; ``max_detections`` pads
+    every step to that many detection slots (``None``: the scenario's largest step)."""
+    return make_estimator(name, max_detections=max_detections, smoother=SMOOTHER, **SETTINGS.get(name, {}))
 
 
 def _scenario(folder: str, trace: float, seed: int, steps: int | None):
@@ -90,10 +93,17 @@ def run_cell(folder: str, name: str, trace: float, seed: int, steps: int | None,
         tum = os.path.join(folder, "tum", who, stem + ".tum")
         os.makedirs(os.path.dirname(tum), exist_ok=True)
         trajectory.write_tum(tum, t, poses)
+    smoothed = trajectory.smoothed_trajectory_from_result(run.result)
+    if smoothed is not None:
+        tum = os.path.join(folder, "tum", name + "-smoothed", stem + ".tum")
+        os.makedirs(os.path.dirname(tum), exist_ok=True)
+        trajectory.write_tum(tum, *smoothed)
     step_s = run.result.timing["step_s"]
     return {
         "cell": _cell(name, trace, seed),
         "errors": trajectory.trajectory_errors(reference, estimate),
+        # The final smoothed trajectory (the thesis's "smoothed" APE/RPE), absent when filtering.
+        "errors_smoothed": None if smoothed is None else trajectory.trajectory_errors(reference, smoothed[1]),
         "compile_s": run.result.timing["compile_s"],
         "step_ms_median": 1e3 * float(np.median(step_s)),
         "num_warnings": len(warnings),
@@ -130,6 +140,8 @@ def _write_csv(folder: str, records: list[dict]) -> str:
         row = dict(r["cell"])
         for metric, stats in r["errors"].items():
             row.update({f"{metric}_{k}": v for k, v in stats.items()})
+        for metric, stats in (r.get("errors_smoothed") or {}).items():
+            row.update({f"smoothed_{metric}_{k}": v for k, v in stats.items()})
         row.update(final_translation=final_error(folder, r), step_ms_median=r["step_ms_median"],
                    compile_s=r["compile_s"], num_warnings=r["num_warnings"])
         rows.append(row)
@@ -146,7 +158,8 @@ def summarize(records: list[dict], estimators: list[str], levels: list[float]) -
     """Print mean APE translation per estimator and level, with the least-squares line; return the lines."""
     lines = {}
     print(f"\naverage translation error (APE translation mean, m), mean over seeds; line: error = a + b tr(Λ_t)")
-    print(f"{'estimator':<12} " + " ".join(f"{t:>8.4f}" for t in levels) + f" {'a':>8} {'b':>8} {'step ms':>8}")
+    print(f"{'estimator':<12} " + " ".join(f"{t:>8.4f}" for t in levels) + f" {'a':>8} {'b':>8} {'step ms':>8} "
+          f"{'smoothed':>8}")
     for name in estimators:
         cells = [r for r in records if r["cell"]["estimator"] == name and r["cell"]["trace"] in levels]
         if not cells:
@@ -157,7 +170,10 @@ def summarize(records: list[dict], estimators: list[str], levels: list[float]) -
         b, a = np.polyfit(x, y, 1) if len(set(x)) > 1 else (float("nan"), float(np.mean(y)))
         lines[name] = (a, b)
         ms = np.median([r["step_ms_median"] for r in cells])
-        print(f"{name:<12} " + " ".join(f"{m:>8.3f}" for m in means) + f" {a:>8.3f} {b:>8.2f} {ms:>8.1f}")
+        sm = [r["errors_smoothed"]["ape_translation"]["mean"] for r in cells if r.get("errors_smoothed")]
+        smoothed = float(np.mean(sm)) if sm else float("nan")  # the smoothed trajectory's APE, all levels
+        print(f"{name:<12} " + " ".join(f"{m:>8.3f}" for m in means) + f" {a:>8.3f} {b:>8.2f} {ms:>8.1f} "
+              f"{smoothed:>8.3f}")
     return lines
 
 
@@ -213,7 +229,9 @@ def plot_examples(folder: str, records: list[dict], estimators: list[str]) -> st
 
 
 def main(output: str = os.path.join("runs", "hallway"), seeds: int = 3, estimators=DEFAULT_ESTIMATORS,
-         levels=hallway.LEVELS, steps: int | None = None) -> list[dict]:
+         levels=hallway.LEVELS, steps: int | None = None, smoother: str = "full") -> list[dict]:
+    global SMOOTHER
+    SMOOTHER = smoother
     estimators, levels = list(estimators), [float(t) for t in levels]
     unknown = [n for n in estimators if n not in ESTIMATORS]
     if unknown:
@@ -245,5 +263,8 @@ if __name__ == "__main__":
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--estimators", default=",".join(DEFAULT_ESTIMATORS))
     parser.add_argument("--steps", type=int, default=None, help="steps per run (default: one loop)")
+    parser.add_argument("--levels", default=",".join(str(t) for t in hallway.LEVELS),
+                        help="odometry noise levels tr(Λ_t) (default: the thesis's five)")
+    parser.add_argument("--smoother", choices=("full", "filter"), default="full")
     a = parser.parse_args()
-    main(a.output, a.seeds, a.estimators.split(","), steps=a.steps)
+    main(a.output, a.seeds, a.estimators.split(","), [float(t) for t in a.levels.split(",")], a.steps, a.smoother)

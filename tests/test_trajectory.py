@@ -119,3 +119,22 @@ def test_trajectories_from_result_and_scenario():
     np.testing.assert_array_equal(ref, scenario.true_robot_poses[1:])
     errs = tj.trajectory_errors(ref, est)
     assert set(errs) == {"ape_translation", "ape_rotation", "rpe_translation", "rpe_rotation"}
+
+
+def test_error_summary_reports_online_and_smoothed_errors():
+    scenario = hybridslam.simulate(0, steps=3)
+    truth = np.asarray(scenario.true_robot_poses)
+    comp = lambda x: ComponentRecord(1.0, [], [], x, np.eye(3))  # noqa: E731
+    online = truth[1:] + np.array([0.3, 0.4, 0.0])  # every online pose 0.5 m off
+    steps = [StepRecord(k, [comp(online[k - 1])], {}) for k in (1, 2, 3)]
+    filtered = tj.error_summary(Result("test", steps), scenario)
+    assert set(filtered) == {"ape_online", "rpe_online", "final"}
+    np.testing.assert_allclose([filtered["ape_online"], filtered["final"], filtered["rpe_online"]], [0.5, 0.5, 0.0],
+                               atol=1e-12)
+    smoothed = truth.copy()
+    smoothed[1:, 0] += 0.1  # the smoothed x_1..x_3 0.1 m off; x_0 is not scored
+    out = tj.error_summary(Result("test", steps, trajectory=smoothed), scenario)
+    np.testing.assert_allclose([out["ape_smoothed"], out["rpe_smoothed"]], [0.1, 0.0], atol=1e-12)
+    t, poses = tj.smoothed_trajectory_from_result(Result("test", steps, trajectory=smoothed))
+    np.testing.assert_array_equal(t, [1.0, 2.0, 3.0])
+    assert tj.smoothed_trajectory_from_result(Result("test", steps)) is None

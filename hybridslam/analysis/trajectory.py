@@ -128,6 +128,37 @@ def trajectory_from_result(result: Result) -> tuple[np.ndarray, np.ndarray]:
     return stamps, np.stack([np.asarray(s.components[0].pose_mean, dtype=float) for s in result.steps])
 
 
+def smoothed_trajectory_from_result(result: Result) -> tuple[np.ndarray, np.ndarray] | None:
+    """The smoothed trajectory ``x_1..x_T`` of a result file's optional ``trajectory`` key (the final
+    highest-weight component, every pose relinearized with all the data), timestamps ``k = 1..T``;
+    ``None`` when the result has none (a filter). Same timestamps as :func:`trajectory_from_result`,
+    so both compare to :func:`trajectory_from_scenario` pose by pose."""
+    if result.trajectory is None:
+        return None
+    poses = np.asarray(result.trajectory, dtype=float)[1:]
+    return np.arange(1, poses.shape[0] + 1, dtype=float), poses
+
+
+def error_summary(result: Result, scenario: Scenario) -> dict[str, float]:
+    """Translation errors of a run against the scenario's ground truth (m): ``ape_online`` (APE mean of
+    the online ``x_k``), ``rpe_online`` (RPE mean, 1 frame), ``final`` (the last pose), and, with a
+    smoothed trajectory, ``ape_smoothed`` and ``rpe_smoothed``. Empty without ground truth."""
+    if scenario.true_robot_poses is None or not result.steps:
+        return {}
+    _, truth = trajectory_from_scenario(scenario)
+    _, online = trajectory_from_result(result)
+    out = {"ape_online": float(np.mean(ape(truth, online).translation)),
+           "final": float(np.linalg.norm(online[-1, :2] - truth[-1, :2]))}
+    if truth.shape[0] > 1:
+        out["rpe_online"] = float(np.mean(rpe(truth, online).translation))
+    smoothed = smoothed_trajectory_from_result(result)
+    if smoothed is not None:
+        out["ape_smoothed"] = float(np.mean(ape(truth, smoothed[1]).translation))
+        if truth.shape[0] > 1:
+            out["rpe_smoothed"] = float(np.mean(rpe(truth, smoothed[1]).translation))
+    return out
+
+
 def trajectory_from_scenario(scenario: Scenario) -> tuple[np.ndarray, np.ndarray]:
     """The ground-truth trajectory ``x_1..x_T`` (``robot.true_poses[1:]``) with timestamps ``k = 1..T``."""
     if scenario.true_robot_poses is None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from ..analysis.trajectory import error_summary
 from ..driver import run
 from ..estimators.base import StepInfo
 from ..io.result import StepRecord, save_result
@@ -59,6 +60,13 @@ def cmd_run(args: argparse.Namespace) -> int:
     per_step = 1e3 * steps_s / max(len(timing["step_s"]), 1)
     print(f"compile time {timing['compile_s']:.2f} s; {scenario.num_steps} steps in {steps_s:.2f} s "
           f"({per_step:.1f} ms/step)")
+    errors = error_summary(result, scenario)
+    if errors:
+        line = (f"translation error (m): online APE {errors['ape_online']:.3f}, "
+                f"RPE {errors.get('rpe_online', float('nan')):.3f}")
+        if "ape_smoothed" in errors:
+            line += f"; smoothed APE {errors['ape_smoothed']:.3f}, RPE {errors.get('rpe_smoothed', float('nan')):.3f}"
+        print(line + f"; last pose {errors['final']:.3f}")
     save_result(result, args.output)
     print(f"wrote {args.output}")
     return 0
