@@ -75,7 +75,7 @@ from .models.classifier import ClassifierModel as ClassifierModel
 from .models.classifier import Independent as Independent
 from .models.classifier import Mirror as Mirror
 from .models.classifier import NoClassifier as NoClassifier
-from .models.classifier import make_classifier as make_classifier
+from .models.registry import make_classifier as make_classifier
 from .models.learned import Learned as Learned
 from .models.learned import fit_classifier as fit_classifier
 from .models.learned import load_classifier as load_classifier

@@ -11,7 +11,8 @@ import pytest
 
 import hybridslam as hs
 from hybridslam.io.scenario import Classifier
-from hybridslam.models.classifier import Confusion, make_classifier
+from hybridslam.models.classifier import Confusion
+from hybridslam.models.registry import make_classifier
 
 MATRIX = np.array([[0.7, 0.1, 0.2], [0.2, 0.6, 0.3], [0.1, 0.3, 0.5]])  # matrix[label, class]
 VIEW = jnp.array([0.6, 0.8])

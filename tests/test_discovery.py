@@ -15,7 +15,7 @@ from hybridslam.estimators.hybrid.weights import linearized_log_likelihood, samp
 from hybridslam.inference.discovery import back_project, create_object
 from hybridslam.inference.gating import gate
 from hybridslam.io.scenario import Classifier, Discovery, Step
-from hybridslam.models.classifier import make_classifier
+from hybridslam.models.registry import make_classifier
 from hybridslam.sim.paper import PaperSetup, _between, _compose, observe
 
 TRUTH = np.array([[3.0, 1.5, 0.3], [5.5, -1.5, 2.0], [8.0, 1.5, -1.0]])

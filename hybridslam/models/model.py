@@ -13,7 +13,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ..io.scenario import Scenario
-from .classifier import ClassifierModel, make_classifier
+from .classifier import ClassifierModel
+from .registry import make_classifier
 from .measurement import SensorModel
 
 

@@ -16,7 +16,7 @@ import dataclasses
 import numpy as np
 
 from ..io.scenario import Classifier, Detection, Scenario, Step
-from ..models.classifier import make_classifier
+from ..models.registry import make_classifier
 
 
 @dataclasses.dataclass(frozen=True)
