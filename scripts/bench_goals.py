@@ -1,7 +1,8 @@
 """The speed goals of the project, measured: per-step time of every estimator on the workloads users bring.
 
 Prints one table row per (workload, estimator, smoother): compile seconds, then the median and mean
-wall time of a step after compilation (``hybridslam.run``'s ``timing.step_s``), against the goal.
+wall time of a step after compilation (``hybridslam.run``'s ``timing.step_s``), against the goal,
+and the run's translation errors against the ground truth (online and smoothed APE mean, last pose).
 Asserts nothing (benchmarks never fail a build); run it on an idle machine.
 
 Workloads:
@@ -29,6 +30,7 @@ import time
 import numpy as np
 
 import hybridslam as hs
+from hybridslam.analysis.trajectory import error_summary
 from hybridslam.estimators.smoothing import Filter, Full
 from hybridslam.sim import hallway
 from hybridslam.studies import study
@@ -54,8 +56,12 @@ def _row(workload, name, smoother, scenario, options, repeats):
     ms = 1e3 * np.asarray(steps)
     goal = GOALS_MS.get((workload, name, smoother))
     verdict = "" if goal is None else ("meets" if np.median(ms) <= goal else "misses")
+    err = error_summary(r.result, scenario)
+    errors = "" if not err else (f"APE {err['ape_online']:.2f}" + (f" / {err['ape_smoothed']:.2f} smoothed"
+                                                                   if "ape_smoothed" in err else "")
+                                 + f", last pose {err['final']:.2f} m")
     print(f"{workload:<8} {name:<12} {smoother:<7} {compile_s:>9.1f} {np.median(ms):>10.1f} {np.mean(ms):>9.1f} "
-          f"{'' if goal is None else goal:>8} {verdict}", flush=True)
+          f"{'' if goal is None else goal:>8} {verdict:<6} {errors}", flush=True)
 
 
 def _paper4(seed: int) -> hs.Scenario:
