@@ -1,0 +1,54 @@
+"""Every ``hybridslam`` command line the README documents parses with the real command-line parser.
+
+The README's commands are what users copy. A renamed or removed option would make them fail; this
+test reads every ``hybridslam ...`` line of the README's ``bash`` blocks (continuation lines joined,
+comments dropped; synopsis lines with ``[optional]`` parts are checked option by option) and hands
+it to :func:`hybridslam.cli.build_parser`. Running them is the job of the CLI tests (``run``,
+``simulate``, ``import``, ``sweep``, ``plot`` each run there on small inputs), since the README's
+own are minutes-long studies.
+"""
+
+from __future__ import annotations
+
+import re
+import shlex
+from pathlib import Path
+
+import pytest
+
+from hybridslam.cli import build_parser
+
+README = Path(__file__).resolve().parent.parent / "README.md"
+
+
+def _commands() -> list[str]:
+    text = README.read_text(encoding="utf-8")
+    lines = []
+    for block in re.findall(r"```bash\n(.*?)```", text, flags=re.S):
+        joined = re.sub(r"\\\n\s*", " ", block)
+        for line in joined.splitlines():
+            line = line.split("  #")[0].strip()
+            if line.startswith("hybridslam ") or "&& hybridslam " in line:
+                lines.append(line[line.index("hybridslam "):])
+    return lines
+
+
+def _concrete(line: str) -> list[str]:
+    """A synopsis line's ``[--opt a|b]`` parts become ``--opt a`` (each alternative is a value)."""
+    line = re.sub(r"\[([^\[\]]*)\]", lambda m: m.group(1).split("|")[0].replace("...", "").strip(), line)
+    line = re.sub(r"(\S+)\|\S+", r"\1", line)
+    return [t for t in shlex.split(line)[1:] if t != "..."]
+
+
+COMMANDS = _commands()
+
+
+def test_the_readme_documents_commands():
+    assert len(COMMANDS) >= 8, COMMANDS
+    assert any(c.startswith("hybridslam sweep -o runs/sweep") for c in COMMANDS)  # the main job
+
+
+@pytest.mark.parametrize("line", COMMANDS)
+def test_documented_command_parses(line):
+    args = build_parser().parse_args(_concrete(line))
+    assert callable(args.func)
