@@ -1,0 +1,93 @@
+"""The smoothed trajectory of a run equals an independent batch nonlinear least-squares solve.
+
+With the associations fixed (those in the run's own result file), the factor graph of the ``ml``
+smoother is rebuilt here from the scenario file alone, with residuals written in numpy (prior on
+``[x_0, objects]`` with wrapped headings, GTSAM's ``BetweenFactor<Pose2>`` odometry residual
+``Log(u⁻¹ ∘ x_{k-1}⁻¹ ∘ x_k)``, range and bearing of the object's position), and solved from dead
+reckoning by scipy's Levenberg-Marquardt. The result file's ``trajectory`` must equal that
+solution to 1e-6 (issue 13 §4).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import least_squares
+
+import hybridslam as hs
+
+
+def _wrap(a):
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def _compose(a, b):
+    c, s = np.cos(a[2]), np.sin(a[2])
+    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], _wrap(a[2] + b[2])])
+
+
+def _inverse(a):
+    c, s = np.cos(a[2]), np.sin(a[2])
+    return np.array([-c * a[0] - s * a[1], s * a[0] - c * a[1], -a[2]])
+
+
+def _log(p):
+    theta = _wrap(p[2])
+    if abs(theta) < 1e-9:
+        a, b = 1.0, 0.5 * theta
+    else:
+        a, b = np.sin(theta) / theta, (1 - np.cos(theta)) / theta
+    v_inv = np.array([[a, b], [-b, a]]) / (a * a + b * b)
+    return np.concatenate([v_inv @ p[:2], [theta]])
+
+
+def _sqrt_info(cov):
+    return np.linalg.cholesky(np.linalg.inv(cov)).T  # RᵀR = Σ⁻¹
+
+
+def test_ml_trajectory_equals_a_batch_least_squares_solve():
+    scenario = hs.simulate(0, steps=6)
+    run = hs.run_estimator(scenario, "ml")  # smoother=Full() by default
+    assert all(int(i.skipped) == 0 and int(i.rejected) == 0 for i in run.infos)  # every detection has a factor
+    history = run.result.steps[-1].components[0].associations
+    t, n = scenario.num_steps, scenario.num_objects
+    w_odo, w_geo = _sqrt_info(scenario.motion_cov), _sqrt_info(scenario.geometric_cov)
+    prior_mean = np.concatenate([scenario.robot_prior_mean, scenario.object_prior_means.reshape(-1)])
+    prior_cov = np.zeros((3 + 3 * n, 3 + 3 * n))
+    prior_cov[:3, :3] = scenario.robot_prior_cov
+    for i in range(n):
+        prior_cov[3 + 3 * i : 6 + 3 * i, 3 + 3 * i : 6 + 3 * i] = scenario.object_prior_covs[i]
+    w_prior = _sqrt_info(prior_cov)
+    factors = [(k + 1, obj, np.array([d.range, d.bearing]))
+               for k, (step, assoc) in enumerate(zip(scenario.steps, history))
+               for d, obj in zip(step.detections, assoc) if obj >= 0]
+    assert len(factors) > 4
+
+    def residuals(y):
+        poses, objects = y[: 3 * (t + 1)].reshape(t + 1, 3), y[3 * (t + 1) :].reshape(n, 3)
+        d = np.concatenate([poses[0], objects.reshape(-1)]) - prior_mean
+        d[2::3] = _wrap(d[2::3])
+        out = [w_prior @ d]
+        for k, step in enumerate(scenario.steps, start=1):
+            between = _compose(_inverse(poses[k - 1]), poses[k])
+            out.append(w_odo @ _log(_compose(_inverse(np.asarray(step.odometry)), between)))
+        for k, obj, z in factors:
+            dx, dy = objects[obj, :2] - poses[k, :2]
+            pred = np.array([np.hypot(dx, dy), np.arctan2(dy, dx) - poses[k, 2]])
+            r = z - pred
+            r[1] = _wrap(r[1])
+            out.append(w_geo @ r)
+        return np.concatenate(out)
+
+    dead_reckoning = [np.asarray(scenario.robot_prior_mean, float)]
+    for step in scenario.steps:
+        dead_reckoning.append(_compose(dead_reckoning[-1], np.asarray(step.odometry, float)))
+    y0 = np.concatenate([np.reshape(dead_reckoning, -1), prior_mean[3:]])
+    sol = least_squares(residuals, y0, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=10000)
+    poses = sol.x[: 3 * (t + 1)].reshape(t + 1, 3)
+    poses[:, 2] = _wrap(poses[:, 2])
+    smoothed = np.asarray(run.result.trajectory)
+    assert smoothed.shape == (t + 1, 3)
+    np.testing.assert_allclose(smoothed[:, :2], poses[:, :2], atol=1e-6)
+    np.testing.assert_allclose(_wrap(smoothed[:, 2] - poses[:, 2]), 0.0, atol=1e-6)
+    # ... and it is the online estimate at the last step (the smoother's x_T).
+    np.testing.assert_allclose(run.result.steps[-1].components[0].pose_mean, smoothed[-1], atol=1e-9)
