@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
 from hybridslam import cli
@@ -87,7 +87,9 @@ def _finite(obj) -> bool:
 
 
 @pytest.mark.parametrize("estimator", ESTIMATORS)
-@settings(max_examples=3, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True)
+# No shrinking: each example is a CLI run, and shrinking a failure would take longer than the suite.
+@settings(max_examples=3, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True,
+          phases=(Phase.explicit, Phase.reuse, Phase.generate))
 @given(scenario=scenarios)
 def test_hard_files_end_in_a_result_or_one_line(estimator, scenario, tmp_path_factory, capsys):
     if DISCOVERY[estimator]:

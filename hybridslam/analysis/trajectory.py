@@ -142,17 +142,20 @@ def smoothed_trajectory_from_result(result: Result) -> tuple[np.ndarray, np.ndar
 def error_summary(result: Result, scenario: Scenario) -> dict[str, float]:
     """Translation errors of a run against the scenario's ground truth (m): ``ape_online`` (APE mean of
     the online ``x_k``), ``rpe_online`` (RPE mean, 1 frame), ``final`` (the last pose), and, with a
-    smoothed trajectory, ``ape_smoothed`` and ``rpe_smoothed``. Empty without ground truth."""
+    smoothed trajectory, ``ape_smoothed`` and ``rpe_smoothed`` (left out if it is not finite). Empty
+    without ground truth or with a non-finite online estimate."""
     if scenario.true_robot_poses is None or not result.steps:
         return {}
     _, truth = trajectory_from_scenario(scenario)
     _, online = trajectory_from_result(result)
+    if not (np.all(np.isfinite(truth)) and np.all(np.isfinite(online))):
+        return {}
     out = {"ape_online": float(np.mean(ape(truth, online).translation)),
            "final": float(np.linalg.norm(online[-1, :2] - truth[-1, :2]))}
     if truth.shape[0] > 1:
         out["rpe_online"] = float(np.mean(rpe(truth, online).translation))
     smoothed = smoothed_trajectory_from_result(result)
-    if smoothed is not None:
+    if smoothed is not None and np.all(np.isfinite(smoothed[1])):
         out["ape_smoothed"] = float(np.mean(ape(truth, smoothed[1]).translation))
         if truth.shape[0] > 1:
             out["rpe_smoothed"] = float(np.mean(rpe(truth, smoothed[1]).translation))
