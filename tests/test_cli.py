@@ -132,7 +132,8 @@ def test_missing_input_and_unwritable_output_exit_2(scenario_path, tmp_path, cap
 def test_demo_smoke(tmp_path, capsys):
     out = tmp_path / "demo"
     # Linearized weights: three classifier models mean three compiles, and these are the cheapest.
-    argv = ["demo", "-o", str(out), "--tracks", "1", "--steps", "3", "--capacity", "8", "--weights", "linearized"]
+    argv = ["demo", "-o", str(out), "--tracks", "1", "--steps", "3", "--capacity", "8", "--weights", "linearized",
+            "--smoother", "filter"]
     assert cli.main(argv) == 0
     with open(out / "metrics.csv", newline="") as f:
         rows = list(csv.DictReader(f))

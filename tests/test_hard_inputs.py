@@ -5,7 +5,7 @@ detections no object explains, the same detection twice, bursts of up to 12 dete
 odometry that disagrees with everything seen after it, flat scores, near-singular noise
 covariances, a detection at zero range, no ground truth. Every estimator runs them through the
 ``hybridslam run`` command (in-process): it exits 0 with a valid result file whose every step holds
-at least one component, all numbers finite, or exits 2 with one line. Every file has the same
+at least one component, all numbers finite (the files are valid, so an error line would be a loss). Every file has the same
 shapes (4 objects, 6 steps, 12 detection slots: ``--max-detections 12``); three of the estimators
 run them on an unknown map (no objects, a discovery section), two on the known one, so each
 estimator compiles once for the whole test.
@@ -105,11 +105,8 @@ def test_hard_files_end_in_a_result_or_one_line(estimator, scenario, tmp_path_fa
     status = cli.main(argv)
     err = capsys.readouterr().err
     assert "Traceback" not in err
-    if status == 2:
-        lines = [line for line in err.splitlines() if not line.startswith("WARNING")]
-        assert len(lines) == 1 and lines[0].startswith("hybridslam: error: "), err
-        return
-    assert status == 0, err
+    # Every generated file is valid: the run must write its result (a one-line error would lose it).
+    assert status == 0, [line for line in err.splitlines() if not line.startswith("WARNING")] or err
     result = load_result(out)  # validates: every step has components whose weights sum to 1
     assert len(result.steps) == STEPS and all(s.components for s in result.steps)
     assert _finite(json.loads(out.read_text()))

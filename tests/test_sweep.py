@@ -23,9 +23,9 @@ from hybridslam.studies import batch as sweep
 from hybridslam.studies import study
 
 TINY = dict(alphas=(0.1, 0.4, 0.7), models=("mirror",), tracks=3, steps=3)
-ESTIMATOR = hs.Hybrid(weights=hs.Linearized(), capacity=4)
+ESTIMATOR = hs.Hybrid(weights=hs.Linearized(), smoother=hs.Filter(), capacity=4)
 CLI_ARGS = ["--alphas", "0.1,0.4,0.7", "--models", "mirror", "--tracks", "3", "--steps", "3",
-            "--capacity", "4", "--weights", "linearized"]
+            "--capacity", "4", "--weights", "linearized", "--smoother", "filter"]
 # The CLI in a child process that SIGKILLs itself right after its first cell record reaches the
 # disk, half way through writing the second one (a real kill, at a deterministic point).
 KILLED_AFTER_ONE_CELL = """
@@ -81,13 +81,13 @@ def test_table_layout(tiny):
 def test_batched_run_equals_single_runs(tiny):
     """A track in a batch gets the numbers `hybridslam.run` gives it alone (same seed)."""
     scenarios = [hs.simulate(t, steps=3, alpha=0.4) for t in range(3)]
-    estimator = sweep.batched(hs.Hybrid(weights=hs.Linearized(), capacity=4, classifier="mirror", max_detections=2),
+    estimator = sweep.batched(hs.Hybrid(weights=hs.Linearized(), smoother=hs.Filter(), capacity=4, classifier="mirror", max_detections=2),
                               scenarios)
     run = sweep.run_batch(estimator, sweep.batch_inputs(estimator, scenarios, seeds=[0, 1, 2]))
     assert run.compile_s == 0.0  # the study compiled this shape already: one executable per shape
     for t in (0, 2):
         alone = hs.run_estimator(scenarios[t], classifier="mirror", capacity=4, weights="linearized",
-                                seed=t, max_detections=2).result.steps
+                                seed=t, max_detections=2, smoother="filter").result.steps
         batched = sweep.step_records(run.trace, t, scenarios[t])
         for a, b in zip(alone, batched):
             assert [c.associations for c in a.components] == [c.associations for c in b.components]
@@ -100,7 +100,7 @@ def test_batched_run_equals_single_runs(tiny):
 def test_wide_batches_run_as_slices(tiny, monkeypatch):
     """More tracks than MAX_TRACKS_PER_DEVICE: equal slices in sequence, same numbers."""
     scenarios = [hs.simulate(t, steps=3, alpha=0.4) for t in range(3)]
-    estimator = sweep.batched(hs.Hybrid(weights=hs.Linearized(), capacity=4, classifier="mirror", max_detections=2),
+    estimator = sweep.batched(hs.Hybrid(weights=hs.Linearized(), smoother=hs.Filter(), capacity=4, classifier="mirror", max_detections=2),
                               scenarios)
     inputs = sweep.batch_inputs(estimator, scenarios, seeds=[0, 1, 2])
     whole = sweep.run_batch(estimator, inputs).trace
@@ -114,7 +114,7 @@ def test_batches_too_big_for_memory_are_split(tiny, monkeypatch):
     """A batch whose compiled program needs more memory than the budget runs as smaller slices (halved
     until it fits, here down to one track each), with the same numbers, and says so."""
     scenarios = [hs.simulate(t, steps=3, alpha=0.4) for t in range(3)]
-    estimator = sweep.batched(hs.Hybrid(weights=hs.Linearized(), capacity=4, classifier="mirror", max_detections=2),
+    estimator = sweep.batched(hs.Hybrid(weights=hs.Linearized(), smoother=hs.Filter(), capacity=4, classifier="mirror", max_detections=2),
                               scenarios)
     inputs = sweep.batch_inputs(estimator, scenarios, seeds=[0, 1, 2])
     whole = sweep.run_batch(estimator, inputs)
@@ -170,7 +170,7 @@ def test_sharded_over_four_devices_equals_one(tiny, tmp_path, cache_env):
 def test_other_settings_are_refused(tiny):
     folder, _, _ = tiny
     with pytest.raises(study.StudyError, match=r"capacity: 4 there, 8 now"):
-        study.Records(folder, study.AlphaStudy(**TINY, estimator=hs.Hybrid(weights=hs.Linearized(), capacity=8)).header())
+        study.Records(folder, study.AlphaStudy(**TINY, estimator=hs.Hybrid(weights=hs.Linearized(), smoother=hs.Filter(), capacity=8)).header())
 
 
 def test_a_subset_of_the_grid_reuses_finished_cells(tiny):
@@ -196,7 +196,7 @@ def test_scenario_files_give_result_files_equal_to_single_runs(tiny, tmp_path):
     assert len(rows) == 3 + 3 + 4 and {r["scenario"] for r in rows} == {f"{n}.json" for n in scenarios}
     for name, s in scenarios.items():
         got = hs.load_result(os.path.join(out, "results", f"{name}.json"))
-        want = hs.run(ESTIMATOR.__class__(weights=hs.Linearized(), capacity=4, max_detections=2, max_steps=4), s,
+        want = hs.run(ESTIMATOR.__class__(weights=hs.Linearized(), smoother=hs.Filter(), capacity=4, max_detections=2, max_steps=4), s,
                       seed=7).result
         assert got.timing is not None and len(got.timing["step_s"]) == s.num_steps
         for a, b in zip(want.steps, got.steps):
@@ -232,7 +232,7 @@ def test_cli_plot_and_sweep_errors(tiny, tmp_path, capsys):
         (["sweep", "--models", "mirrror", "-o", str(tmp_path / "o")], "unknown model(s) mirrror"),
         (["sweep", "--alphas", "0.1,x", "-o", str(tmp_path / "o")], "--alphas: expected"),
         (["sweep", "--alphas", "0.1", "--tracks", "3", "--steps", "3", "--capacity", "8", "--weights",
-          "linearized", "--models", "mirror", "-o", folder], "capacity: 4 there, 8 now"),
+          "linearized", "--smoother", "filter", "--models", "mirror", "-o", folder], "capacity: 4 there, 8 now"),
     ]
     for argv, message in cases:
         assert cli.main(argv) == 2, argv

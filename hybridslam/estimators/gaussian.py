@@ -486,7 +486,7 @@ def commit(est: SingleGaussian, state: GaussianState, mean, cov, class_log_post,
                          state.factors.null_log_weight.at[state.k].set(null), state.factors.classes)
         g = smoothing_graph(log, stored, state.k + 1, num_created, state.model.sensor, state.model.motion_cov,
                             semantic=False, mode=est.factor_mode)
-        out = smooth(est.smoother, g, state.poses, mean, state.k + 1)
+        out = smooth(est.smoother, g, state.poses, mean, cov, state.k + 1)
         mean, cov, result, poses = out.mean, out.cov, out.result, out.poses
     new_state = dataclasses.replace(
         state, mean=mean, cov=0.5 * (cov + cov.T), num_created=num_created, class_log_post=class_log_post,

@@ -807,13 +807,13 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
         # (smoothing.py) before the children are merged; a merged component keeps its centre's.
         log = state.log.record(state.k, odometry, detections)
 
-        def smoothed(poses_i, mean_i, history_i, created_i):
+        def smoothed(poses_i, mean_i, cov_i, history_i, created_i):
             g = smoothing_graph(log, history_factors(history_i), state.k + 1, created_i, state.model.sensor,
                                 state.model.motion_cov, semantic=False)
-            return smooth(smoother, g, poses_i, mean_i, state.k + 1)
+            return smooth(smoother, g, poses_i, mean_i, cov_i, state.k + 1)
 
         live = ch.log_weight > -jnp.inf
-        out = map_live(smoothed, live, state.poses[ch.parent], c_mean, c_hist, c_created)
+        out = map_live(smoothed, live, state.poses[ch.parent], c_mean, c_cov, c_hist, c_created)
         c_mean = jnp.where(live[:, None], out.mean, c_mean)
         c_cov = jnp.where(live[:, None, None], out.cov, c_cov)
         c_poses = out.poses

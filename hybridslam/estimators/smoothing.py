@@ -187,14 +187,22 @@ class Smoothed(eqx.Module):
 
 def smooth(
     settings: Full, g: sm.FactorGraph, poses: Float[Array, "T1 3"], mean: Float[Array, " D0"],
-    k: Int[Array, ""],
+    cov: Float[Array, "D0 D0"], k: Int[Array, ""],
 ) -> Smoothed:
     """Re-solve a component's graph, warm-started from its trajectory ``poses`` with ``x_k`` and the
-    objects taken from the filter's new ``mean``, and return its marginal over ``[x_k, objects]``."""
+    objects taken from the filter's new ``mean``, and return its marginal over ``[x_k, objects]``.
+
+    If the solution or its marginal is not finite (a near-singular graph: noise variances of 1e-10
+    next to unobserved object headings), the component keeps the filter's ``mean`` and ``cov`` and
+    its previous trajectory with ``x_k`` from the filter, and the result says ``nonfinite``: the
+    step's warning counts it, and nothing downstream sees a NaN.
+    """
     start = poses.at[k].set(mean[:3])
     sol = sm.solve(g, start, mean[3:].reshape(-1, 3), max_steps=settings.max_steps)
     m, c = sm.marginal(g, sol, k)
-    return Smoothed(sol.poses, m, c, sol.result)
+    ok = jnp.all(jnp.isfinite(sol.poses)) & jnp.all(jnp.isfinite(m)) & jnp.all(jnp.isfinite(c))
+    result = optx.RESULTS.where(ok, sol.result, optx.RESULTS.nonfinite)
+    return Smoothed(jnp.where(ok, sol.poses, start), jnp.where(ok, m, mean), jnp.where(ok, c, cov), result)
 
 
 def failed(result: optx.RESULTS) -> Bool[Array, "..."]:

@@ -25,7 +25,11 @@ def range_bearing(x: se2.Pose, obj: se2.Pose) -> Float[Array, "2"]:
     """``h^geo``: ``[range, bearing]`` of the object's position seen from robot pose ``x``."""
     qx, qy = _to_frame(x, obj[0] - x[0], obj[1] - x[1])
     rng = jnp.sqrt(qx**2 + qy**2 + 1e-300)  # the tiny floor keeps d/dq finite at q = 0
-    return jnp.stack([rng, jnp.arctan2(qy, qx)])
+    # atan2's derivative is 0/0 at q = 0 (an object created from a zero-range detection sits on the
+    # robot): there the bearing is 0 with a zero derivative. Elsewhere the value is unchanged.
+    origin = (qx == 0.0) & (qy == 0.0)
+    bearing = jnp.where(origin, 0.0, jnp.arctan2(qy, jnp.where(origin, 1.0, qx)))
+    return jnp.stack([rng, bearing])
 
 
 def viewpoint(x: se2.Pose, obj: se2.Pose) -> Float[Array, "2"]:

@@ -223,12 +223,12 @@ def hybrid_step(
         log = belief.log.record(k, odometry, detections)
         created = num_created if discovery else jnp.full((belief.capacity,), belief.num_objects, jnp.int32)
 
-        def smoothed(poses_i, mean_i, history_i, classes_i, created_i):
+        def smoothed(poses_i, mean_i, cov_i, history_i, classes_i, created_i):
             factors = history_factors(history_i, classes_i if realize else None)
             g = smoothing_graph(log, factors, k + 1, created_i, model.sensor, model.motion_cov, semantic=True)
-            return smooth(settings.smoother, g, poses_i, mean_i, k + 1)
+            return smooth(settings.smoother, g, poses_i, mean_i, cov_i, k + 1)
 
-        out = map_live(smoothed, alive, belief.poses[parent], new_mean, history, classes, created,
+        out = map_live(smoothed, alive, belief.poses[parent], new_mean, new_cov, history, classes, created,
                        axis_name=settings.batch_axis)
         new_mean, new_cov, result, poses = out.mean, out.cov, out.result, out.poses
     # Empty slots copy the best component so later batched math on them stays finite.
