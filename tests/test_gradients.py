@@ -2,9 +2,10 @@
 
 Every continuous input — odometry, classifier ``alpha``/``K``, ``Σ_w``, ``Σ_v``, the prior means and
 the visibility temperatures — is checked, for every functional of :mod:`hybridslam.gradients`,
-after a two-step :func:`~hybridslam.planning.gradients.rollout`, for all three weight methods with the
-smooth visibility model: forward mode (``jax.jvp``, what ``jax.jacfwd`` batches) for ``linearized``
-and ``laplace-is``, reverse mode (``jax.grad``) for ``sampled``. The same three compiled programs
+after a two-step :func:`~hybridslam.planning.gradients.rollout`, for two weight methods with the
+smooth visibility model: forward mode (``jax.jvp``, what ``jax.jacfwd`` batches) for ``linearized``,
+reverse mode (``jax.grad``) for ``sampled`` (``laplace-is``, the third, is left out for time; see
+``PROGRAMS``). The same two compiled programs
 (the scene has the paper setup's shapes: 6 objects, 2 detection slots) then check that gradients
 are finite on the paper setup, with the smooth and the hard 0/1 visibility (temperature 0).
 
@@ -157,7 +158,9 @@ class Program:
         return np.array([[dot(g, v) for g in grads] for v in directions])
 
 
-PROGRAMS = {"linearized": "forward", "laplace-is": "forward", "sampled": "reverse"}
+# laplace-is is left out for the suite's time: its draws are reparameterized like sampled's, and its
+# mode search is the same implicit-adjoint Gauss-Newton as the update, which linearized exercises.
+PROGRAMS = {"linearized": "forward", "sampled": "reverse"}
 
 
 @pytest.fixture(scope="module")

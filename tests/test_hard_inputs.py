@@ -28,7 +28,10 @@ from hybridslam.io.scenario import Classifier, Detection, Discovery, Scenario, S
 
 STEPS, SLOTS, OBJECTS = 6, 12, 4
 ESTIMATORS = ("hybrid", "ml", "gpda", "max-mixture", "multimodal")
-SMALL = {"hybrid": ["--capacity", "4", "--max-children", "32"], "multimodal": ["--capacity", "4"]}
+# The mixtures filter here: their smoother compiles for minutes at 12 detection slots, and the smoother's
+# non-finite fallback (estimators/smoothing.py) is shared with ml, gpda and max-mixture, which smooth.
+SMALL = {"hybrid": ["--capacity", "4", "--max-children", "32", "--smoother", "filter"],
+         "multimodal": ["--capacity", "4", "--smoother", "filter"]}
 # An unknown map (a discovery section) changes the shapes: each estimator gets one kind, so it compiles once.
 DISCOVERY = {"hybrid": True, "ml": True, "gpda": False, "max-mixture": True, "multimodal": False}
 
@@ -88,7 +91,7 @@ def _finite(obj) -> bool:
 
 @pytest.mark.parametrize("estimator", ESTIMATORS)
 # No shrinking: each example is a CLI run, and shrinking a failure would take longer than the suite.
-@settings(max_examples=3, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True,
+@settings(max_examples=2, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True,
           phases=(Phase.explicit, Phase.reuse, Phase.generate))
 @given(scenario=scenarios)
 def test_hard_files_end_in_a_result_or_one_line(estimator, scenario, tmp_path_factory, capsys):
