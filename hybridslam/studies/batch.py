@@ -21,6 +21,7 @@ What comes back is the driver's :class:`~hybridslam.driver.Trace` with leading a
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import os
 import time
 from collections.abc import Sequence
@@ -216,7 +217,7 @@ def run_batch(estimator: AbstractEstimator, batch: Batch, mesh: Mesh | None = No
     return BatchRun(trace, compile_s, run_s, mesh.size, plan)
 
 
-_BARRIERS = iter(range(1 << 62))
+_BARRIERS = itertools.count()  # barrier names must be unique; every process counts the same calls
 
 
 def _next_barrier() -> int:
