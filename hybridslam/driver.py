@@ -23,7 +23,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 
 from .analysis.metrics import Metrics, metrics
 from .estimators.base import AbstractEstimator, Mixture, StepInfo
@@ -99,16 +99,16 @@ def compiled(fn: Callable, *args) -> tuple[Callable, float]:
     the seconds spent compiling (0 when an equal program was compiled before in this process)."""
     dynamic, static = eqx.partition(args, eqx.is_array)
     leaves, treedef = jax.tree_util.tree_flatten(dynamic)
-    key = (fn, treedef, tuple((x.shape, x.dtype, getattr(x, "sharding", None)) for x in leaves))
+    key: tuple | None = (fn, treedef, tuple((x.shape, x.dtype, getattr(x, "sharding", None)) for x in leaves),
+                         static)
     try:
-        key = key + (static,)
         hash(key)
     except TypeError:  # an unhashable static part: compile every time, correctly
         key = None
     if key is not None and key in _COMPILED:
         return _COMPILED[key], 0.0
     t0 = time.perf_counter()
-    executable = eqx.filter_jit(fn).lower(*args).compile()
+    executable = eqx.filter_jit(fn).lower(*args).compile()  # type: ignore[attr-defined]
     seconds = time.perf_counter() - t0
     if key is not None:
         _COMPILED[key] = executable
@@ -121,8 +121,8 @@ def compiled(fn: Callable, *args) -> tuple[Callable, float]:
 
 
 def record_from_arrays(
-    k: int, log_weights: np.ndarray, classes: np.ndarray, history: np.ndarray, pose_mean: np.ndarray,
-    pose_cov: np.ndarray, num_detections: list[int], m, *, has_truth: bool,
+    k: int, log_weights: ArrayLike, classes: ArrayLike, history: ArrayLike, pose_mean: ArrayLike,
+    pose_cov: ArrayLike, num_detections: list[int], m, *, has_truth: bool,
 ) -> StepRecord:
     """A :class:`StepRecord` from host arrays of one belief view (``K`` slots) and its metrics ``m``.
 
@@ -130,6 +130,7 @@ def record_from_arrays(
     renormalized to sum to one; ``history[:, j, :num_detections[j]]`` are the associations of step
     ``j + 1``.
     """
+    classes, history, pose_mean, pose_cov = (np.asarray(a) for a in (classes, history, pose_mean, pose_cov))
     w = np.exp(np.asarray(log_weights))
     order = [i for i in np.argsort(-w, kind="stable") if w[i] > 0]
     total = float(np.sum(w[order]))
@@ -204,7 +205,7 @@ def run(
     def one(k: int) -> Inputs:
         return jax.tree.map(lambda x: x[k : k + 1], inputs)
 
-    step_fn, compile_s = compiled(scan, estimator, state, one(0), key) if scenario.num_steps else (None, 0.0)
+    step_fn, compile_s = compiled(scan, estimator, state, one(0), key) if scenario.num_steps else (scan, 0.0)
     records, infos, step_s = [], [], []
     for k in range(scenario.num_steps):
         xs = one(k)

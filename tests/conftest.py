@@ -17,6 +17,7 @@ from __future__ import annotations
 import os
 
 import jax
+import jaxtyping
 import pytest
 from jax.experimental.compilation_cache import compilation_cache
 
@@ -41,6 +42,16 @@ def shared_compilation_cache(tmp_path_factory) -> str:
         os.environ[name.upper()] = str(value)
     compilation_cache.reset_cache()  # a compile at collection time may have settled on "no cache"
     return path
+
+@pytest.fixture
+def unchecked_types():
+    """The runtime type checker off for one test (it is on for the whole suite: pyproject's
+    ``--jaxtyping-packages``). For tests of the package's own input validation: users run without
+    the checker and see the package's error naming the field, which the checker would pre-empt."""
+    jaxtyping.config.update("jaxtyping_disable", True)
+    yield
+    jaxtyping.config.update("jaxtyping_disable", False)
+
 
 # One small shape for most step-level tests: capacity 8, 2 detection slots, 200 samples.
 CAPACITY, SAMPLES, SLOTS = 8, 200, 2

@@ -275,7 +275,7 @@ def test_smooth_visibility_model():
     assert float(check(f64([4.0, 0.0]), tau)[2][0, 1]) == 0.0
 
 
-def test_model_keeps_the_hard_visibility_by_default(scenario):
+def test_model_keeps_the_hard_visibility_by_default(unchecked_types, scenario):
     model = hs.model_from_scenario(scenario)
     assert model.sensor.visibility_temperature is None
     sensor = hs.SensorModel(model.sensor.geometric_cov, model.sensor.classifier, model.sensor.max_range, model.sensor.fov)

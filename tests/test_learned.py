@@ -130,7 +130,7 @@ def test_bad_files_are_named(model_file, tmp_path):
         hs.make_classifier("learned", 3, path=model_file)
 
 
-def test_bad_samples_are_refused():
+def test_bad_samples_are_refused(unchecked_types):
     z = np.zeros((4, 2))
     with pytest.raises(ValueError, match=r"^viewpoints: expected shape \(4,\)"):
         hs.fit_classifier(np.array([0, 0, 1, 1]), np.zeros(3), z)

@@ -61,7 +61,7 @@ def test_looking_at_the_objects_lowers_the_expected_entropy(ambiguous):
     assert float(scores[0]) < entropy_now - 0.05
 
 
-def test_unprepared_beliefs_are_refused(ambiguous):
+def test_unprepared_beliefs_are_refused(ambiguous, unchecked_types):
     scenario, _ = ambiguous
     raw = hs.Hybrid(capacity=4).init(scenario)
     with pytest.raises(ValueError, match="prepare"):

@@ -92,7 +92,7 @@ def test_constant_offsets_in_closed_form():
     assert tj.rpe(ref, turned).translation.max() > 0.1  # the same steps taken in a turned frame
 
 
-def test_tum_round_trip_and_errors(tmp_path):
+def test_tum_round_trip_and_errors(tmp_path, unchecked_types):
     rng = np.random.default_rng(5)
     poses = _random_trajectory(rng, 7)
     stamps = np.linspace(0.5, 3.5, 7)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 
 import jax
 import numpy as np
@@ -115,7 +116,7 @@ class Audit:
     first_redetection: int | None  # step (1-based) of the first re-detection, None if none
 
 
-def association_audit(true_objects: list[list[int]], associations: list[list[int]], gap: int = 20) -> Audit:
+def association_audit(true_objects: list[list[int | None]], associations: Sequence[Sequence[int] | np.ndarray], gap: int = 20) -> Audit:
     """Compare an association history with the truth, detection by detection.
 
     ``true_objects[j]`` / ``associations[j]``: the true landmark and the estimator's object of each
@@ -124,8 +125,8 @@ def association_audit(true_objects: list[list[int]], associations: list[list[int
     """
     if len(true_objects) != len(associations):
         raise ValueError(f"associations: {len(associations)} steps, the truth has {len(true_objects)}")
-    owner: dict[int, int] = {}
-    first: dict[int, tuple[int, int]] = {}  # landmark -> (step, object) of its first detection
+    owner: dict[int, int | None] = {}  # None: a detection without a true landmark (clutter)
+    first: dict[int | None, tuple[int, int]] = {}  # landmark -> (step, object) of its first detection
     redet = closed = wrong = 0
     first_redetection = None
     for k, (truth, objs) in enumerate(zip(true_objects, associations), start=1):

@@ -2,16 +2,12 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from .marginals import association_probabilities
-
-if TYPE_CHECKING:  # a Belief or an estimator's Mixture view: anything with these fields
-    from ..estimators.hybrid.belief import Belief
+from .mixture import WeightedMixture
 
 
 class Metrics(eqx.Module):
@@ -22,7 +18,7 @@ class Metrics(eqx.Module):
     num_components: Int[Array, ""]
 
 
-def association_entropy(belief: Belief) -> Float[Array, ""]:
+def association_entropy(belief: WeightedMixture) -> Float[Array, ""]:
     """``H = −Σ_β P(β) log P(β)``, written per component as ``−Σ_i w_i log P(β(i))``."""
     p = association_probabilities(belief)
     w = jnp.where(belief.alive, belief.weights, 0.0)
@@ -30,7 +26,7 @@ def association_entropy(belief: Belief) -> Float[Array, ""]:
     return jnp.maximum(h, 0.0) + 0.0  # never -0.0 (or -1e-17 from rounding) in a result file
 
 
-def metrics(belief: Belief, true_pose: Float[Array, "3"] | None = None) -> Metrics:
+def metrics(belief: WeightedMixture, true_pose: Float[Array, "3"] | None = None) -> Metrics:
     best = jnp.argmax(belief.log_weights)
     det_cov = jnp.linalg.det(belief.cov[best, :2, :2])
     if true_pose is None:

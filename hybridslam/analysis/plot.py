@@ -27,7 +27,7 @@ METRIC_PANELS: tuple[tuple[str, str, bool], ...] = (
 )
 
 
-def covariance_ellipse(mean2: Sequence[float], cov2: np.ndarray, nsig: float = 2.0, num: int = 64) -> np.ndarray:
+def covariance_ellipse(mean2: Sequence[float] | np.ndarray, cov2: np.ndarray, nsig: float = 2.0, num: int = 64) -> np.ndarray:
     """Points ``(num, 2)`` on the ``nsig``-sigma contour of the 2-D Gaussian ``N(mean2, cov2)``.
 
     The curve is closed (first point == last point), ready for ``ax.plot(*pts.T)``.
@@ -216,12 +216,12 @@ def alpha_curves(rows: Iterable[Mapping[str, object]], metric: str) -> dict[str,
         per_alpha = cells.setdefault(str(row["model"]), {}).setdefault(_number(row["alpha"]), {})
         per_alpha.setdefault(int(_number(row["track"])), []).append(_number(row.get(metric)))
     curves = {}
-    for model, per_alpha in cells.items():
-        alphas = np.array(sorted(per_alpha))
-        tracks = sorted({t for a in per_alpha.values() for t in a})
+    for model, by_alpha in cells.items():
+        alphas = np.array(sorted(by_alpha))
+        tracks = sorted({t for a in by_alpha.values() for t in a})
         values = np.full((len(tracks), len(alphas)), np.nan)
         for j, a in enumerate(alphas):
-            for t, vals in per_alpha[a].items():
+            for t, vals in by_alpha[a].items():
                 finite = [v for v in vals if math.isfinite(v)]
                 values[tracks.index(t), j] = np.mean(finite) if finite else np.nan
         curves[model] = (alphas, values)
@@ -284,6 +284,7 @@ def plot_trajectory(ax_or_path: Axes | str | os.PathLike, scenario: Scenario, re
     """
     from .trajectory import trajectory_from_result
 
+    path = None if isinstance(ax_or_path, Axes) else ax_or_path
     if isinstance(ax_or_path, Axes):
         ax, fig = ax_or_path, None
     else:
@@ -317,4 +318,5 @@ def plot_trajectory(ax_or_path: Axes | str | os.PathLike, scenario: Scenario, re
         ax.set_title(title, fontsize=10)
     if fig is not None:
         ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
-        fig.savefig(ax_or_path, dpi=120)
+        assert path is not None
+        fig.savefig(path, dpi=120)

@@ -29,7 +29,7 @@ import os
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from ..io.result import Result
 from ..io.scenario import Scenario
@@ -65,7 +65,7 @@ def statistics(errors: np.ndarray) -> dict[str, float]:
     }
 
 
-def _poses(poses: Float[Array, "T 3"] | np.ndarray, name: str) -> jax.Array:
+def _poses(poses: Float[ArrayLike, "T 3"], name: str) -> jax.Array:
     p = jnp.asarray(poses, dtype=float)
     if p.ndim != 2 or p.shape[1] != 3 or p.shape[0] == 0:
         raise ValueError(f"{name}: expected a (T, 3) array of poses [x, y, theta], got shape {p.shape}")
@@ -81,19 +81,19 @@ def _pair(reference, estimate) -> tuple[jax.Array, jax.Array]:
     return ref, est
 
 
-def _error(e: jax.Array) -> PoseError:
+def _error(poses: jax.Array) -> PoseError:
     """Translation norm and absolute rotation angle of error poses ``E`` (n, 3)."""
-    e = np.asarray(e)
+    e = np.asarray(poses)
     return PoseError(np.linalg.norm(e[:, :2], axis=-1), np.abs(e[:, 2]))
 
 
-def ape(reference: Float[Array, "T 3"], estimate: Float[Array, "T 3"]) -> PoseError:
+def ape(reference: Float[ArrayLike, "T 3"], estimate: Float[ArrayLike, "T 3"]) -> PoseError:
     """Absolute pose error ``E_i = P_ref,i⁻¹ P_est,i`` of every pose (evo's ``APE``, module docstring)."""
     ref, est = _pair(reference, estimate)
     return _error(_between(ref, est))
 
 
-def rpe(reference: Float[Array, "T 3"], estimate: Float[Array, "T 3"], delta: int = 1) -> PoseError:
+def rpe(reference: Float[ArrayLike, "T 3"], estimate: Float[ArrayLike, "T 3"], delta: int = 1) -> PoseError:
     """Relative pose error over ``delta`` frames, consecutive pairs ``(i, i + delta)`` (evo's ``RPE``)."""
     ref, est = _pair(reference, estimate)
     if not (isinstance(delta, int) and 1 <= delta < ref.shape[0]):
@@ -105,7 +105,7 @@ def rpe(reference: Float[Array, "T 3"], estimate: Float[Array, "T 3"], delta: in
 
 
 def trajectory_errors(
-    reference: Float[Array, "T 3"], estimate: Float[Array, "T 3"]
+    reference: Float[ArrayLike, "T 3"], estimate: Float[ArrayLike, "T 3"]
 ) -> dict[str, dict[str, float]]:
     """All of Table 4.1 for both metrics: keys ``ape_translation``, ``ape_rotation``, ``rpe_translation``,
     ``rpe_rotation`` (RPE over 1 frame; absent for a one-pose trajectory), each ``{stat: value}``."""
@@ -170,7 +170,7 @@ def trajectory_from_scenario(scenario: Scenario) -> tuple[np.ndarray, np.ndarray
     return np.arange(1, poses.shape[0] + 1, dtype=float), poses
 
 
-def write_tum(path: str | os.PathLike, timestamps: np.ndarray, poses: Float[Array, "T 3"]) -> None:
+def write_tum(path: str | os.PathLike, timestamps: ArrayLike, poses: Float[ArrayLike, "T 3"]) -> None:
     """Write SE(2) ``poses`` as a TUM trajectory file: a ``t tx ty tz qx qy qz qw`` line each, exact floats."""
     p = np.asarray(_poses(poses, "poses"))
     t = np.asarray(timestamps, dtype=float)

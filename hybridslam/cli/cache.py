@@ -19,7 +19,7 @@ def enable() -> str | None:
     """Turn the persistent cache on (see the module docstring); the folder, or ``None`` when off."""
     if os.environ.get("HYBRIDSLAM_NO_CACHE", "").strip() not in ("", "0"):
         return None
-    given = os.environ.get("JAX_COMPILATION_CACHE_DIR") or jax.config.jax_compilation_cache_dir
+    given = os.environ.get("JAX_COMPILATION_CACHE_DIR") or jax.config.jax_compilation_cache_dir  # type: ignore[attr-defined]
     if given:
         return given
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")

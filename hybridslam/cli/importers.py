@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from typing import Any
 
 import numpy as np
 
@@ -85,7 +86,7 @@ def mrclam_summary(path: str, s: Scenario) -> str:
 
 def cmd_import_mrclam(args: argparse.Namespace) -> int:
     """Write one robot's MRCLAM log as a scenario file and print a summary."""
-    covs = {"motion_cov": _variances(args.motion_cov, 3, "--motion-cov"),
+    covs: dict[str, Any] = {"motion_cov": _variances(args.motion_cov, 3, "--motion-cov"),
             "geometric_cov": _variances(args.geometric_cov, 2, "--geometric-cov"),
             "robot_prior_cov": _variances(args.robot_prior_cov, 3, "--robot-prior-cov")}
     check_writable(args.output)

@@ -7,6 +7,7 @@ import os
 import sys
 import time
 from collections.abc import Sequence
+from typing import Any
 
 from tqdm import tqdm
 
@@ -60,18 +61,20 @@ def draw(folder: str, rows: Sequence[dict]) -> list[str]:
 
 
 def _spec(args: argparse.Namespace, models, estimator) -> tuple[study.AlphaStudy | study.FileStudy, str]:
+    spec: study.AlphaStudy | study.FileStudy
     if args.scenarios is not None:
         given = [f"--{k}" for k in SWEEP_DEFAULTS if getattr(args, k) is not None]
         if given:
             raise CLIError(f"{', '.join(given)}: only for simulated studies; scenario files carry their own settings")
-        spec = study.FileStudy(tuple(study.scenario_paths(args.scenarios)), models, args.seed, estimator)
-        return spec, f"{len(spec.paths)} scenario file(s) x {', '.join(models) if models else 'their own model'}"
-    opts = {k: SWEEP_DEFAULTS[k] if getattr(args, k) is None else getattr(args, k) for k in SWEEP_DEFAULTS}
-    spec = study.AlphaStudy(
+        files = study.FileStudy(tuple(study.scenario_paths(args.scenarios)), models, args.seed, estimator)
+        return files, f"{len(files.paths)} scenario file(s) x {', '.join(models) if models else 'their own model'}"
+    opts: dict[str, Any] = {k: SWEEP_DEFAULTS[k] if getattr(args, k) is None else getattr(args, k) for k in SWEEP_DEFAULTS}
+    alphas = study.AlphaStudy(
         alphas=floats(str(opts["alphas"]), "--alphas"), models=models or CLASSIFIERS,
         tracks=int(opts["tracks"]), steps=int(opts["steps"]), K=float(opts["K"]), seed=args.seed,
         estimator=estimator)
-    return spec, f"{len(spec.alphas)} alpha(s) x {len(spec.models)} model(s) x {spec.tracks} tracks of {spec.steps} steps"
+    return alphas, (f"{len(alphas.alphas)} alpha(s) x {len(alphas.models or ())} model(s) x {alphas.tracks} tracks "
+                    f"of {alphas.steps} steps")
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:

@@ -137,7 +137,8 @@ def messages(t: dict[str, float], per_step: bool) -> list[str]:
                    + " (weights from the measurement likelihood alone)")
     if (n := int(t["solver_failures"])) > 0:
         of = f" of {int(t['num_components'])}" if per_step else ""
-        out.append(f"the Gauss-Newton update did not converge for {n}{of} component(s)")
+        out.append(f"the update (Gauss-Newton; with a smoother, its Levenberg-Marquardt solve) did not converge for "
+                   f"{n}{of} component(s)")
     if (n := int(t["is_failures"])) > 0:
         out.append(f"the laplace-is mode search did not converge for {n} component(s) (their weights stay "
                    "unbiased but are noisier)")
@@ -166,7 +167,8 @@ def _jsonable(value: Any) -> Any:
         return [_jsonable(v) for v in value]
     if isinstance(value, eqx.Module) and hasattr(value, "name") and dataclasses.is_dataclass(value):
         fields = {f.name: _jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
-        return {"name": value.name, **fields} if fields else value.name
+        name = getattr(value, "name")
+        return {"name": name, **fields} if fields else name
     return type(value).__name__  # e.g. a classifier model object
 
 

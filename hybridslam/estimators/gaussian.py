@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 import equinox as eqx
 import jax
@@ -170,7 +170,7 @@ class SingleGaussian(AbstractEstimator):
     max_steps: int | None = eqx.field(default=None, static=True)
 
     title: ClassVar[str]
-    factor_mode: ClassVar[str] = "sum"  # how the smoother reads a detection's candidates (max-mixtures: "max")
+    factor_mode: ClassVar[Literal["sum", "max"]] = "sum"  # how the smoother reads a detection's candidates (max-mixtures: "max")
 
     def __check_init__(self):
         if self.max_hypotheses is not None and not (isinstance(self.max_hypotheses, int) and self.max_hypotheses >= 1):
@@ -479,6 +479,7 @@ def commit(est: SingleGaussian, state: GaussianState, mean, cov, class_log_post,
     if isinstance(est.smoother, Full):
         # The whole trajectory and map relinearized with every factor so far (smoothing.py); the
         # step's associations stay as decided online.
+        assert state.log is not None and state.factors is not None and state.poses is not None  # Full keeps them
         log = state.log.record(state.k, odometry, detections)
         objs, log_w, null = factors
         stored = Factors(state.factors.objects.at[state.k].set(objs.astype(jnp.int32)),

@@ -24,7 +24,7 @@ solution (the likeliest object where the null component is). Settings: :class:`.
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 import jax
 import jax.numpy as jnp
@@ -75,7 +75,7 @@ class MaxMixture(SingleGaussian):
     name: ClassVar[str] = "max-mixture"
     title: ClassVar[str] = "max-mixtures semantic SLAM"
     reference: ClassVar[str] = "Doherty thesis Ch. 4, Eq. 4.16"
-    factor_mode: ClassVar[str] = "max"
+    factor_mode: ClassVar[Literal["sum", "max"]] = "max"
 
     def step(self, state: GaussianState, odometry: Float[Array, "3"], detections: Detections,
              key: jax.Array) -> tuple[GaussianState, StepInfo]:

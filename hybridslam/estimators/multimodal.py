@@ -77,7 +77,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from functools import partial
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -744,7 +744,7 @@ class Multimodal(AbstractEstimator):
         # The class prior padded to Nmax rows: runs with the same capacities share one compiled step.
         model = eqx.tree_at(lambda mo: mo.class_prior, model, jnp.asarray(np.exp(class_lp)))
         k = cfg.capacity
-        smoothing = {} if isinstance(self.smoother, Filter) else dict(
+        smoothing: dict[str, Any] = {} if isinstance(self.smoother, Filter) else dict(
             poses=jnp.broadcast_to(initial_trajectory(scenario, cfg.max_steps), (k, cfg.max_steps + 1, 3)),
             log=data_log(scenario, cfg.max_steps, cfg.max_detections, n_max))
         return State(
@@ -805,6 +805,7 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
     if isinstance(smoother, Full):
         # Each child's whole trajectory and map relinearized with every factor of its history
         # (smoothing.py) before the children are merged; a merged component keeps its centre's.
+        assert state.log is not None and state.poses is not None  # Full keeps them
         log = state.log.record(state.k, odometry, detections)
 
         def smoothed(poses_i, mean_i, cov_i, history_i, created_i):

@@ -50,9 +50,11 @@ class Filter(eqx.Module):
 
 class Full(eqx.Module):
     """The whole trajectory re-solved at every step (``max_steps`` Levenberg-Marquardt iterations at
-    most; warm-started, a step usually needs one to three)."""
+    most; warm-started, a step usually needs one to three, but the semantic factors of a strongly
+    viewpoint-dependent classifier make Gauss-Newton converge linearly and take up to ~15: see
+    :mod:`hybridslam.inference.smoother`)."""
 
-    max_steps: int = eqx.field(default=10, static=True)
+    max_steps: int = eqx.field(default=20, static=True)
     name: ClassVar[str] = "full"
 
     def __check_init__(self):
@@ -159,7 +161,7 @@ def graph(
     log_w = jnp.where(reached[..., None], factors.log_weight, -jnp.inf)
     null = jnp.where(reached, factors.null_log_weight, -jnp.inf)
     if semantic:
-        residual = sm.SensorResidual(sensor)
+        residual: sm.SensorResidual | sm.RangeBearingResidual = sm.SensorResidual(sensor)
         data = sm.DetectionData(flat(log.geo), flat(log.scores), flat(factors.classes))
     else:
         w, _ = sensor.geometric_sqrt_information()
@@ -206,4 +208,4 @@ def smooth(
 
 
 def failed(result: optx.RESULTS) -> Bool[Array, "..."]:
-    return result != optx.RESULTS.successful
+    return jnp.asarray(result != optx.RESULTS.successful)

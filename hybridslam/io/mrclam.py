@@ -71,6 +71,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .scenario import Classifier, Detection, Discovery, Scenario, Step
 
@@ -200,7 +201,7 @@ def read_robot(dataset_dir: str, robot: int) -> RobotLog:
 # --------------------------------------------------------------------------- #
 
 
-def wrap(angle: np.ndarray) -> np.ndarray:
+def wrap(angle: np.ndarray | float) -> np.ndarray | float:
     """Angles (rad) wrapped to (-π, π]."""
     return np.pi - np.mod(np.pi - np.asarray(angle, dtype=np.float64), 2.0 * np.pi)
 
@@ -233,7 +234,7 @@ def _arc_coeffs(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def log(p: np.ndarray) -> np.ndarray:
     """SE(2) logarithm of poses (..., 3): the tangent ``[v_x, v_y, ω]`` with ``Exp`` of it ``p``."""
-    theta = wrap(p[..., 2])
+    theta = np.asarray(wrap(p[..., 2]))
     a, b = _arc_coeffs(theta)
     det = a * a + b * b
     x, y = p[..., 0], p[..., 1]
@@ -271,15 +272,15 @@ def integrate_odometry(times: np.ndarray, v: np.ndarray, omega: np.ndarray, quer
     return np.column_stack([xy[at], wrap(heading[at])])
 
 
-def interpolate_groundtruth(groundtruth: np.ndarray, times: np.ndarray) -> np.ndarray:
+def interpolate_groundtruth(groundtruth: np.ndarray, times: ArrayLike) -> np.ndarray:
     """Poses (Q, 3) at ``times`` (Q,) [s], linear in x, y and the unwrapped heading, then wrapped.
 
     ``groundtruth`` (n, 4): time, x, y, θ, times non-decreasing; ``times`` within its span.
     """
-    t = groundtruth[:, 0]
+    t, q = groundtruth[:, 0], np.asarray(times, dtype=float)
     heading = np.unwrap(groundtruth[:, 3])
-    cols = [np.interp(times, t, groundtruth[:, i]) for i in (1, 2)]
-    return np.column_stack([*cols, wrap(np.interp(times, t, heading))])
+    cols = [np.interp(q, t, groundtruth[:, i]) for i in (1, 2)]
+    return np.column_stack([*cols, np.asarray(wrap(np.interp(q, t, heading)))])
 
 
 def range_bearing(poses: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -23,9 +24,9 @@ RESULT_FORMAT = "hybridslam-result/1"
 class ComponentRecord:
     """One belief component after step k."""
 
-    weight: float
-    associations: list[list[int]]  # per step j, object index of each detection of step j+1
-    classes: list[int]  # per object, -1 = open
+    weight: float | np.floating  # numpy scalars are written as floats
+    associations: Sequence[Sequence[int] | np.ndarray]  # per step j, object of each detection of step j+1
+    classes: Sequence[int | np.integer]  # per object, -1 = open
     pose_mean: np.ndarray  # (3,) mean of x_k
     pose_cov: np.ndarray  # (3, 3) covariance of x_k
     __eq__ = jf.dataclass_eq
@@ -94,7 +95,7 @@ def _step(obj: Any, path: str, k: int) -> StepRecord:
     if not raw:
         jf.fail(f"{path}.components", "empty (weights must sum to 1)")
     comps = [_component(c, f"{path}.components[{i}]", k) for i, c in enumerate(raw)]
-    weights = [c.weight for c in comps]
+    weights = [float(c.weight) for c in comps]
     for i in range(1, len(weights)):
         if weights[i] > weights[i - 1]:
             jf.fail(f"{path}.components[{i}].weight",

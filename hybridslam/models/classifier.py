@@ -21,7 +21,7 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -58,13 +58,13 @@ class ClassifierModel(eqx.Module):
         return jnp.sum(r * (scores[None, :] - h)[:, None, :], axis=-1), log_norm
 
     def log_likelihood(
-        self, scores: Float[Array, " M"], c: Int[Array, ""], viewpoint: Float[Array, "2"]
+        self, scores: Float[Array, " M"], c: Int[ArrayLike, ""], viewpoint: Float[Array, "2"]
     ) -> Float[Array, ""]:
         """``log P(scores | c, viewpoint)``."""
         r, log_norm = self.residuals(scores, viewpoint)
         return log_norm[c] - 0.5 * jnp.sum(r[c] ** 2)
 
-    def sample(self, key: jax.Array, c: Int[Array, ""], viewpoint: Float[Array, "2"]) -> Float[Array, " M"]:
+    def sample(self, key: jax.Array, c: Int[ArrayLike, ""], viewpoint: Float[Array, "2"]) -> Float[Array, " M"]:
         """Draw a score vector from the model (used by the simulator)."""
         r = self.class_sqrt_informations(viewpoint)[c]
         eps = jax.random.normal(key, (self.num_classes,), dtype=r.dtype)
@@ -166,7 +166,7 @@ class Confusion(ClassifierModel):
 
     matrix: Float[Array, "M M"]  # matrix[label, class]; columns sum to 1
 
-    def __init__(self, matrix: Float[Array, "M M"] | list):
+    def __init__(self, matrix: Float[ArrayLike, "M M"] | list):
         m = jnp.asarray(matrix, dtype=float)
         if m.ndim != 2 or m.shape[0] != m.shape[1]:
             raise ValueError(f"classifier.matrix: expected a square matrix, got shape {m.shape}")

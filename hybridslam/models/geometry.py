@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from . import se2
 
@@ -55,14 +55,14 @@ def geometric_residual(z: Float[Array, "2"], predicted: Float[Array, "2"]) -> Fl
 
 
 def visible(
-    range_bearing_: Float[Array, "2"], max_range: Float[Array, ""], fov: Float[Array, ""]
+    range_bearing_: Float[Array, "2"], max_range: Float[ArrayLike, ""], fov: Float[ArrayLike, ""]
 ) -> Bool[Array, ""]:
     """Sensor footprint: ``range <= max_range`` and ``|bearing| <= fov / 2``."""
     return (range_bearing_[0] <= max_range) & (jnp.abs(range_bearing_[1]) <= 0.5 * fov)
 
 
 def log_smooth_visibility(
-    range_bearing_: Float[Array, "2"], max_range: Float[Array, ""], fov: Float[Array, ""],
+    range_bearing_: Float[Array, "2"], max_range: Float[ArrayLike, ""], fov: Float[ArrayLike, ""],
     temperature: Float[Array, "2"],
 ) -> Float[Array, ""]:
     """Log of the smooth sensor footprint, a product of logistic sigmoids of the three margins:

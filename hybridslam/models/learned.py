@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
-from jaxtyping import Array, Float, Int, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
 from .classifier import ClassifierModel
 
@@ -64,11 +64,11 @@ class Learned(ClassifierModel):
     @property
     def hidden(self) -> tuple[int, ...]:
         """Widths of the hidden layers (the file header stores them to rebuild the skeleton)."""
-        return tuple(layer.out_features for layer in self.layers[:-1])
+        return tuple(int(layer.out_features) for layer in self.layers[:-1])
 
-    def _heads(self, viewpoint: Float[Array, "2"]) -> tuple[Float[Array, "M M"], Float[Array, "M M"], Float[Array, "M P"]]:
+    def _heads(self, viewpoint: Float[ArrayLike, "2"]) -> tuple[Float[Array, "M M"], Float[Array, "M M"], Float[Array, "M P"]]:
         """Network outputs split per class: means, log-diagonals of ``R_c``, strictly-upper entries."""
-        x = viewpoint
+        x = jnp.asarray(viewpoint)
         for layer in self.layers[:-1]:
             x = jnp.tanh(layer(x))
         m = self.num_classes
@@ -180,7 +180,7 @@ def _start_at_constant_fit(model: Learned, classes: np.ndarray, scores: np.ndarr
     return eqx.tree_at(
         lambda mdl: (mdl.layers[-1].weight, mdl.layers[-1].bias),
         model,
-        (0.01 * last.weight, jnp.asarray(np.concatenate(bias), dtype=last.bias.dtype)),
+        (0.01 * last.weight, jnp.asarray(np.concatenate(bias), dtype=last.weight.dtype)),
     )
 
 
@@ -235,8 +235,8 @@ def fit_classifier(
     args = (unravel, skeleton, jnp.asarray(decay), data)
     # The RMS norm: with the default max norm one weight wandering along a flat direction of the
     # network keeps the solve going long after the objective has settled.
-    solver = optx.BFGS(rtol=rtol, atol=atol, norm=optx.rms_norm)
-    solution = optx.minimise(_objective, solver, flat, args, max_steps=max_steps, throw=False)
+    solver: optx.AbstractMinimiser = optx.BFGS(rtol=rtol, atol=atol, norm=optx.rms_norm)
+    solution: optx.Solution = optx.minimise(_objective, solver, flat, args, max_steps=max_steps, throw=False)
     fitted = eqx.combine(unravel(solution.value), skeleton)
     final = float(mean_nll(fitted, *data))
     if not math.isfinite(final):
@@ -245,7 +245,7 @@ def fit_classifier(
         why = (
             f"reached max_steps={max_steps}"
             if bool(solution.result == optx.RESULTS.max_steps_reached)
-            else optx.RESULTS[solution.result]
+            else optx.RESULTS[solution.result]  # type: ignore[misc]  # RESULTS[...] is its message
         )
         warnings.warn(
             f"fit_classifier: BFGS stopped before meeting rtol/atol ({why}); returning the last "

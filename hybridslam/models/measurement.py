@@ -93,7 +93,7 @@ def slot_residuals(
     scores: Float[Array, "Dmax M"],
     assign: Int[Array, " Dmax"],
     slot_class: Int[Array, " Dmax"],
-) -> tuple[Float[Array, " Dmax*R"], Float[Array, ""]]:
+) -> tuple[Float[Array, " DR"], Float[Array, ""]]:  # DR = Dmax · (residuals per slot)
     """The joint measurement factor of a step (Eq. 10): the stacked whitened residuals of every
     occupied slot (zeros for empty slots, ``assign < 0``) and the sum of their log normalizers.
 
@@ -122,11 +122,12 @@ def log_visibility(sensor: SensorModel, x: Float[Array, "3"], obj: Float[Array, 
     return geometry.log_smooth_visibility(rb, sensor.max_range, sensor.fov, sensor.visibility_temperature)
 
 class Detections(eqx.Module):
-    """The detections ``Z_k`` of one step, padded to a fixed number of slots ``Dmax``."""
+    """The detections ``Z_k`` of one step, padded to a fixed number of slots ``Dmax`` (or of ``*T``
+    steps, stacked on leading axes)."""
 
-    geo: Float[Array, "Dmax 2"]  # [range, bearing]
-    scores: Float[Array, "Dmax M"]  # classifier output z^sem (Eq. 1)
-    mask: Bool[Array, " Dmax"]  # which slots hold a detection
+    geo: Float[Array, "*T Dmax 2"]  # [range, bearing]
+    scores: Float[Array, "*T Dmax M"]  # classifier output z^sem (Eq. 1)
+    mask: Bool[Array, "*T Dmax"]  # which slots hold a detection
 
 
 def stacked_detections(stacked: StackedSteps) -> Detections:

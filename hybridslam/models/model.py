@@ -113,6 +113,8 @@ def model_from_scenario(
 def _with_discovery(model: Model, scenario: Scenario) -> Model:
     """Object slots up to ``discovery.max_objects``; a new object's class prior is uniform (no information)."""
     d = scenario.discovery
+    if d is None:
+        raise ValueError("discovery: the scenario has no discovery section")
     m = scenario.num_classes
     extra = jnp.full((d.max_objects - scenario.num_objects, m), 1.0 / m)
     prior = jnp.concatenate([model.class_prior, extra])

@@ -5,7 +5,7 @@ Its own module because ``"learned"`` needs :mod:`.learned`, which builds on :mod
 
 from __future__ import annotations
 
-from jaxtyping import Array, Float
+from jaxtyping import ArrayLike, Float
 
 from .classifier import ClassifierModel, Confusion, Independent, Mirror, NoClassifier
 from .learned import load_classifier
@@ -15,17 +15,18 @@ MODELS = ("mirror", "independent", "none", "learned", "confusion")
 
 def make_classifier(
     name: str, num_classes: int, alpha: float | None = None, K: float | None = None, *,
-    path: str | None = None, matrix: Float[Array, "M M"] | None = None,
+    path: str | None = None, matrix: Float[ArrayLike, "M M"] | None = None,
 ) -> ClassifierModel:
     """Build a classifier model by its scenario-file name (``classifier.model``).
 
     ``"learned"`` loads the model file at ``path`` (:func:`hybridslam.learned.load_classifier`);
     ``"confusion"`` takes the ``num_classes`` × ``num_classes`` ``matrix`` (``matrix[label, class]``).
     """
-    if name == "mirror":
-        return Mirror(alpha, K)
-    if name == "independent":
-        return Independent(alpha, K)
+    if name in ("mirror", "independent"):
+        if alpha is None or K is None:
+            raise ValueError(f"classifier: the {name!r} model needs alpha and K")
+        # equinox: Mirror and Independent inherit _AlphaK's __init__ (mypy sees the field order)
+        return (Mirror if name == "mirror" else Independent)(alpha, K)  # type: ignore[call-arg, arg-type]
     if name == "none":
         return NoClassifier(num_classes)
     if name == "learned":
@@ -43,9 +44,9 @@ def make_classifier(
     if name == "confusion":
         if matrix is None:
             raise ValueError("classifier.matrix: the 'confusion' model needs its confusion matrix")
-        model = Confusion(matrix)
-        if model.num_classes != num_classes:
+        confusion = Confusion(matrix)
+        if confusion.num_classes != num_classes:
             raise ValueError(
-                f"classifier.matrix: a {model.num_classes}-class matrix, expected {num_classes} classes")
-        return model
+                f"classifier.matrix: a {confusion.num_classes}-class matrix, expected {num_classes} classes")
+        return confusion
     raise ValueError(f"classifier.model: unknown model {name!r} (known: {', '.join(MODELS)})")

@@ -9,14 +9,14 @@ is ``a⁻¹ ∘ b`` and angles are wrapped to (-pi, pi].
 from __future__ import annotations
 
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 Pose = Float[Array, "3"]
 
 _SMALL = 1e-6
 
 
-def wrap(angle: Float[Array, "*B"]) -> Float[Array, "*B"]:
+def wrap(angle: Float[ArrayLike, "*B"]) -> Float[Array, "*B"]:
     """Wrap angles (radians) to (-pi, pi]. Floor-mod, no trigonometry: it sits in the hottest loop."""
     return jnp.pi - jnp.mod(jnp.pi - angle, 2 * jnp.pi)
 

@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 from jax.scipy.special import logsumexp
-from jaxtyping import Array, Float, Int, PRNGKeyArray
+from jaxtyping import Array, Float, Int, Key, PRNGKeyArray, UInt32
 
 from ..analysis.metrics import association_entropy
 from ..driver import Inputs, scan
@@ -253,7 +253,8 @@ def turn_actions(params: Float[Array, " H"], step_length, max_turn) -> Float[Arr
     return jnp.stack([jnp.full_like(turns, step_length), jnp.zeros_like(turns), turns], axis=-1)
 
 
-def expected_objective(plan: Plan, actions: Float[Array, "H 3"], keys: PRNGKeyArray, logdet_weight=0.0):
+def expected_objective(plan: Plan, actions: Float[Array, "H 3"], keys: Key[Array, " S"] | UInt32[Array, "S 2"],
+                       logdet_weight=0.0):
     """Mean :func:`objective` over the observation draws ``keys`` (vmapped; a smooth function of
     ``actions`` for a fixed set of detected objects when the sensor uses the smooth visibility)."""
 

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
-from jaxtyping import PRNGKeyArray
+from jaxtyping import Array, Key, UInt32
 
 from ..driver import Inputs, Trace, compiled, inputs_from_scenario, scan, trace_record
 from ..estimators.base import AbstractEstimator
@@ -49,7 +49,7 @@ class Batch(eqx.Module):
 
     state: Any  # the initial states
     inputs: Inputs  # leaves (B, T, ...)
-    key: PRNGKeyArray  # (B, 2): each track's PRNG key (step k draws with fold_in(key, k - 1))
+    key: Key[Array, " B"] | UInt32[Array, "B 2"]  # each track's PRNG key (step k draws with fold_in(key, k - 1))
 
     @property
     def size(self) -> int:
@@ -86,7 +86,7 @@ def batched(estimator: AbstractEstimator, scenarios: Sequence[Scenario]) -> Abst
     slots = getattr(estimator, "max_detections", None) or max(1, max(s.max_detections for s in scenarios))
     steps = getattr(estimator, "max_steps", None) or max(1, max(s.num_steps for s in scenarios))
     if hasattr(estimator, "max_detections"):
-        estimator = dataclasses.replace(estimator, max_detections=slots, max_steps=steps)
+        estimator = dataclasses.replace(estimator, max_detections=slots, max_steps=steps)  # type: ignore[call-arg]
     return estimator.with_batch_axis(BATCH_AXIS)
 
 

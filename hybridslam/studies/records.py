@@ -36,7 +36,7 @@ import os
 import sys
 import time
 from collections.abc import Iterable, Sequence
-from typing import Any, Self
+from typing import Any
 
 import jax
 
@@ -272,7 +272,7 @@ class Records:
         if fd is not None:
             os.close(fd)
 
-    def __enter__(self) -> Self:
+    def __enter__(self) -> Records:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -25,6 +25,7 @@ import math
 import os
 from collections.abc import Callable, Iterable, Sequence
 
+import jax.numpy as jnp
 import numpy as np
 
 from ..estimators.base import AbstractEstimator, StepInfo, summarize
@@ -156,7 +157,8 @@ def cell_warnings(record: dict) -> list[str]:
     words every estimator's :class:`~hybridslam.estimators.StepInfo` uses."""
     d = record["diagnostics"]
     counts = {name: np.asarray(d[name]) for name in DIAGNOSTICS if name in d and name != "num_components"}
-    info = StepInfo(k=np.zeros(()), num_components=np.asarray(d.get("num_components", 0)), **counts)
+    info = StepInfo(k=jnp.zeros((), jnp.int32), num_components=jnp.asarray(d.get("num_components", 0)),
+                    **{name: jnp.asarray(v) for name, v in counts.items()})
     return summarize(info)
 
 
@@ -217,8 +219,9 @@ def run_alpha_study(study: AlphaStudy, folder: str, *, mesh=None, on_cell: Progr
                 if on_cell:
                     on_cell(f"alpha {alpha:g}, {model}", None)
                 # Two detection slots: the simulator's detector reports at most the 2 nearest objects.
-                estimator = batched(dataclasses.replace(study.estimator, classifier=resolved[model], max_detections=2),
-                                    scenarios)
+                # (the fields of the concrete estimator, which mypy reads as AbstractEstimator's)
+                estimator = batched(dataclasses.replace(study.estimator, classifier=resolved[model],  # type: ignore[call-arg]
+                                                        max_detections=2), scenarios)
                 record = _record(cell, run_batch(estimator, batch_inputs(estimator, scenarios, seeds), mesh))
                 records.append(record)
                 write_table(table, ALPHA_COLUMNS, alpha_rows(study, records))
@@ -285,7 +288,8 @@ def run_file_study(study: FileStudy, folder: str, *, mesh=None, on_cell: Progres
                     f"{max(g.num_steps for g in group)} steps"
             if on_cell:
                 on_cell(label, None)
-            estimator = batched(dataclasses.replace(study.estimator, classifier=resolve_model(cell["run_as"])), group)
+            estimator = batched(dataclasses.replace(study.estimator,  # type: ignore[call-arg]  # (as above)
+                                                    classifier=resolve_model(cell["run_as"])), group)
             run = run_batch(estimator, batch_inputs(estimator, group, [study.seed] * len(group)), mesh)
             _write_results(study, cell, group, run, estimator, folder)
             record = _record(cell, run, {"steps": [g.num_steps for g in group]})

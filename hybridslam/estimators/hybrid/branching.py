@@ -23,7 +23,7 @@ from typing import ClassVar, NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ...inference.batching import map_live
 from ...inference.beam import beam_search
@@ -118,7 +118,7 @@ def beam_children(
     tables: LinearTables = map_live(tables_of, belief.alive, mean, cov, candidates, axis_name=batch_axis)
     slots = jnp.arange(dmax)
 
-    def child(opts: Int[Array, " S"], upto: Int[Array, ""]):
+    def child(opts: Int[Array, " S"], upto: Int[ArrayLike, ""]):
         """Every field of the child ``opts = [parent, option of slot 0, ...]`` over slots ``0..upto``."""
         p = opts[0]
         o = opts[1:]

@@ -66,18 +66,19 @@ def hypothesis_table(
 
 
 class Children(eqx.Module):
-    """The children of one parent, on a grid ``(A, Mc)`` of (assignment, class combo)."""
+    """The children of one parent, on a grid ``(A, Mc)`` of (assignment, class combo) (``*K``: stacked
+    over parents by ``vmap``)."""
 
-    valid: Bool[Array, "A Mc"]  # a real, distinct hypothesis for this step's detection mask
-    slot_class: Int[Array, "A Mc Dmax"]  # class of the object named in each slot (0 if empty)
-    new: Bool[Array, "A Mc Dmax"]  # slot associates an object for the first time here
-    log_prior: Float[Array, "A Mc"]  # Σ log P(c_n) over newly realized classes (Eq. 3)
-    assign: Int[Array, "A Dmax"]  # β_k: the object of each slot (created ones included), -1 = empty
-    creates: Bool[Array, "A Dmax"]  # the slot's detection creates object assign[a, j] (unknown maps)
-    candidates: Int[Array, "Dmax G"] | None = None  # gated: the objects that rank r names, per slot
+    valid: Bool[Array, "*K A Mc"]  # a real, distinct hypothesis for this step's detection mask
+    slot_class: Int[Array, "*K A Mc Dmax"]  # class of the object named in each slot (0 if empty)
+    new: Bool[Array, "*K A Mc Dmax"]  # slot associates an object for the first time here
+    log_prior: Float[Array, "*K A Mc"]  # Σ log P(c_n) over newly realized classes (Eq. 3)
+    assign: Int[Array, "*K A Dmax"]  # β_k: the object of each slot (created ones included), -1 = empty
+    creates: Bool[Array, "*K A Dmax"]  # the slot's detection creates object assign[a, j] (unknown maps)
+    candidates: Int[Array, "*K Dmax G"] | None = None  # gated: the objects that rank r names, per slot
 
     @property
-    def measured(self) -> Int[Array, "A Dmax"]:
+    def measured(self) -> Int[Array, "*K A Dmax"]:
         """``assign`` with the creating slots emptied: those detections are no factor on the
         object Gaussian (:func:`hybridslam.discovery.create_object` already used them)."""
         return jnp.where(self.creates, EMPTY, self.assign)
@@ -129,10 +130,10 @@ def children(
     """
     if num_created is None and candidates is None:  # known map, exact enumeration
         flat = jnp.asarray(table.assign)
-        creates, possible = jnp.zeros(flat.shape, bool), True
+        creates, possible = jnp.zeros(flat.shape, bool), jnp.ones((flat.shape[0], 1), bool)
     else:
-        flat, creates, possible = resolve(table, num_created, candidates, parent_classes.shape[0])
-        possible = possible[:, None]
+        flat, creates, feasible = resolve(table, num_created, candidates, parent_classes.shape[0])
+        possible = feasible[:, None]
     assign = flat[:, None, :]  # (A, 1, Dmax)
     combos = jnp.asarray(table.combos)[None, :, :]  # (1, Mc, Dmax)
     occupied = assign >= 0

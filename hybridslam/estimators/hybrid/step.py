@@ -204,7 +204,7 @@ def hybrid_step(
     if discovery:
         update = partial(_create_and_update, model.sensor, model.discovery, detections=detections,
                          max_steps=settings.gn_max_steps)
-        args = (mean[parent], cov[parent], assign, creates, slot_class)
+        args: tuple = (mean[parent], cov[parent], assign, creates, slot_class)
     else:
         update = partial(gauss_newton_update, model.sensor, detections=detections, max_steps=settings.gn_max_steps)
         args = (mean[parent], cov[parent], assign, slot_class)

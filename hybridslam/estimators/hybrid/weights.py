@@ -396,7 +396,7 @@ def laplace_is_log_likelihood(
     parent, a, m = jnp.unravel_index(jnp.arange(screen.size), shape)
     out = laplace_is_children(sensor, mean, cov, detections, eps, parent, kids.measured[parent, a],
                               kids.slot_class[parent, a, m], screen.reshape(-1), num_candidates, max_steps, axis_name)
-    return tuple(v.reshape(shape) for v in out)
+    return tuple(v.reshape(shape) for v in out)  # type: ignore[return-value]  # four arrays
 
 
 def laplace_is_children(
@@ -422,7 +422,7 @@ def laplace_is_children(
     *packed, converged = map_live(one, live, mean[p], cov[p], measured[flat], slot_class[flat], chunk=4,
                                   axis_name=axis_name)
     fill = (-jnp.inf, -jnp.inf, 0.0, True)
-    return tuple(
+    return tuple(  # type: ignore[return-value]  # four arrays
         jnp.full(screen.size, f, v.dtype).at[flat].set(jnp.where(live, v, f))
         for v, f in zip((*packed, converged), fill)
     )
