@@ -18,7 +18,7 @@ loss of information: the weight integrates them over the unknown viewpoint inste
 from __future__ import annotations
 
 from functools import partial
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple, Protocol, runtime_checkable
 
 import equinox as eqx
 import jax
@@ -35,17 +35,35 @@ from ...models.measurement import Detections
 from ...models.model import NewObjects
 from ...models.motion import propagate
 from ..base import StepInfo
-from ..smoothing import Full, history_factors, smooth
+from ..smoothing import Full, Smoother, history_factors, smooth
 from ..smoothing import graph as smoothing_graph
 from .belief import Belief
-from .branching import Beam, beam_children
+from .branching import Beam, Branching, beam_children
 from .hypotheses import Children, children, hypothesis_table
 from .prune import PruneStats, prune
 from .weighers import AbstractWeigher, Context
 from .weights import new_object_log_likelihood
 
-if TYPE_CHECKING:
-    from .estimator import Hybrid as HybridSettings
+
+@runtime_checkable
+class HybridSettings(Protocol):
+    """The settings :func:`hybrid_step` reads: a :class:`~.estimator.Hybrid` (a structural type, so
+    that this module, which the estimator imports, needs no import of it)."""
+
+    @property
+    def weights(self) -> AbstractWeigher: ...
+    @property
+    def branching(self) -> Branching: ...
+    @property
+    def gate(self) -> int | None: ...
+    @property
+    def clutter(self) -> float | None: ...
+    @property
+    def gn_max_steps(self) -> int: ...
+    @property
+    def smoother(self) -> Smoother: ...
+    @property
+    def batch_axis(self) -> str | None: ...
 
 
 class HybridDetails(eqx.Module):
