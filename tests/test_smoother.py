@@ -6,6 +6,8 @@ computed here from an independently stacked residual vector (``jax.jacfwd`` of t
 ``numpy.linalg.lstsq``), not from the solver's own blocks.
 """
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -217,3 +219,30 @@ def test_bad_shapes_name_the_field(unchecked_types):
         sm.solve(bad, jnp.zeros((P, 3)), jnp.zeros((N, 3)))
     with pytest.raises(ValueError, match="method"):
         sm.solve_normal(sm.linearize(graph, jnp.zeros((P, 3)), jnp.zeros((N, 3))), "cholmod")
+
+
+class Curved(eqx.Module):
+    """``W (u + κ u²)``, ``u = z − (o_xy − x_xy)``: residuals that stay non-zero at the optimum and
+    curve, so Gauss-Newton converges only linearly (as the semantic factors of Eq. 18 make it)."""
+
+    sqrt_info: jnp.ndarray
+    kappa: float
+
+    def __call__(self, x, o, data, g):
+        del g
+        u = data - (o[:2] - x[:2])
+        return self.sqrt_info @ (u + self.kappa * u**2), jnp.asarray(0.0)
+
+
+def test_a_steady_linear_rate_stops_once_the_gain_to_come_is_below_cost_atol():
+    base = _graph(np.random.default_rng(3))
+    graph = dataclasses.replace(base, residual_fn=Curved(jnp.asarray(W_MEAS), 0.5), meas_data=base.meas_data * 5)
+    p0, o0 = jnp.zeros((P, 3)), jnp.zeros((N, 3))
+    strict = sm.solve(graph, p0, o0, max_steps=60, cost_atol=0.0)
+    steady = sm.solve(graph, p0, o0, max_steps=60)  # cost_atol = 1e-9 nats
+    gains = -np.diff(np.asarray(strict.history)[: int(strict.steps)])
+    rates = gains[1:] / gains[:-1]
+    assert np.all((rates[:6] > 0.05) & (rates[:6] < 0.9)), rates  # linear convergence: the rule applies
+    assert strict.result == optx.RESULTS.successful and steady.result == optx.RESULTS.successful
+    assert int(steady.steps) < int(strict.steps)
+    assert 0.0 <= float(steady.cost - strict.cost) <= 1e-9
