@@ -284,12 +284,11 @@ def plot_trajectory(ax_or_path: Axes | str | os.PathLike, scenario: Scenario, re
     """
     from .trajectory import trajectory_from_result
 
-    path = None if isinstance(ax_or_path, Axes) else ax_or_path
     if isinstance(ax_or_path, Axes):
-        ax, fig = ax_or_path, None
+        ax, fig, path = ax_or_path, None, None
     else:
         fig = Figure(figsize=(8.0, 5.0), layout="constrained")
-        ax = fig.subplots()
+        ax, path = fig.subplots(), ax_or_path
     color = lambda c: "0.55" if c < 0 else f"C{c}"  # noqa: E731
     truth = _true_landmarks(scenario)
     if truth is not None:
@@ -316,7 +315,6 @@ def plot_trajectory(ax_or_path: Axes | str | os.PathLike, scenario: Scenario, re
     ax.set_ylabel("y [m]")
     if title:
         ax.set_title(title, fontsize=10)
-    if fig is not None:
+    if fig is not None and path is not None:
         ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
-        assert path is not None
         fig.savefig(path, dpi=120)

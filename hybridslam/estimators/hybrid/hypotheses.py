@@ -128,9 +128,10 @@ def children(
     (``-1``), so its first detection realizes it like any first association (Sec. IV-D), with
     prior ``class_prior`` of its slot. ``candidates``: the parent's gate (:mod:`hybridslam.gating`).
     """
+    possible: Array | bool
     if num_created is None and candidates is None:  # known map, exact enumeration
         flat = jnp.asarray(table.assign)
-        creates, possible = jnp.zeros(flat.shape, bool), jnp.ones((flat.shape[0], 1), bool)
+        creates, possible = jnp.zeros(flat.shape, bool), True
     else:
         flat, creates, feasible = resolve(table, num_created, candidates, parent_classes.shape[0])
         possible = feasible[:, None]
