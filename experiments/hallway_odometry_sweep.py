@@ -265,6 +265,6 @@ if __name__ == "__main__":
     parser.add_argument("--steps", type=int, default=None, help="steps per run (default: one loop)")
     parser.add_argument("--levels", default=",".join(str(t) for t in hallway.LEVELS),
                         help="odometry noise levels tr(Λ_t) (default: the thesis's five)")
-    parser.add_argument("--smoother", choices=("full", "filter"), default="full")
+    parser.add_argument("--smoother", default="full", help="full, lag:L or filter")
     a = parser.parse_args()
     main(a.output, a.seeds, a.estimators.split(","), [float(t) for t in a.levels.split(",")], a.steps, a.smoother)

@@ -139,7 +139,7 @@ def test_marginalizing_the_first_pose_is_exact_for_linear_factors(solve):
     """Solving [x_1.., O] under the marginalized prior gives the full solution without x_0."""
     graph = _graph(np.random.default_rng(4))
     sol = solve(graph, jnp.zeros((P, 3)), jnp.zeros((N, 3)))
-    mean, sqrt_info = sm.marginalize_first(graph, sol)
+    mean, sqrt_info = sm.marginalize_first(graph, sol.poses, sol.objects)
     keep = graph.meas_pose > 0
     reduced = sm.FactorGraph(
         prior_mean=mean, prior_sqrt_info=sqrt_info, odometry=graph.odometry[1:],

@@ -6,14 +6,21 @@ smoother is rebuilt here from the scenario file alone, with residuals written in
 ``Log(u⁻¹ ∘ x_{k-1}⁻¹ ∘ x_k)``, range and bearing of the object's position), and solved from dead
 reckoning by scipy's Levenberg-Marquardt. The result file's ``trajectory`` must equal that
 solution to 1e-6 (issue 13 §4).
+
+The fixed-lag smoother (``smoother=Lag(L)``) on the same run: a window as long as the run is this
+smoother; a short one freezes the poses that left it and stays close to it (tests/test_lag.py
+has the mixtures and the option's errors).
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 from scipy.optimize import least_squares
 
 import hybridslam as hs
+from hybridslam.estimators.smoothing import Lag
 
 
 def _wrap(a):
@@ -91,3 +98,51 @@ def test_ml_trajectory_equals_a_batch_least_squares_solve():
     np.testing.assert_allclose(_wrap(smoothed[:, 2] - poses[:, 2]), 0.0, atol=1e-6)
     # ... and it is the online estimate at the last step (the smoother's x_T).
     np.testing.assert_allclose(run.result.steps[-1].components[0].pose_mean, smoothed[-1], atol=1e-9)
+
+
+# Fixed lag (sharing the compiled full-smoother step above)
+
+STEPS = 6
+
+
+def _first_steps(scenario, k):
+    """The scenario cut after ``k`` steps."""
+    return dataclasses.replace(scenario, steps=scenario.steps[:k], true_robot_poses=scenario.true_robot_poses[: k + 1])
+
+
+def test_a_window_as_long_as_the_run_is_the_full_smoother():
+    """``Lag(L)`` with ``L`` the run's steps never marginalizes: it is the full smoother."""
+    scenario = hs.simulate(0, steps=STEPS)
+    full = hs.run_estimator(scenario, "ml")  # the compiled step of the test above
+    lag = hs.run_estimator(scenario, "ml", smoother=Lag(STEPS))
+    np.testing.assert_allclose(lag.result.trajectory, full.result.trajectory, atol=1e-12)
+    for a, b in zip(lag.result.steps, full.result.steps):
+        np.testing.assert_allclose(a.components[0].pose_mean, b.components[0].pose_mean, atol=1e-12)
+        np.testing.assert_allclose(a.components[0].pose_cov, b.components[0].pose_cov, atol=1e-12)
+
+
+def _lag2(scenario):
+    """``ml`` with ``Lag(2)``, its shapes fixed (every cut of the scenario shares one compile)."""
+    return hs.make_estimator("ml", smoother="lag:2", max_steps=STEPS, max_detections=max(scenario.max_detections, 1))
+
+
+def test_poses_that_left_the_window_keep_their_last_smoothed_value():
+    """With ``Lag(2)`` pose ``j`` is last re-solved at step ``j + 2`` and marginalized at ``j + 3``."""
+    scenario = hs.simulate(0, steps=STEPS)
+    est = _lag2(scenario)
+    traj = {k: hs.run_estimator(_first_steps(scenario, k), est).result.trajectory for k in range(2, STEPS + 1)}
+    for k in range(3, STEPS + 1):
+        for j in range(0, k - 2):
+            np.testing.assert_array_equal(traj[k][j], traj[min(j + 2, STEPS)][j], err_msg=f"pose {j} after step {k}")
+        assert not np.array_equal(traj[k][k], traj[k - 1][k - 1])  # the window still moves
+
+
+def test_a_short_window_stays_close_to_the_full_smoother():
+    """Marginalizing at the current estimate is the fixed-lag approximation: the online estimate
+    moves by a small fraction of its standard deviation (a dropped window prior would not)."""
+    scenario = hs.simulate(0, steps=STEPS)
+    full = hs.run_estimator(scenario, "ml")
+    lag = hs.run_estimator(scenario, _lag2(scenario))
+    for a, b in zip(lag.result.steps, full.result.steps):
+        sd = np.sqrt(np.diag(b.components[0].pose_cov))
+        assert np.all(np.abs(a.components[0].pose_mean - b.components[0].pose_mean) < 0.1 * sd), (a.k, sd)

@@ -14,6 +14,7 @@ from tqdm import tqdm
 from ..estimators import ESTIMATORS, make_estimator
 from ..estimators.base import AbstractEstimator
 from ..estimators.hybrid.weighers import WEIGHERS
+from ..estimators.smoothing import parse_smoother
 
 PROG = "hybridslam"
 CLASSIFIERS = ("mirror", "independent", "none")
@@ -116,9 +117,11 @@ def add_estimator_options(p: argparse.ArgumentParser, seed_help: str = "PRNG see
     p.add_argument("--clutter", type=float, default=None, metavar="LOG_DENSITY",
                    help="hybrid: a detection may be clutter, with this log density over [range, bearing] "
                         "(e.g. log(0.01 / (max_range * fov)))")
-    p.add_argument("--smoother", choices=("full", "filter"), default=None,
+    p.add_argument("--smoother", type=_smoother, default=None, metavar="{full,lag:L,filter}",
                    help="full (default): every component keeps its trajectory and relinearizes it at every step, "
-                        "as the papers' smoothers do; filter: the joint Gaussian over the current pose and the map only")
+                        "as the papers' smoothers do; lag:L: only the last L steps and the map, older poses "
+                        "marginalized (bounded cost per step); filter: the joint Gaussian over the current pose "
+                        "and the map only")
     p.add_argument("--max-detections", type=int, default=None,
                    help="detection slots per step (default: the largest step); a shared value lets files share "
                         "one compiled step")
@@ -148,3 +151,12 @@ def settings_line(estimator: AbstractEstimator) -> str:
 
 def names(values: Sequence[str]) -> str:
     return ", ".join(values)
+
+
+def _smoother(text: str) -> str:
+    """``--smoother``'s value, checked here so that a typo is an argparse error naming the option."""
+    try:
+        parse_smoother(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e).removeprefix("--smoother: ")) from None
+    return text

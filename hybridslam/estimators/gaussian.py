@@ -62,8 +62,8 @@ from ..models.model import Model, model_from_scenario
 from ..models.motion import propagate
 from ..models.classifier import ClassifierModel
 from .base import AbstractEstimator, Mixture, StepInfo, classifier_name, history_length
-from .smoothing import DataLog, Factors, Filter, Full, Smoother, data_log, initial_trajectory, smooth
-from .smoothing import graph as smoothing_graph
+from .smoothing import (DataLog, Factors, Filter, Full, Lag, Smoother, WindowPrior, data_log, initial_trajectory,
+                        initial_window, smooth_step)
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -98,10 +98,11 @@ class GaussianState(eqx.Module):
     model: Model
     params: Params
     structure: Structure = eqx.field(static=True)
-    # Smoothing (smoother=Full()): the trajectory x_0..x_T, the data so far, the measurement factors.
+    # Smoothing (smoother=Full() or Lag(L)): the trajectory x_0..x_T, the data so far, the measurement factors.
     poses: Float[Array, "T1 3"] | None = None
     log: DataLog | None = None
     factors: Factors | None = None
+    window: WindowPrior | None = None  # smoother=Lag(L): the window's prior on [x_s, objects]
 
     @property
     def max_objects(self) -> int:
@@ -157,6 +158,7 @@ class SingleGaussian(AbstractEstimator):
     ``max_detections`` (detection slots per step; ``None``: the scenario's largest step), ``max_steps``
     (the history length; ``None``: the scenario's steps), ``smoother`` (:class:`~.smoothing.Full`,
     the default: the whole trajectory relinearized at every step, associations decided online;
+    :class:`~.smoothing.Lag`: the last ``L`` steps, older poses marginalized;
     :class:`~.smoothing.Filter`: the joint Gaussian over ``[x_k, objects]`` only).
     """
 
@@ -229,8 +231,9 @@ class SingleGaussian(AbstractEstimator):
             return state
         none = Factors(jnp.zeros((steps, slots, g), jnp.int32), jnp.full((steps, slots, g), -jnp.inf),
                        jnp.full((steps, slots), -jnp.inf), jnp.zeros((steps, slots, g), jnp.int32))
-        return dataclasses.replace(state, poses=initial_trajectory(scenario, steps),
-                                   log=data_log(scenario, steps, slots, n_max), factors=none)
+        log = data_log(scenario, steps, slots, n_max)
+        return dataclasses.replace(state, poses=initial_trajectory(scenario, steps), log=log, factors=none,
+                                   window=initial_window(log) if isinstance(self.smoother, Lag) else None)
 
     def trajectory(self, state: GaussianState):
         """The smoothed ``x_0..x_T`` (``None`` without smoothing)."""
@@ -462,7 +465,7 @@ def commit(est: SingleGaussian, state: GaussianState, mean, cov, class_log_post,
            used: Bool[Array, " Dmax"], detections: Detections, num_new, info: dict, odometry: Float[Array, "3"],
            factors: tuple[Int[Array, "Dmax G"], Float[Array, "Dmax G"], Float[Array, " Dmax"]],
            ) -> tuple[GaussianState, StepInfo]:
-    """Write the step's results into the state (and, with ``est.smoother = Full()``, smooth it).
+    """Write the step's results into the state (and, with ``est.smoother`` ``Full()`` or ``Lag(L)``, smooth it).
 
     ``assigned`` is the object recorded per detection in the history (a result file needs one for
     every detection, so a skipped one records its nearest object); ``used`` marks the detections that
@@ -475,8 +478,8 @@ def commit(est: SingleGaussian, state: GaussianState, mean, cov, class_log_post,
     observed = state.observed | jnp.any(hit, axis=0)
     num_created = (state.num_created + num_new).astype(jnp.int32)
     result = info["solver_result"]
-    poses, log, stored = state.poses, state.log, state.factors
-    if isinstance(est.smoother, Full):
+    poses, log, stored, window = state.poses, state.log, state.factors, state.window
+    if not isinstance(est.smoother, Filter):
         # The whole trajectory and map relinearized with every factor so far (smoothing.py); the
         # step's associations stay as decided online.
         assert state.log is not None and state.factors is not None and state.poses is not None  # Full keeps them
@@ -485,14 +488,13 @@ def commit(est: SingleGaussian, state: GaussianState, mean, cov, class_log_post,
         stored = Factors(state.factors.objects.at[state.k].set(objs.astype(jnp.int32)),
                          state.factors.log_weight.at[state.k].set(log_w),
                          state.factors.null_log_weight.at[state.k].set(null), state.factors.classes)
-        g = smoothing_graph(log, stored, state.k + 1, num_created, state.model.sensor, state.model.motion_cov,
-                            semantic=False, mode=est.factor_mode)
-        out = smooth(est.smoother, g, state.poses, mean, cov, state.k + 1)
-        mean, cov, result, poses = out.mean, out.cov, out.result, out.poses
+        out = smooth_step(est.smoother, log, stored, state.k + 1, num_created, state.model.sensor,
+                          state.model.motion_cov, False, est.factor_mode, state.poses, mean, cov, state.window)
+        mean, cov, result, poses, window = out.mean, out.cov, out.result, out.poses, out.window
     new_state = dataclasses.replace(
         state, mean=mean, cov=0.5 * (cov + cov.T), num_created=num_created, class_log_post=class_log_post,
         observed=observed, history=state.history.at[state.k].set(assigned), k=state.k + 1, poses=poses, log=log,
-        factors=stored,
+        factors=stored, window=window,
     )
     zero = jnp.zeros((), jnp.int32)
     step_info = StepInfo(

@@ -98,8 +98,8 @@ from ..models.model import Model, model_from_scenario
 from .. import __version__
 from ..inference.batching import map_live
 from .base import AbstractEstimator, Mixture, StepInfo, classifier_name, history_length
-from .smoothing import DataLog, Filter, Full, Smoother, data_log, history_factors, initial_trajectory, smooth
-from .smoothing import graph as smoothing_graph
+from .smoothing import (DataLog, Filter, Full, Lag, Smoother, WindowPrior, data_log, history_factors,
+                        initial_trajectory, initial_window, smooth_step)
 
 NAME = "multimodal"
 
@@ -163,9 +163,11 @@ class State(eqx.Module):
     model: Model
     params: Params
     config: Structure = eqx.field(static=True)
-    # Smoothing (smoother=Full()): each component's trajectory x_0..x_T, and the data so far.
+    # Smoothing (smoother=Full() or Lag(L)): each component's trajectory x_0..x_T, the data so far,
+    # and with Lag(L) each component's window prior on [x_s, objects].
     poses: Float[Array, "K T1 3"] | None = None
     log: DataLog | None = None
+    window: WindowPrior | None = None
 
 
 class Details(eqx.Module):
@@ -747,6 +749,8 @@ class Multimodal(AbstractEstimator):
         smoothing: dict[str, Any] = {} if isinstance(self.smoother, Filter) else dict(
             poses=jnp.broadcast_to(initial_trajectory(scenario, cfg.max_steps), (k, cfg.max_steps + 1, 3)),
             log=data_log(scenario, cfg.max_steps, cfg.max_detections, n_max))
+        if isinstance(self.smoother, Lag):
+            smoothing["window"] = initial_window(smoothing["log"], k)
         return State(
             log_weights=jnp.full((k,), -jnp.inf).at[0].set(0.0),
             mean=jnp.broadcast_to(jnp.asarray(mean), (k, dim)),
@@ -802,28 +806,31 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
         state.num_created[ch.parent], ch.objects, ch.new, detections, theta)
     c_hist = state.history[ch.parent].at[:, state.k].set(jnp.where(detections.mask[None, :], ch.objects, -1))
     poses, log, c_poses, smooth_failed = state.poses, state.log, None, jnp.zeros((), jnp.int32)
-    if isinstance(smoother, Full):
+    window, c_window = state.window, None
+    if not isinstance(smoother, Filter):
         # Each child's whole trajectory and map relinearized with every factor of its history
         # (smoothing.py) before the children are merged; a merged component keeps its centre's.
         assert state.log is not None and state.poses is not None  # Full keeps them
         log = state.log.record(state.k, odometry, detections)
 
-        def smoothed(poses_i, mean_i, cov_i, history_i, created_i):
-            g = smoothing_graph(log, history_factors(history_i), state.k + 1, created_i, state.model.sensor,
-                                state.model.motion_cov, semantic=False)
-            return smooth(smoother, g, poses_i, mean_i, cov_i, state.k + 1)
+        def smoothed(poses_i, mean_i, cov_i, history_i, created_i, window_i):
+            return smooth_step(smoother, log, history_factors(history_i), state.k + 1, created_i, state.model.sensor,
+                               state.model.motion_cov, False, "sum", poses_i, mean_i, cov_i, window_i)
 
         live = ch.log_weight > -jnp.inf
-        out = map_live(smoothed, live, state.poses[ch.parent], c_mean, c_cov, c_hist, c_created)
+        parent_window = None if state.window is None else jax.tree.map(lambda a: a[ch.parent], state.window)
+        out = map_live(smoothed, live, state.poses[ch.parent], c_mean, c_cov, c_hist, c_created, parent_window)
         c_mean = jnp.where(live[:, None], out.mean, c_mean)
         c_cov = jnp.where(live[:, None, None], out.cov, c_cov)
-        c_poses = out.poses
+        c_poses, c_window = out.poses, out.window
         relevant_live = live & (ch.log_weight > jnp.max(ch.log_weight) - RELEVANT_NATS)
         smooth_failed = jnp.sum(relevant_live & (out.result != optx.RESULTS.successful), dtype=jnp.int32)
     centres, log_w, wn, m_mean, m_cov = merge(ch.log_weight, c_mean, c_cov, c_created, state.params.merge_threshold,
                                               cfg.capacity)
     if c_poses is not None:
         poses = c_poses[centres]
+    if c_window is not None:
+        window = jax.tree.map(lambda a: a[centres], c_window)
     # Warnings concern hypotheses within RELEVANT_NATS of the best; the rest carry no visible mass.
     relevant = state.log_weights > jnp.max(state.log_weights) - RELEVANT_NATS
     no_room = cfg.discovery & jnp.any(detections.mask) & jnp.any(relevant & (state.num_created >= cfg.max_objects))
@@ -857,5 +864,6 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
         k=state.k + 1,
         poses=poses if poses is None else keep(poses, state.poses),
         log=log,
+        window=window if window is None else jax.tree.map(keep, window, state.window),
     )
     return new_state, info

@@ -23,6 +23,14 @@ Gaussian PDA and max-mixtures, its per-detection candidates and weights).
 * a measurement factor per associated detection, from the pose of its step to its object (the
   detection that created an object is a factor too: the smoother has no back-projected prior).
 
+``Lag(L)`` (``--smoother lag:L``) is the bounded-cost online option: a fixed-lag smoother whose
+window holds the last ``L`` steps (poses ``x_{k-L}..x_k``) and the map. When the window slides, its
+oldest pose is marginalized (:func:`~hybridslam.inference.smoother.marginalize_first`: the factors
+touching it, linearized at the current estimate, become a dense Gaussian prior on the next oldest
+pose and the map, :class:`WindowPrior`, kept per component). Exact for linear-Gaussian factors, the
+standard fixed-lag approximation otherwise; ``Lag(L)`` with ``L`` at least the run's steps is
+``Full()``. Poses that left the window keep their last smoothed value in the trajectory.
+
 ``Filter()`` keeps the filters (the behaviour before smoothing; planning uses it).
 """
 
@@ -62,16 +70,37 @@ class Full(eqx.Module):
             raise ValueError(f"Full.max_steps: expected a positive int, got {self.max_steps!r}")
 
 
-Smoother = Filter | Full
+class Lag(eqx.Module):
+    """Fixed-lag smoothing: the last ``length`` steps and the map re-solved at every step (at most
+    ``max_steps`` Levenberg-Marquardt iterations), older poses marginalized (module docstring).
+    The cost of a step is bounded by ``length``, not by the steps taken so far."""
+
+    length: int = eqx.field(static=True)
+    max_steps: int = eqx.field(default=20, static=True)
+
+    @property
+    def name(self) -> str:
+        return f"lag:{self.length}"
+
+    def __check_init__(self):
+        for field in ("length", "max_steps"):
+            value = getattr(self, field)
+            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+                raise ValueError(f"Lag.{field}: expected a positive int, got {value!r}")
+
+
+Smoother = Filter | Full | Lag
 
 
 def parse_smoother(text: str) -> Smoother:
-    """``"filter"`` or ``"full"`` (the ``--smoother`` option)."""
+    """``"filter"``, ``"full"`` or ``"lag:L"`` with ``L >= 1`` steps (the ``--smoother`` option)."""
     if text == "filter":
         return Filter()
     if text == "full":
         return Full()
-    raise ValueError(f"--smoother: expected filter or full, got {text!r}")
+    if text.startswith("lag:") and text[4:].isdigit() and int(text[4:]) >= 1:
+        return Lag(int(text[4:]))
+    raise ValueError(f"--smoother: expected filter, full or lag:L (L a positive number of steps), got {text!r}")
 
 
 class DataLog(eqx.Module):
@@ -120,6 +149,23 @@ def data_log(scenario: Scenario, max_steps: int, max_detections: int, max_object
     )
 
 
+class WindowPrior(eqx.Module):
+    """A fixed-lag window's Gaussian prior on ``[x_s, o_0..o_{N-1}]`` (``s``: the window's first
+    pose): ``½‖R (y ⊖ mean)‖²`` (``sqrt_info`` is ``R``). Before the window first slides it is the
+    run's prior (:class:`DataLog`)."""
+
+    mean: Float[Array, "*K D0"]
+    sqrt_info: Float[Array, "*K D0 D0"]
+
+
+def initial_window(log: DataLog, components: int | None = None) -> WindowPrior:
+    """The run's prior as every component's window prior (``components``: a leading axis of that size)."""
+    if components is None:
+        return WindowPrior(log.prior_mean, log.prior_sqrt_info)
+    return WindowPrior(jnp.broadcast_to(log.prior_mean, (components,) + log.prior_mean.shape),
+                       jnp.broadcast_to(log.prior_sqrt_info, (components,) + log.prior_sqrt_info.shape))
+
+
 def _sqrt_information(cov: np.ndarray) -> np.ndarray:
     """``R`` with ``RᵀR = Σ⁻¹`` (upper triangular)."""
     return np.linalg.cholesky(np.linalg.inv(cov)).T
@@ -160,13 +206,7 @@ def graph(
     flat = lambda a: a.reshape((t * dmax,) + a.shape[2:])  # noqa: E731
     log_w = jnp.where(reached[..., None], factors.log_weight, -jnp.inf)
     null = jnp.where(reached, factors.null_log_weight, -jnp.inf)
-    if semantic:
-        residual: sm.SensorResidual | sm.RangeBearingResidual = sm.SensorResidual(sensor)
-        data = sm.DetectionData(flat(log.geo), flat(log.scores), flat(factors.classes))
-    else:
-        w, _ = sensor.geometric_sqrt_information()
-        residual = sm.RangeBearingResidual(w)
-        data = flat(log.geo)
+    residual, data = _measurements(sensor, semantic, flat(log.geo), flat(log.scores), flat(factors.classes))
     motion_sqrt = jnp.linalg.cholesky(jnp.linalg.inv(motion_cov)).T
     return sm.FactorGraph(
         prior_mean=log.prior_mean, prior_sqrt_info=log.prior_sqrt_info,
@@ -178,13 +218,56 @@ def graph(
     )
 
 
+def _measurements(
+    sensor: SensorModel, semantic: bool, geo: Float[Array, "F 2"], scores: Float[Array, "F M"],
+    classes: Int[Array, "F G"],
+) -> tuple[sm.SensorResidual | sm.RangeBearingResidual, sm.DetectionData | Float[Array, "F 2"]]:
+    """The residual function and per-factor data of the measurement factors (semantic or geometric only)."""
+    if semantic:
+        return sm.SensorResidual(sensor), sm.DetectionData(geo, scores, classes)
+    w, _ = sensor.geometric_sqrt_information()
+    return sm.RangeBearingResidual(w), geo
+
+
+def window_graph(
+    log: DataLog, factors: Factors, k: Int[Array, ""], start: Int[Array, ""], length: int,
+    num_created: Int[Array, ""] | int, sensor: SensorModel, motion_cov: Float[Array, "3 3"], semantic: bool,
+    mode: sm.Mode, prior: WindowPrior,
+) -> sm.FactorGraph:
+    """The factor graph of a fixed-lag window after ``k`` steps: poses ``x_start..x_{start+length}``
+    (window slots ``0..length``; those after ``x_k`` inactive), ``prior`` on ``[x_start, objects]``,
+    the odometry of steps ``start+1..`` and the measurement factors of every pose in the window,
+    ``x_start``'s included (they leave with ``x_start`` when it is marginalized)."""
+    t, dmax = log.mask.shape
+    n = (log.prior_mean.shape[0] - 3) // 3
+    rows = start - 1 + jnp.arange(length + 1)  # the log row of each window pose's detections
+    take = lambda a: jnp.take(a, jnp.clip(rows, 0, t - 1), axis=0)  # noqa: E731
+    reached = ((rows >= 0) & (rows < k))[:, None] & take(log.mask)  # (L+1, Dmax)
+    flat = lambda a: a.reshape(((length + 1) * dmax,) + a.shape[2:])  # noqa: E731
+    log_w = jnp.where(reached[..., None], take(factors.log_weight), -jnp.inf)
+    null = jnp.where(reached, take(factors.null_log_weight), -jnp.inf)
+    residual, data = _measurements(sensor, semantic, flat(take(log.geo)), flat(take(log.scores)),
+                                   flat(take(factors.classes)))
+    odo_rows = start + jnp.arange(length)
+    return sm.FactorGraph(
+        prior_mean=prior.mean, prior_sqrt_info=prior.sqrt_info,
+        odometry=jnp.take(log.odometry, jnp.clip(odo_rows, 0, t - 1), axis=0), odometry_active=odo_rows < k,
+        motion_sqrt_info=jnp.linalg.cholesky(jnp.linalg.inv(motion_cov)).T,
+        meas_pose=flat(jnp.broadcast_to(jnp.arange(length + 1)[:, None], (length + 1, dmax))),
+        meas_objects=flat(take(factors.objects)), meas_log_weight=flat(log_w), meas_null_log_weight=flat(null),
+        meas_data=data, pose_active=jnp.arange(length + 1) <= k - start,
+        object_active=jnp.arange(n) < num_created, residual_fn=residual, mode=mode,
+    )
+
+
 class Smoothed(eqx.Module):
-    """What :func:`smooth` gives one component."""
+    """What :func:`smooth` gives one component (``window``: its new window prior, with :class:`Lag`)."""
 
     poses: Float[Array, "T1 3"]
     mean: Float[Array, " D0"]  # the Laplace marginal over [x_k, objects]
     cov: Float[Array, "D0 D0"]
     result: optx.RESULTS
+    window: WindowPrior | None = None
 
 
 def smooth(
@@ -205,6 +288,63 @@ def smooth(
     ok = jnp.all(jnp.isfinite(sol.poses)) & jnp.all(jnp.isfinite(m)) & jnp.all(jnp.isfinite(c))
     result = optx.RESULTS.where(ok, sol.result, optx.RESULTS.nonfinite)
     return Smoothed(jnp.where(ok, sol.poses, start), jnp.where(ok, m, mean), jnp.where(ok, c, cov), result)
+
+
+def smooth_lag(
+    settings: Lag, log: DataLog, factors: Factors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
+    sensor: SensorModel, motion_cov: Float[Array, "3 3"], semantic: bool, mode: sm.Mode,
+    poses: Float[Array, "T1 3"], mean: Float[Array, " D0"], cov: Float[Array, "D0 D0"], window: WindowPrior,
+) -> Smoothed:
+    """One fixed-lag step of a component after ``k`` steps (module docstring): slide the window if
+    ``k > length`` (marginalize ``x_{k-1-length}`` at the warm start), re-solve the window, and return
+    the marginal over ``[x_k, objects]``, the trajectory with the window written back, and the new
+    window prior. Non-finite results fall back as in :func:`smooth` (the window prior then becomes
+    the filter's Gaussian, moved to the window's first pose: an approximation, counted as ``nonfinite``)."""
+    length = settings.length
+    start = poses.at[k].set(mean[:3])
+    objects = mean[3:].reshape(-1, 3)
+    old, new = jnp.maximum(k - 1 - length, 0), jnp.maximum(k - length, 0)
+    g_old = window_graph(log, factors, k, old, length, num_created, sensor, motion_cov, semantic, mode, window)
+    m_mean, m_sqrt = sm.marginalize_first(g_old, jax.lax.dynamic_slice_in_dim(start, old, length + 1), objects)
+    # Objects not created yet carry no factor: keep their own prior rows (a heading prior only),
+    # not the identity block the elimination gives inactive variables.
+    inactive = jnp.concatenate([jnp.zeros(3, bool), jnp.repeat(~g_old.object_active, 3)])
+    m_mean = jnp.where(inactive, window.mean, m_mean)
+    m_sqrt = jnp.where(inactive[:, None], window.sqrt_info, m_sqrt)
+    slide = new > old
+    prior = WindowPrior(jnp.where(slide, m_mean, window.mean), jnp.where(slide, m_sqrt, window.sqrt_info))
+    g = window_graph(log, factors, k, new, length, num_created, sensor, motion_cov, semantic, mode, prior)
+    sol = sm.solve(g, jax.lax.dynamic_slice_in_dim(start, new, length + 1), objects, max_steps=settings.max_steps)
+    m, c = sm.marginal(g, sol, k - new)
+    finite = lambda *a: jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in a]))  # noqa: E731
+    ok = finite(sol.poses, m, c, prior.mean, prior.sqrt_info)
+    result = optx.RESULTS.where(ok, sol.result, optx.RESULTS.nonfinite)
+    fallback = WindowPrior(jnp.concatenate([start[new], mean[3:]]), _sqrt_info_of(cov))
+    prior = jax.tree.map(lambda a, b, c: jnp.where(ok, a, jnp.where(slide, b, c)), prior, fallback, window)
+    trajectory = jax.lax.dynamic_update_slice_in_dim(start, sol.poses, new, axis=0)
+    return Smoothed(jnp.where(ok, trajectory, start), jnp.where(ok, m, mean), jnp.where(ok, c, cov), result, prior)
+
+
+def _sqrt_info_of(cov: Float[Array, "D D"]) -> Float[Array, "D D"]:
+    """``R`` with ``RᵀR = Σ⁻¹`` (upper triangular), in JAX."""
+    return jnp.linalg.cholesky(jnp.linalg.inv(0.5 * (cov + cov.T))).T
+
+
+def smooth_step(
+    settings: Full | Lag, log: DataLog, factors: Factors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
+    sensor: SensorModel, motion_cov: Float[Array, "3 3"], semantic: bool, mode: sm.Mode,
+    poses: Float[Array, "T1 3"], mean: Float[Array, " D0"], cov: Float[Array, "D0 D0"],
+    window: WindowPrior | None = None,
+) -> Smoothed:
+    """A component's smoothing after ``k`` steps: the whole graph (:class:`Full`, :func:`graph` and
+    :func:`smooth`) or a fixed-lag window (:class:`Lag`, :func:`smooth_lag`; ``window`` required)."""
+    if isinstance(settings, Lag):
+        if window is None:
+            raise ValueError("smoother=Lag(...): this state carries no window prior (build it with the estimator's init)")
+        return smooth_lag(settings, log, factors, k, num_created, sensor, motion_cov, semantic, mode, poses, mean,
+                          cov, window)
+    g = graph(log, factors, k, num_created, sensor, motion_cov, semantic, mode)
+    return smooth(settings, g, poses, mean, cov, k)
 
 
 def failed(result: optx.RESULTS) -> Bool[Array, "..."]:

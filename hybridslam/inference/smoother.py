@@ -814,11 +814,12 @@ def first_pose_factors(graph: FactorGraph) -> FactorGraph:
 
 
 def marginalize_first(
-    graph: FactorGraph, solution: Solution
+    graph: FactorGraph, poses: Float[Array, "P 3"], objects: Float[Array, "N 3"]
 ) -> tuple[Float[Array, " D0"], Float[Array, "D0 D0"]]:
     """Fixed-lag marginalization of ``x_0``: the Gaussian prior ``(mean, R)`` over ``[x_1, objects]``.
 
-    The factors touching ``x_0`` (:func:`first_pose_factors`) are linearized at the solution,
+    The factors touching ``x_0`` (:func:`first_pose_factors`) are linearized at ``(poses, objects)``
+    (a solution of ``graph``, or the current estimate),
     ``½δᵀHδ + gᵀδ`` over ``[x_0 | x_1, O]``; eliminating ``x_0`` gives the Schur complement
     ``H' = H_rr − H_r0 H_00⁻¹ H_0r``, ``g' = g_r − H_r0 H_00⁻¹ g_0``, i.e. the prior
     ``½‖R (y ⊖ μ)‖²`` with ``RᵀR = H'`` (``R`` upper triangular) and ``μ = ŷ ⊕ (−H'⁻¹g')``. Exact
@@ -826,7 +827,7 @@ def marginalize_first(
     linearized at this solution). The next window's graph takes it as ``prior_mean`` /
     ``prior_sqrt_info``. Inactive objects keep their value and an identity block.
     """
-    lin = linearize(first_pose_factors(graph), solution.poses, solution.objects)
+    lin = linearize(first_pose_factors(graph), poses, objects)
     h_0r = jnp.concatenate([lin.pose_off[0], lin.pose_object[0]], axis=-1)  # (3, 3 + 3N)
     h_rr = jnp.block([[lin.pose_diag[1], lin.pose_object[1]], [lin.pose_object[1].T, lin.object]])
     g_r = jnp.concatenate([lin.grad_pose[1], lin.grad_object])
@@ -836,6 +837,6 @@ def marginalize_first(
     h = 0.5 * (h + h.T)
     g = g_r - h_0r.T @ t[:, -1]
     chol = jnp.linalg.cholesky(h)
-    y = jnp.concatenate([solution.poses[1], solution.objects.reshape(-1)])
+    y = jnp.concatenate([poses[1], objects.reshape(-1)])
     mean = wrap_angles(y - jsl.cho_solve((chol, True), g))
     return mean, chol.T

@@ -25,7 +25,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ...io.scenario import Scenario
 from ...models.model import Model
-from ..smoothing import DataLog
+from ..smoothing import DataLog, WindowPrior
 
 class Priors(eqx.Module):
     """Gaussian priors of Eq. 3 (the class prior lives in :class:`Model`)."""
@@ -49,9 +49,11 @@ class Belief(eqx.Module):
     k: Int[Array, ""]  # steps taken so far
     model: Model
     num_created: Int[Array, " K"] | None = None  # objects that exist per component (unknown maps only)
-    # Smoothing (Hybrid(smoother=Full())): each component's trajectory x_0..x_T, and the data so far.
+    # Smoothing (Hybrid(smoother=Full() or Lag(L))): each component's trajectory x_0..x_T, the data
+    # so far, and with Lag(L) each component's window prior on [x_s, objects].
     poses: Float[Array, "K T1 3"] | None = None
     log: DataLog | None = None
+    window: WindowPrior | None = None
 
     @property
     def alive(self) -> Bool[Array, " K"]:

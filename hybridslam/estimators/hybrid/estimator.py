@@ -16,7 +16,7 @@ from ...io.scenario import Scenario
 from ...models.classifier import ClassifierModel
 from ...models.measurement import Detections
 from ...models.model import model_from_scenario
-from ..smoothing import Filter, Full, Smoother, data_log, initial_trajectory
+from ..smoothing import Filter, Full, Lag, Smoother, data_log, initial_trajectory, initial_window
 from ..base import AbstractEstimator, Mixture, StepInfo, classifier_name, history_length
 from .belief import Belief, init_belief, priors_from_scenario
 from .branching import Beam, Branching, Exhaustive
@@ -90,8 +90,8 @@ class Hybrid(AbstractEstimator):
     def __check_init__(self):
         if not isinstance(self.branching, (Exhaustive, Beam)):
             raise ValueError(f"Hybrid.branching: expected Exhaustive() or Beam(width), got {self.branching!r}")
-        if not isinstance(self.smoother, (Filter, Full)):
-            raise ValueError(f"Hybrid.smoother: expected Full() or Filter(), got {self.smoother!r}")
+        if not isinstance(self.smoother, (Filter, Full, Lag)):
+            raise ValueError(f"Hybrid.smoother: expected Full(), Lag(L) or Filter(), got {self.smoother!r}")
         if self.clutter is not None and not isinstance(self.branching, Beam):
             raise ValueError("Hybrid.clutter: the clutter hypothesis needs branching=Beam(...)")
         if self.clutter is not None and not (isinstance(self.clutter, (int, float)) and math.isfinite(self.clutter)):
@@ -122,7 +122,9 @@ class Hybrid(AbstractEstimator):
             return belief
         log = data_log(scenario, steps, slots, belief.num_objects)
         poses = jnp.broadcast_to(initial_trajectory(scenario, steps), (self.capacity, steps + 1, 3))
-        return eqx.tree_at(lambda b: (b.poses, b.log), belief, (poses, log), is_leaf=lambda x: x is None)
+        window = initial_window(log, self.capacity) if isinstance(self.smoother, Lag) else None
+        return eqx.tree_at(lambda b: (b.poses, b.log, b.window), belief, (poses, log, window),
+                           is_leaf=lambda x: x is None)
 
     def step(
         self, state: Belief, odometry: Float[Array, "3"], detections: Detections, key: PRNGKeyArray

@@ -35,8 +35,7 @@ from ...models.measurement import Detections
 from ...models.model import NewObjects
 from ...models.motion import propagate
 from ..base import StepInfo
-from ..smoothing import Full, Smoother, history_factors, smooth
-from ..smoothing import graph as smoothing_graph
+from ..smoothing import Filter, Smoother, history_factors, smooth_step
 from .belief import Belief
 from .branching import Beam, Branching, beam_children
 from .hypotheses import Children, children, hypothesis_table
@@ -230,30 +229,33 @@ def hybrid_step(
     classes = jax.vmap(_realize)(belief.classes[parent], assign, slot_class, new)
     history = belief.history[parent].at[:, k, :].set(assign)
     num_created = None if not discovery else belief.num_created[parent] + jnp.sum(creates, axis=-1, dtype=jnp.int32)
-    poses, log = belief.poses, belief.log
-    if isinstance(settings.smoother, Full):
+    poses, log, window = belief.poses, belief.log, belief.window
+    if not isinstance(settings.smoother, Filter):
         if belief.log is None:
-            raise ValueError("Hybrid(smoother=Full()): this belief carries no data log (built by init_belief, "
-                             "not Hybrid.init); build it with Hybrid.init(scenario) or use smoother=Filter()")
+            raise ValueError(f"Hybrid(smoother={settings.smoother!r}): this belief carries no data log (built by "
+                             "init_belief, not Hybrid.init); build it with Hybrid.init(scenario) or use smoother=Filter()")
         # Relinearize each kept component's whole trajectory and map (smoothing.py), warm-started
         # from its parent's trajectory and the filter update; its marginal over [x_k, objects]
         # replaces the filter's Gaussian.
         log = belief.log.record(k, odometry, detections)
         created = num_created if discovery else jnp.full((belief.capacity,), belief.num_objects, jnp.int32)
 
-        def smoothed(poses_i, mean_i, cov_i, history_i, classes_i, created_i):
+        def smoothed(poses_i, mean_i, cov_i, history_i, classes_i, created_i, window_i):
             factors = history_factors(history_i, classes_i if realize else None)
-            g = smoothing_graph(log, factors, k + 1, created_i, model.sensor, model.motion_cov, semantic=True)
-            return smooth(settings.smoother, g, poses_i, mean_i, cov_i, k + 1)
+            return smooth_step(settings.smoother, log, factors, k + 1, created_i, model.sensor, model.motion_cov,
+                               True, "sum", poses_i, mean_i, cov_i, window_i)
 
+        parent_window = None if belief.window is None else jax.tree.map(lambda a: a[parent], belief.window)
         out = map_live(smoothed, alive, belief.poses[parent], new_mean, new_cov, history, classes, created,
-                       axis_name=settings.batch_axis)
-        new_mean, new_cov, result, poses = out.mean, out.cov, out.result, out.poses
+                       parent_window, axis_name=settings.batch_axis)
+        new_mean, new_cov, result, poses, window = out.mean, out.cov, out.result, out.poses, out.window
     # Empty slots copy the best component so later batched math on them stays finite.
     new_mean = jnp.where(alive[:, None], new_mean, new_mean[:1])
     new_cov = jnp.where(alive[:, None, None], new_cov, new_cov[:1])
     if poses is not None:
         poses = jnp.where(alive[:, None, None], poses, poses[:1])
+    if window is not None:
+        window = jax.tree.map(lambda a: jnp.where(alive.reshape((-1,) + (1,) * (a.ndim - 1)), a, a[:1]), window)
 
     new_belief = Belief(
         log_weights=new_log_w,
@@ -266,6 +268,7 @@ def hybrid_step(
         num_created=num_created,
         poses=poses,
         log=log,
+        window=window,
     )
     kept_ess = jnp.where(alive, ess, jnp.nan)
     info = StepInfo(

@@ -1,0 +1,51 @@
+"""Fixed-lag smoothing (``smoother=Lag(L)``, ``--smoother lag:L``).
+
+A window of ``L`` steps is re-solved at every step; its oldest pose is marginalized when it slides
+(``inference.smoother.marginalize_first``, exact for linear factors: tests/test_smoother.py). The
+window's behaviour with ``ml`` (as long as the run: the full smoother; short: frozen past poses,
+close to the full smoother) is tested in tests/test_smoother_batch.py, next to the full smoother's
+compiled step. Here: the mixtures run with a window; bad values are one-line errors.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import hybridslam as hs
+from hybridslam import cli
+from hybridslam.estimators.smoothing import Full, Lag, parse_smoother
+
+STEPS = 6
+
+
+@pytest.fixture(scope="module")
+def scenario():
+    return hs.simulate(0, steps=STEPS)
+
+
+@pytest.mark.parametrize("name, options", [("hybrid", {"capacity": 4, "samples": 16}), ("multimodal", {"capacity": 4})])
+def test_the_mixtures_run_with_a_window(name, options, scenario):
+    run = hs.run_estimator(scenario, name, smoother=Lag(2), **options)
+    assert "smoother=lag:2" in run.result.estimator
+    assert np.all(np.isfinite(run.result.trajectory))
+    assert all(int(i.solver_failures) == 0 for i in run.infos)
+    truth = scenario.true_robot_poses
+    assert np.max(np.linalg.norm(run.result.trajectory[:, :2] - truth[:, :2], axis=1)) < 1.0
+
+
+def test_parse_smoother():
+    assert parse_smoother("lag:3") == Lag(3) and parse_smoother("full") == Full()
+    assert Lag(3).name == "lag:3"
+    for bad in ("lag:0", "lag:", "lag:x", "lag3", "lag:-1"):
+        with pytest.raises(ValueError, match="lag:L"):
+            parse_smoother(bad)
+    with pytest.raises(ValueError, match="Lag.length"):
+        Lag(0)
+
+
+def test_a_bad_window_is_a_one_line_cli_error(tmp_path, capsys):
+    assert cli.main(["run", str(tmp_path / "s.json"), "-o", str(tmp_path / "r.json"), "--smoother", "lag:0"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1
+    assert "--smoother" in err and "lag:L" in err and "Traceback" not in err

@@ -1,0 +1,191 @@
+"""Every command line of the README runs, in the README's order, as a user types it, and prints what
+the README says it prints.
+
+The commands run as subprocesses through the shell, in one scratch folder, so each one's output is
+the next one's input (``simulate`` writes the ``scenario.json`` that ``run`` reads; ``sweep``
+writes the ``runs/sweep`` that ``plot`` draws). Two inputs a fresh machine lacks are supplied:
+
+* ``MRCLAM_Dataset7``: the real dataset when ``$MRCLAM_DATASET`` names it, else the committed
+  45 s excerpt of dataset 7, robot 1 (``tests/data/mrclam``). The excerpt is shorter than the
+  README's window, so on it ``--start 20 --duration 100`` becomes ``--start 0 --duration 40``;
+  nothing else of any command line is changed.
+* ``logs/``: the user's own scenario files for ``sweep --scenarios 'logs/*.json'``; here the two
+  files the README's ``import`` lines wrote.
+
+``python3 ...`` lines of scripts (the MRCLAM study on five robots, minutes of work per robot) are
+checked against the script's own ``--help``: every option the README gives exists. The install
+and test lines (``pip``, ``pytest``, ``mypy``) are what CI itself runs.
+
+Marked ``readme`` (about 5 minutes on 2 cores; the default study alone is 1.5 minutes of it), so
+``python3 -m pytest -q`` skips it and ``.ci/run`` runs it after the suite:
+``python3 -m pytest -q -m readme``. A README command without an entry in ``EXPECT`` fails here:
+every documented command is run.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shlex
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import hybridslam as hs
+
+pytestmark = pytest.mark.readme
+
+ROOT = Path(__file__).resolve().parent.parent
+README = ROOT / "README.md"
+EXCERPT = ROOT / "tests" / "data" / "mrclam"
+
+
+def _readme_lines() -> list[str]:
+    """The command lines of the README's ``bash`` blocks, in order (continuations joined, comments dropped)."""
+    text = README.read_text(encoding="utf-8")
+    lines = []
+    for block in re.findall(r"```bash\n(.*?)```", text, flags=re.S):
+        for line in re.sub(r"\\\n\s*", " ", block).splitlines():
+            line = line.split("  #")[0].strip()
+            if line and not line.startswith("#"):
+                lines.append(line)
+    return lines
+
+
+def _steps(line: str) -> list[str]:
+    """The ``&&``-separated commands of a line that this test runs or checks (not installs, tests, SLURM)."""
+    keep = []
+    for part in (p.strip() for p in line.split("&&")):
+        if part.startswith("hybridslam ") and "[" not in part:  # a synopsis line is not a command
+            keep.append(part)
+        elif re.match(r"python3 (experiments|scripts)/", part):
+            keep.append(part)
+    return keep
+
+
+COMMANDS = [step for line in _readme_lines() for step in _steps(line)]
+
+
+def _scenario(path: str, **expect):
+    s = hs.load_scenario(path)
+    for name, value in expect.items():
+        assert getattr(s, name) == value, (path, name, getattr(s, name), value)
+    return s
+
+
+def _result(path: str, *, smoother: str, trajectory: bool = True):
+    r = hs.load_result(path)
+    assert f"smoother={smoother}" in r.estimator, r.estimator
+    assert r.steps and all(s.components for s in r.steps)
+    assert (r.trajectory is not None) == trajectory
+    return r
+
+
+RUN_TABLE = [r"^\s+k\s+det\s+alive\s+entropy\s+det_cov\s+err_wmax\s+err_wavg\s+step_ms$",
+             r"^compile time [\d.]+ s; \d+ steps in [\d.]+ s \([\d.]+ ms/step\)$",
+             r"^translation error \(m\): online APE [\d.]+, RPE [\d.]+; smoothed APE [\d.]+, RPE [\d.]+; "
+             r"last pose [\d.]+$"]
+
+
+# For each README command: the lines its stdout must hold (regular expressions, multiline) and a
+# check of the files it writes.
+EXPECT: dict[str, tuple[list[str], object]] = {
+    "hybridslam sweep -o runs/sweep": (
+        [r"^\s*alpha\s+model\s+tracks\s+H\(w\)", r"^wrote runs/sweep/table.csv", r"^sweep finished in [\d.]+ s"],
+        lambda: [Path("runs/sweep", f).stat() for f in ("table.csv", "cells.jsonl", "alpha_sweep.png")]),
+    "hybridslam simulate --seed 0 --steps 10 -o scenario.json": (
+        [r"^wrote scenario.json: 10 steps, 6 objects"],
+        lambda: _scenario("scenario.json", num_steps=10, num_objects=6)),
+    "hybridslam run scenario.json -o result.json": (
+        [r"estimator=hybrid;.*smoother=full", *RUN_TABLE, r"^wrote result.json$"],
+        lambda: _result("result.json", smoother="full")),
+    "hybridslam run scenario.json -o ml.json --estimator ml --smoother filter": (
+        [r"estimator=ml;.*smoother=filter", *RUN_TABLE[:2], r"^wrote ml.json$"],
+        lambda: _result("ml.json", smoother="filter", trajectory=False)),
+    "hybridslam import mrclam MRCLAM_Dataset7 --robot 1 --start 20 --duration 100 -o robot1.json": (
+        [r"^wrote robot1.json: MRCLAM_Dataset7 robot 1, .* known map of 15 landmarks$",
+         r"^motion_cov \(calibrated\): sd", r"^geometric_cov \(calibrated\): sd"],
+        lambda: _scenario("robot1.json", num_objects=15)),
+    "hybridslam import mrclam MRCLAM_Dataset7 --robot 1 --start 20 --duration 100 --unknown-map -o robot1-slam.json": (
+        [r"^wrote robot1-slam.json: .* unknown map of 15 landmarks$"],
+        lambda: _scenario("robot1-slam.json", num_objects=0)),
+    "hybridslam run robot1.json -o robot1-result.json --estimator max-mixture": (
+        [r"estimator=max-mixture;", *RUN_TABLE, r"^wrote robot1-result.json$"],
+        lambda: _result("robot1-result.json", smoother="full")),
+    "hybridslam run robot1.json -o robot1-hybrid.json --capacity 16 --gate 3 --weights linearized": (
+        [r"estimator=hybrid;.*weights=linearized.*capacity=16", *RUN_TABLE, r"^wrote robot1-hybrid.json$"],
+        lambda: _result("robot1-hybrid.json", smoother="full")),
+    "hybridslam sweep --scenarios 'logs/*.json' --estimator max-mixture -o runs/logs": (
+        [r"^sweep: 2 scenario file\(s\)", r"^wrote runs/logs/table.csv", r"^sweep finished in"],
+        lambda: [Path("runs/logs", f).stat() for f in ("table.csv", "cells.jsonl", "metrics.png")]),
+    "hybridslam plot runs/sweep": (
+        [r"alpha_sweep.png"],
+        lambda: Path("runs/sweep/alpha_sweep.png").stat()),
+}
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory) -> Path:
+    """The scratch folder the README's commands run in, with ``MRCLAM_Dataset7`` in it."""
+    path = tmp_path_factory.mktemp("readme")
+    dataset = os.environ.get("MRCLAM_DATASET")
+    (path / "MRCLAM_Dataset7").symlink_to(Path(dataset).resolve() if dataset else EXCERPT)
+    return path
+
+
+def _shell_line(command: str) -> str:
+    """The command as the shell runs it here: on the excerpt, a window that lies inside it."""
+    if not os.environ.get("MRCLAM_DATASET"):
+        command = command.replace("--start 20 --duration 100", "--start 0 --duration 40")
+    if shutil.which("hybridslam", path=_environment()["PATH"]) is None:  # installed without scripts
+        command = re.sub(r"^hybridslam ", f"{shlex.quote(sys.executable)} -m hybridslam ", command)
+    return command
+
+
+def _environment() -> dict[str, str]:
+    """This interpreter's folder first on PATH: its ``hybridslam`` entry point (a venv need not be activated)."""
+    env = dict(os.environ)
+    env["PATH"] = os.pathsep.join([str(Path(sys.executable).parent), env.get("PATH", "")])
+    return env
+
+
+def test_every_readme_command_has_an_expectation():
+    assert "hybridslam sweep -o runs/sweep" in COMMANDS  # the main job
+    missing = [c for c in COMMANDS if c not in EXPECT and not c.startswith("python3 ")]
+    assert not missing, f"README commands without an entry in EXPECT (add one): {missing}"
+    unused = [c for c in EXPECT if c not in COMMANDS]
+    assert not unused, f"EXPECT entries the README no longer documents (remove them): {unused}"
+
+
+@pytest.mark.parametrize("command", list(dict.fromkeys(COMMANDS)))
+def test_readme_command_runs(command, workdir, monkeypatch):
+    monkeypatch.chdir(workdir)
+    if command.startswith("python3 "):
+        return _check_options(command)
+    if "logs/" in command:
+        os.makedirs("logs", exist_ok=True)
+        for name in ("robot1.json", "robot1-slam.json"):
+            shutil.copy(name, Path("logs") / name)
+    proc = subprocess.run(_shell_line(command), shell=True, capture_output=True, text=True, env=_environment())
+    assert proc.returncode == 0, f"{command}\nexit {proc.returncode}\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
+    assert "Traceback" not in proc.stderr, proc.stderr
+    printed, check_files = EXPECT[command]
+    for pattern in printed:
+        assert re.search(pattern, proc.stdout, flags=re.M), f"{command}: no line matches {pattern!r}:\n{proc.stdout}"
+    check_files()  # type: ignore[operator]
+
+
+def _check_options(command: str) -> None:
+    """A script line: the script exists and its ``--help`` lists every option the README gives it."""
+    argv = shlex.split(command)
+    script = ROOT / argv[1]
+    assert script.is_file(), f"{command}: no such script {argv[1]}"
+    proc = subprocess.run([sys.executable, str(script), "--help"], capture_output=True, text=True, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr
+    for option in (a for a in argv[2:] if a.startswith("--")):
+        assert re.search(rf"(^|\s){re.escape(option)}\b", proc.stdout), f"{command}: {option} not in --help"
+
