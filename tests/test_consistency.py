@@ -97,3 +97,23 @@ def test_report_of_the_truth_itself(scenario):
     assert report.nees == 0.0 and report.heading_z == 0.0
     assert report.heading_sd_ratio == pytest.approx(0.1 / math.sqrt(consistency.dead_reckoning_heading_var(
         scenario, report.audit.first_redetection - 1)))
+
+
+def test_with_the_true_associations_the_smoother_meets_the_bound():
+    """The full smoother given the true associations reports the Cramér-Rao heading sd (the
+    Laplace marginal at the MAP against the Fisher information at the truth: equal up to the
+    estimation error) and, on a run where ``ml`` associates every detection right, its final
+    trajectory is ``ml``'s smoothed trajectory (the same graph, solved by the same solver)."""
+    import hybridslam as hs
+
+    scenario = hs.simulate(0, steps=6)
+    oracle = consistency.true_association_smoother(scenario)
+    assert not oracle.failed.any()
+    for k in range(1, scenario.num_steps + 1):
+        sd = math.sqrt(oracle.covs[k - 1][2, 2])
+        assert sd == pytest.approx(consistency.heading_bound(scenario, k), rel=0.1)
+    run = hs.run_estimator(scenario, "ml")
+    truth = [[d.true_object for d in s.detections] for s in scenario.steps]
+    ml = run.result.steps[-1].components[0].associations
+    assert [list(a[: len(t)]) for a, t in zip(ml, truth)] == truth  # ml got every association right
+    np.testing.assert_allclose(oracle.trajectory, run.result.trajectory, atol=1e-6)

@@ -12,7 +12,9 @@ when a loop closes. These host-side checks make that visible on simulated runs:
 * :func:`association_audit`: per detection, whether the estimator assigned it to the object it
   made of the same landmark's first detection (a loop closure, for a landmark first seen long
   ago), to an object that another landmark created (a wrong merge), or to a new object;
-* :func:`loop_closure_report`: the audit and the pose's consistency, for one scenario and one result file.
+* :func:`loop_closure_report`: the audit and the pose's consistency, for one scenario and one result file;
+* :func:`true_association_smoother`: the full smoother with the true associations, the reference
+  against which the bound and the NEES are checked (issue 13 §5; ``scripts/hallway_consistency.py``).
 """
 
 from __future__ import annotations
@@ -23,10 +25,14 @@ from collections.abc import Sequence
 
 import jax
 import numpy as np
+import optimistix as optx
 
+from ..estimators import smoothing
+from ..inference import smoother as sm
 from ..io.result import Result
 from ..io.scenario import Scenario
-from ..models import geometry
+from ..models import geometry, se2
+from ..models.model import model_from_scenario
 from ..models.motion import odometry_residual
 
 NEES_BOUND_99 = 11.34  # chi-square 99% quantile, 3 degrees of freedom
@@ -52,7 +58,9 @@ def heading_bound(scenario: Scenario, k: int) -> float:
 
     The information matrix is ``Jᵀ W J`` over the poses ``x_0..x_k`` and the positions of the
     landmarks detected up to ``k``, with ``J`` the Jacobians of the factors at the truth and ``W``
-    their inverse covariances (Eq. 10-11); landmark orientations are not observed and left out.
+    their inverse covariances (Eq. 10-11), plus the prior on ``x_0`` and, on a known map, the
+    object priors' position marginals (``true_object`` indexes them); landmark orientations are
+    not observed and left out.
     Needs the scenario's ground truth (``robot.true_poses``, ``true_object`` per detection and the
     objects' true poses).
     """
@@ -61,7 +69,7 @@ def heading_bound(scenario: Scenario, k: int) -> float:
         raise ValueError(f"k: expected a step in 0..{scenario.num_steps}, got {k}")
     step_of = np.array([j + 1 for j, step in enumerate(scenario.steps[:k]) for _ in step.detections], dtype=int)
     seen = np.array([d.true_object for step in scenario.steps[:k] for d in step.detections], dtype=int)
-    slot = np.unique(seen, return_inverse=True)[1] if seen.size else seen  # landmark -> column block
+    landmark_ids, slot = np.unique(seen, return_inverse=True) if seen.size else (seen, seen)  # landmark -> column block
     n = 3 * (k + 1) + 2 * (int(slot.max()) + 1 if seen.size else 0)
     odometry = np.array([s.odometry for s in scenario.steps]).reshape(-1, 3)
     ja, jb = (np.asarray(a)[:k] for a in _odometry_jacobians(poses[:-1], poses[1:], odometry))
@@ -83,6 +91,10 @@ def heading_bound(scenario: Scenario, k: int) -> float:
     jac[rows[:, :, None], 3 * (k + 1) + 2 * slot[:, None, None] + np.arange(2)] = jo[:, :, :2]
     info = jac.T @ jac
     info[:3, :3] += np.linalg.inv(scenario.robot_prior_cov)
+    if scenario.discovery is None:  # a known map: the object priors inform the landmarks' positions
+        for j, obj in enumerate(landmark_ids):
+            block = 3 * (k + 1) + 2 * j + np.arange(2)
+            info[block[:, None], block] += np.linalg.inv(np.asarray(scenario.object_prior_covs[obj])[:2, :2])
     e = np.zeros(n)
     e[3 * k + 2] = 1.0
     return float(math.sqrt(np.linalg.solve(info, e)[3 * k + 2]))
@@ -167,3 +179,79 @@ def loop_closure_report(scenario: Scenario, result: Result, gap: int = 20) -> Lo
     err = (poses[k][2] - comp.pose_mean[2] + math.pi) % (2.0 * math.pi) - math.pi
     return LoopClosureReport(audit, pose_nees(poses[k], comp.pose_mean, cov), abs(err) / math.sqrt(cov[2, 2]),
                              math.sqrt(cov[2, 2] / dead_reckoning_heading_var(scenario, k)))
+
+
+@dataclasses.dataclass(frozen=True)
+class OracleRun:
+    """:func:`true_association_smoother`'s output: per step ``k = 1..T`` the smoothed ``x_k``
+    (``means (T, 3)``, ``covs (T, 3, 3)``: the Laplace marginal given steps ``1..k``), the final
+    smoothed trajectory ``(T+1, 3)`` and, per step, whether the solve failed to converge."""
+
+    means: np.ndarray
+    covs: np.ndarray
+    trajectory: np.ndarray
+    failed: np.ndarray
+
+
+def true_association_smoother(scenario: Scenario, max_steps: int = 50) -> OracleRun:
+    """The full smoother (:mod:`hybridslam.inference.smoother`) with the true associations: at every
+    step ``k`` the factor graph of steps ``1..k`` (prior, odometry Eq. 11, range-bearing factors
+    Eq. 10 of every detection to its true landmark) re-solved by Levenberg-Marquardt, warm-started
+    from step ``k-1``'s solution, and the marginal of ``x_k`` taken. The reference for
+    :func:`heading_bound` and :func:`pose_nees`: with the right associations a consistent smoother
+    reports the Cramér-Rao heading sd and a NEES below :data:`NEES_BOUND_99` in 99% of its steps.
+
+    On an unknown map a landmark's slot is made at its first detection, initialized by
+    back-projection from the dead-reckoning pose; on a known map ``true_object`` indexes the prior
+    objects. Geometric factors only (the CRB's model). Needs ``true_object`` on every detection.
+    """
+
+    _truth(scenario)  # the ground truth it needs, with field-named errors
+    t, dmax = scenario.num_steps, max(scenario.max_detections, 1)
+    known = scenario.discovery is None
+    slot_of: dict[int, int] = {}
+    history = np.full((t, dmax), -1, dtype=np.int32)
+    created = np.zeros(t + 1, dtype=np.int32)
+    for j, step in enumerate(scenario.steps):
+        for i, d in enumerate(step.detections):
+            assert d.true_object is not None  # checked by _truth
+            slot = d.true_object if known else slot_of.setdefault(d.true_object, len(slot_of))
+            history[j, i] = slot
+        created[j + 1] = scenario.num_objects if known else len(slot_of)
+    n = scenario.num_objects if known else max(len(slot_of), 1)
+    log = smoothing.data_log(scenario, t, dmax, n)
+    geo = np.zeros((t, dmax, 2))
+    scores = np.zeros((t, dmax, scenario.num_classes))
+    mask = np.zeros((t, dmax), bool)
+    for j, step in enumerate(scenario.steps):
+        for i, d in enumerate(step.detections):
+            geo[j, i], scores[j, i], mask[j, i] = (d.range, d.bearing), d.scores, True
+    odometry = np.array([s.odometry for s in scenario.steps], dtype=float).reshape(t, 3)
+    log = dataclasses.replace(log, odometry=jax.numpy.asarray(odometry), geo=jax.numpy.asarray(geo),
+                              scores=jax.numpy.asarray(scores), mask=jax.numpy.asarray(mask))
+    factors = smoothing.history_factors(jax.numpy.asarray(history))
+    model = model_from_scenario(scenario.replace(discovery=None) if not known else scenario)
+
+    @jax.jit
+    def solve(k, poses, objects, num_created):
+        g = smoothing.graph(log, factors, k, num_created, model.sensor, model.motion_cov, semantic=False)
+        sol = sm.solve(g, poses, objects, max_steps=max_steps)
+        mean, cov = sm.marginal(g, sol, k)
+        return sol.poses, sol.objects, mean[:3], cov[:3, :3], sol.result != optx.RESULTS.successful
+
+    poses = np.tile(np.asarray(scenario.robot_prior_mean, float), (t + 1, 1))
+    objects = np.zeros((n, 3))
+    if known:
+        objects[:] = scenario.object_prior_means
+    means, covs, failed = np.zeros((t, 3)), np.zeros((t, 3, 3)), np.zeros(t, dtype=bool)
+    for k in range(1, t + 1):
+        poses[k] = np.asarray(se2.compose(jax.numpy.asarray(poses[k - 1]), jax.numpy.asarray(odometry[k - 1])))
+        for i, d in enumerate(scenario.steps[k - 1].detections):
+            slot = history[k - 1, i]
+            if not known and slot >= created[k - 1]:  # first detection: back-projected
+                c, s = math.cos(poses[k, 2] + d.bearing), math.sin(poses[k, 2] + d.bearing)
+                objects[slot] = (poses[k, 0] + d.range * c, poses[k, 1] + d.range * s, 0.0)
+        out = solve(k, poses, objects, int(created[k]))
+        poses, objects = np.array(out[0]), np.array(out[1])
+        means[k - 1], covs[k - 1], failed[k - 1] = np.asarray(out[2]), np.asarray(out[3]), bool(out[4])
+    return OracleRun(means, covs, poses, failed)
