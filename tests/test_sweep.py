@@ -208,6 +208,23 @@ def test_scenario_files_give_result_files_equal_to_single_runs(tiny, tmp_path):
     assert calls == []  # finished groups are not run again
 
 
+def test_scenario_files_run_by_a_smoother_carry_its_trajectory(tmp_path):
+    """A smoother's result files from `--scenarios` carry the smoothed `trajectory` that `run` writes,
+    cut to each file's own length (the shorter file ran padded)."""
+    files = tmp_path / "logs"
+    files.mkdir()
+    scenarios = {"short": hs.simulate(3, steps=3), "long": hs.simulate(4, steps=4)}
+    for name, s in scenarios.items():
+        hs.save_scenario(s, str(files / f"{name}.json"))
+    ml = hs.make_estimator("ml", max_detections=2, max_steps=4)
+    study.run_file_study(study.FileStudy(tuple(study.scenario_paths(str(files))), None, 0, ml), str(tmp_path / "out"))
+    for name, s in scenarios.items():
+        got = hs.load_result(str(tmp_path / "out" / "results" / f"{name}.json")).trajectory
+        want = hs.run(ml, s).result.trajectory
+        assert got is not None and got.shape == (s.num_steps + 1, 3)
+        np.testing.assert_allclose(got, want, atol=1e-9)
+
+
 def test_files_are_grouped_by_shape_and_model():
     a, b = hs.simulate(0, steps=3), hs.simulate(1, steps=4)
     spec = study.FileStudy(("a.json", "b.json", "c.json"), None)

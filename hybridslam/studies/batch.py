@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
-from jaxtyping import Array, Key, UInt32
+from jaxtyping import Array, Float, Key, UInt32
 
 from ..driver import Inputs, Trace, compiled, inputs_from_scenario, scan, trace_record
 from ..estimators.base import AbstractEstimator
@@ -56,9 +56,11 @@ class Batch(eqx.Module):
         return self.key.shape[0]
 
 
-def _run_batch(estimator: AbstractEstimator, batch: Batch) -> Trace:
+def _run_batch(estimator: AbstractEstimator, batch: Batch) -> tuple[Trace, Float[Array, "B T1 3"] | None]:
+    """Every track's trace and, for smoothers, its final smoothed trajectory (``None`` for filters)."""
     def one(state, inputs, key):
-        return scan(estimator, state, inputs, key)[1]
+        final, trace = scan(estimator, state, inputs, key)
+        return trace, estimator.trajectory(final)
 
     return jax.vmap(one, axis_name=BATCH_AXIS)(batch.state, batch.inputs, batch.key)
 
@@ -77,6 +79,7 @@ class BatchRun:
     run_s: float  # wall time of the batched run (all tracks, all steps)
     num_devices: int
     plan: BatchPlan | None = None  # how the batch was split to fit in memory
+    trajectories: np.ndarray | None = None  # (B, T+1, 3): each track's final smoothed x_0..x_T (smoothers)
 
 
 def batched(estimator: AbstractEstimator, scenarios: Sequence[Scenario]) -> AbstractEstimator:
@@ -207,14 +210,14 @@ def run_batch(estimator: AbstractEstimator, batch: Batch, mesh: Mesh | None = No
         part = jax.tree.map(lambda x, i=i: x[i * width : (i + 1) * width], padded)
         sharded = jax.device_put(part, NamedSharding(mesh, PartitionSpec(BATCH_AXIS)))
         t0 = time.perf_counter()
-        trace = jax.block_until_ready(executable(estimator, sharded))
+        out = jax.block_until_ready(executable(estimator, sharded))
         run_s += time.perf_counter() - t0
         if jax.process_count() > 1:  # several hosts: every process gets the whole batch
             _barrier(f"hybridslam-batch-{_next_barrier()}")
-            trace = multihost_utils.process_allgather(trace, tiled=True)
-        traces.append(jax.device_get(trace))
-    trace = jax.tree.map(lambda *xs: np.concatenate(xs)[:size], *traces)
-    return BatchRun(trace, compile_s, run_s, mesh.size, plan)
+            out = multihost_utils.process_allgather(out, tiled=True)
+        traces.append(jax.device_get(out))
+    trace, trajectories = jax.tree.map(lambda *xs: np.concatenate(xs)[:size], *traces)
+    return BatchRun(trace, compile_s, run_s, mesh.size, plan, trajectories)
 
 
 _BARRIERS = itertools.count()  # barrier names must be unique; every process counts the same calls

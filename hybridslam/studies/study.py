@@ -314,5 +314,7 @@ def _write_results(study: FileStudy, cell: dict, group: Sequence[Scenario], run:
             + f"; batched sweep of {len(group)} runs on {run.num_devices} device(s), step_s amortized",
             steps=step_records(run.trace, t, scenario),
             timing={"compile_s": run.compile_s, "step_s": [per_step] * steps},
+            # A file shorter than the batch's padded length: its poses after x_T are padding.
+            trajectory=None if run.trajectories is None else run.trajectories[t][: steps + 1],
         )
         save_result(result, os.path.join(folder, "results", _result_name(path, cell["model"])))
