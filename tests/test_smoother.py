@@ -155,6 +155,35 @@ def test_marginalizing_the_first_pose_is_exact_for_linear_factors(solve):
     np.testing.assert_allclose(np.asarray(out.objects), np.asarray(sol.objects), atol=1e-9)
 
 
+def test_marginalizing_keeps_an_uninformed_object_uninformed(solve):
+    """A discovered object has no prior on its position, and the first pose did not see it: its
+    rows of the marginalized prior carry no information (zero rows of ``R``, not a failed
+    Cholesky), and the marginalization stays exact for linear factors."""
+    graph = _graph(np.random.default_rng(5))
+    xy = np.array([3 + 3 * 2, 3 + 3 * 2 + 1])  # object 2's position
+    sqrt_info = np.array(graph.prior_sqrt_info)
+    sqrt_info[:, xy] = 0.0
+    objects, poses, log_w = (np.array(a) for a in (graph.meas_objects, graph.meas_pose, graph.meas_log_weight))
+    poses[np.any(objects == 2, axis=1) & (poses == 0)] = 1  # x_0 does not see it
+    objects[1, 0], poses[1], log_w[1, 0] = 2, 2, 0.0  # a later pose does
+    graph = eqx.tree_at(lambda g: (g.prior_sqrt_info, g.meas_objects, g.meas_pose, g.meas_log_weight), graph,
+                        (jnp.asarray(sqrt_info), jnp.asarray(objects), jnp.asarray(poses), jnp.asarray(log_w)))
+    sol = solve(graph, jnp.zeros((P, 3)), jnp.zeros((N, 3)))
+    mean, r = sm.marginalize_first(graph, sol.poses, sol.objects)
+    assert np.all(np.isfinite(mean)) and np.all(np.isfinite(r))
+    np.testing.assert_array_equal(np.asarray(r)[xy + 0], 0.0)  # prior over [x_1, O]: same object offsets
+    keep = graph.meas_pose > 0
+    reduced = eqx.tree_at(
+        lambda g: (g.prior_mean, g.prior_sqrt_info, g.odometry, g.odometry_active, g.meas_pose, g.meas_log_weight,
+                   g.pose_active),
+        graph,
+        (mean, r, graph.odometry[1:], graph.odometry_active[1:], jnp.maximum(graph.meas_pose - 1, 0),
+         jnp.where(keep[:, None], graph.meas_log_weight, -jnp.inf), graph.pose_active[1:]))
+    out = sm.solve(reduced, jnp.zeros((P - 1, 3)), jnp.zeros((N, 3)), max_steps=20)
+    np.testing.assert_allclose(np.asarray(out.poses), np.asarray(sol.poses[1:]), atol=1e-9)
+    np.testing.assert_allclose(np.asarray(out.objects), np.asarray(sol.objects), atol=1e-9)
+
+
 def test_max_mixture_picks_the_component_that_explains_the_data():
     """A factor with a consistent candidate and an absurd one: "max" mode ignores the absurd one
     (the result equals the graph with only the good candidate); a hopeless outlier takes the null."""

@@ -825,7 +825,8 @@ def marginalize_first(
     ``½‖R (y ⊖ μ)‖²`` with ``RᵀR = H'`` (``R`` upper triangular) and ``μ = ŷ ⊕ (−H'⁻¹g')``. Exact
     for linear-Gaussian factors; the standard fixed-lag approximation otherwise (the factors stay
     linearized at this solution). The next window's graph takes it as ``prior_mean`` /
-    ``prior_sqrt_info``. Inactive objects keep their value and an identity block.
+    ``prior_sqrt_info``. Inactive objects keep their value and an identity block; coordinates that
+    nothing informs keep their value and get a zero row of ``R`` (no information).
     """
     lin = linearize(first_pose_factors(graph), poses, objects)
     h_0r = jnp.concatenate([lin.pose_off[0], lin.pose_object[0]], axis=-1)  # (3, 3 + 3N)
@@ -836,7 +837,11 @@ def marginalize_first(
     h = h_rr - h_0r.T @ t[:, :-1]
     h = 0.5 * (h + h.T)
     g = g_r - h_0r.T @ t[:, -1]
-    chol = jnp.linalg.cholesky(h)
+    # A coordinate no factor informs (a discovered object's position, before the pose that saw it
+    # first is marginalized) has an exactly zero row and column: it stays uninformed (a zero row of
+    # R), factorized through a unit diagonal so that the Cholesky factor exists.
+    uninformed = jnp.diagonal(h) <= 0.0
+    chol = jnp.linalg.cholesky(h + jnp.diag(uninformed.astype(h.dtype)))
     y = jnp.concatenate([poses[1], objects.reshape(-1)])
-    mean = wrap_angles(y - jsl.cho_solve((chol, True), g))
-    return mean, chol.T
+    mean = wrap_angles(y - jsl.cho_solve((chol, True), jnp.where(uninformed, 0.0, g)))
+    return mean, jnp.where(uninformed[:, None], 0.0, chol.T)
