@@ -298,8 +298,8 @@ def smooth_lag(
     """One fixed-lag step of a component after ``k`` steps (module docstring): slide the window if
     ``k > length`` (marginalize ``x_{k-1-length}`` at the warm start), re-solve the window, and return
     the marginal over ``[x_k, objects]``, the trajectory with the window written back, and the new
-    window prior. Non-finite results fall back as in :func:`smooth` (the window prior then becomes
-    the filter's Gaussian, moved to the window's first pose: an approximation, counted as ``nonfinite``)."""
+    window prior. Non-finite results fall back as in :func:`smooth` (the window prior then stays the
+    old one, moved to the window's new first pose: an approximation, counted as ``nonfinite``)."""
     length = settings.length
     start = poses.at[k].set(mean[:3])
     objects = mean[3:].reshape(-1, 3)
@@ -319,15 +319,11 @@ def smooth_lag(
     finite = lambda *a: jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in a]))  # noqa: E731
     ok = finite(sol.poses, m, c, prior.mean, prior.sqrt_info)
     result = optx.RESULTS.where(ok, sol.result, optx.RESULTS.nonfinite)
-    fallback = WindowPrior(jnp.concatenate([start[new], mean[3:]]), _sqrt_info_of(cov))
+    # No usable marginal: the old prior, moved to the new first pose (crude, cheap, and counted).
+    fallback = WindowPrior(window.mean.at[:3].set(start[new]), window.sqrt_info)
     prior = jax.tree.map(lambda a, b, c: jnp.where(ok, a, jnp.where(slide, b, c)), prior, fallback, window)
     trajectory = jax.lax.dynamic_update_slice_in_dim(start, sol.poses, new, axis=0)
     return Smoothed(jnp.where(ok, trajectory, start), jnp.where(ok, m, mean), jnp.where(ok, c, cov), result, prior)
-
-
-def _sqrt_info_of(cov: Float[Array, "D D"]) -> Float[Array, "D D"]:
-    """``R`` with ``RᵀR = Σ⁻¹`` (upper triangular), in JAX."""
-    return jnp.linalg.cholesky(jnp.linalg.inv(0.5 * (cov + cov.T))).T
 
 
 def smooth_step(
