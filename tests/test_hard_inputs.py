@@ -89,7 +89,9 @@ def _finite(obj) -> bool:
     return True
 
 
-@pytest.mark.parametrize("estimator", ESTIMATORS)
+# The mixtures' CLI compiles take a minute each: they run in the extended suite (marker `slow`, CI).
+@pytest.mark.parametrize("estimator", [pytest.param(e, marks=pytest.mark.slow) if e in ("hybrid", "multimodal") else e
+                                       for e in ESTIMATORS])
 # No shrinking: each example is a CLI run, and shrinking a failure would take longer than the suite.
 @settings(max_examples=2, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True,
           phases=(Phase.explicit, Phase.reuse, Phase.generate))

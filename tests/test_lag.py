@@ -24,6 +24,7 @@ def scenario():
     return hs.simulate(0, steps=STEPS)
 
 
+@pytest.mark.slow  # a mixture's smoother compile each: the extended suite, CI
 @pytest.mark.parametrize("name, options", [("hybrid", {"capacity": 4, "samples": 16}), ("multimodal", {"capacity": 4})])
 def test_the_mixtures_run_with_a_window(name, options, scenario):
     run = hs.run_estimator(scenario, name, smoother=Lag(2), **options)

@@ -76,6 +76,7 @@ def test_arc_candidates_shapes():
     np.testing.assert_allclose(c[0, :, 2], -0.4)  # the arcs come first, evenly spaced
 
 
+@pytest.mark.slow  # a minute of compiling (gradients through a rollout): the extended suite, CI
 def test_refinement_lowers_the_smooth_objective_within_bounds(ambiguous):
     scenario, _ = ambiguous
     belief = hs.run_estimator(scenario, classifier="none", capacity=8, weights="linearized",

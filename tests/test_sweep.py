@@ -208,6 +208,7 @@ def test_scenario_files_give_result_files_equal_to_single_runs(tiny, tmp_path):
     assert calls == []  # finished groups are not run again
 
 
+@pytest.mark.slow  # two smoother compiles (batched and single): the extended suite, CI
 def test_scenario_files_run_by_a_smoother_carry_its_trajectory(tmp_path):
     """A smoother's result files from `--scenarios` carry the smoothed `trajectory` that `run` writes,
     cut to each file's own length (the shorter file ran padded)."""
