@@ -6,9 +6,12 @@ from hypothesis import strategies as st
 from hybridslam.estimators.hybrid.prune import prune
 
 
-@settings(deadline=None, max_examples=25, database=None)
+# Subnormal log-weights are excluded: XLA on CPU flushes them to zero (a weight of -2e-313 nats
+# *is* 0 to it) while numpy compares them exactly, so the reference and the kernel would disagree
+# on a difference far below float64's resolution of a log-weight. Derandomized: CI sees the same examples.
+@settings(deadline=None, max_examples=25, database=None, derandomize=True)
 @given(
-    st.lists(st.one_of(st.floats(-30, 0), st.just(-np.inf)), min_size=1, max_size=40),
+    st.lists(st.one_of(st.floats(-30, 0, allow_subnormal=False), st.just(-np.inf)), min_size=1, max_size=40),
     st.integers(1, 12),
     st.floats(1.0, 1e4),
 )
