@@ -168,6 +168,9 @@ def associate():
     return jax.jit(gaussian.associate)
 
 
+_associate_beam = jax.jit(gaussian.associate, static_argnames="width")
+
+
 @pytest.fixture(scope="module")
 def toy():
     scenario = _toy()
@@ -185,10 +188,13 @@ def _runs(scenario, estimator):
 # --------------------------------------------------------------------------- #
 
 
-def test_association_probabilities_match_brute_force(toy, associate):
+@pytest.mark.parametrize("width", [None, 16])
+def test_association_probabilities_match_brute_force(toy, associate, width):
+    """Exhaustive enumeration (``width=None``, the joint innovation density of each row) and the
+    beam (one detection at a time, :mod:`hybridslam.inference.sequential`) against brute force."""
     scenario, state, mean, cov = toy
     dets = _dets(scenario)
-    assoc = associate(state, mean, cov, dets)
+    assoc = associate(state, mean, cov, dets) if width is None else _associate_beam(state, mean, cov, dets, width)
     want = _brute_force(mean, cov, np.asarray(dets.geo), np.asarray(dets.scores), scenario.class_prior, 2,
                         scenario.discovery.new_object_log_density, scenario.geometric_cov)
     assert len(want) == 7 and min(want.values()) > 1e-6  # every hypothesis matters

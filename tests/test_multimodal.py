@@ -257,3 +257,54 @@ def test_result_file_validates(discovery_run):
     parsed = parse_result(result_to_json(run.result))
     assert "multimodal" in parsed.estimator
     assert len(parsed.steps) == 5 and parsed.steps[-1].metrics["num_components"] >= 1
+
+
+# --------------------------------------------------------------------------- #
+# The beam's sequential screening against the exhaustive joint screening
+# --------------------------------------------------------------------------- #
+
+
+def _crowded():
+    """Four correlated, uncertain objects in a row, a broad robot prior, three detections: the pose
+    and map correlations make each detection's conditional density depend on the earlier ones."""
+    objects = [(2.0, -0.6, 0.0), (2.2, 0.0, 0.0), (2.0, 0.6, 0.0), (3.0, 0.2, 0.0)]
+    dets = [{"range": 2.05, "bearing": -0.28, "scores": SEEN}, {"range": 2.18, "bearing": 0.02, "scores": SEEN},
+            {"range": 2.1, "bearing": 0.3, "scores": SEEN}]
+    return parse_scenario({
+        "format": "hybridslam-scenario/1", "num_classes": 2,
+        "objects": [{"prior_mean": list(p), "prior_cov": _diag(0.02, 0.02, 0.1)} for p in objects],
+        "robot": {"prior_mean": [0.0, 0.0, 0.0], "prior_cov": _diag(0.05, 0.05, 0.01)},
+        "motion_cov": _diag(1e-4, 1e-4, 1e-6), "geometric_cov": GEO_COV.tolist(),
+        "classifier": {"model": "mirror", "alpha": ALPHA, "K": K_SEM},
+        "sensor": {"max_range": 20.0, "fov": 2 * math.pi},
+        "discovery": {"max_objects": 6, "new_object_log_density": -3.0, "new_object_orientation_var": 9.87},
+        "steps": [{"odometry": [0, 0, 0], "detections": dets}],
+    })
+
+
+def test_sequential_beam_screening_equals_the_exhaustive_joint_screening():
+    """The beam scores a partial assignment one detection at a time (a rank-2 downdate of the
+    covariance per detection, :class:`Conditioned`); with room for every joint assignment
+    (4³ = 64 rows) its children, screening scores and weights equal the exhaustive enumeration's,
+    which scores each row by the joint innovation density of all its detections at once."""
+    import jax
+
+    from hybridslam.driver import inputs_from_scenario
+    from hybridslam.estimators.multimodal import Multimodal, association_log_probabilities, screen_log_likelihood
+    from hybridslam.estimators.smoothing import Filter
+
+    scenario = _crowded()
+    detections = jax.tree.map(lambda a: a[0], inputs_from_scenario(scenario, 3).detections)
+    out = {}
+    for name, width in (("beam", 64), ("exhaustive", None)):
+        est = Multimodal(capacity=2, samples=32, max_detections=3, max_steps=2, smoother=Filter(), max_assignments=width)
+        state = est.init(scenario)
+        ch = association_log_probabilities(state, detections, jax.random.key(0))
+        rows = {tuple(int(o) for o in obj): (float(lw), float(lp))
+                for obj, lw, lp in zip(np.asarray(ch.objects), np.asarray(ch.log_weight), np.asarray(ch.log_prob))
+                if lw > -np.inf}
+        out[name] = rows
+    assert len(out["beam"]) == 4 and out["beam"].keys() == out["exhaustive"].keys()
+    for key, (lw, lp) in out["exhaustive"].items():
+        assert out["beam"][key][0] == pytest.approx(lw, abs=1e-9)
+        assert out["beam"][key][1] == pytest.approx(lp, abs=1e-9)

@@ -52,7 +52,7 @@ from jax.scipy.special import logsumexp
 from jaxtyping import Array, Bool, Float, Int
 
 from .. import __version__
-from ..inference import discovery, gating
+from ..inference import discovery, gating, sequential
 from ..inference.beam import beam_search
 from ..inference.update import prior_gauss_newton, support_of, wrap_angles
 from ..io.scenario import Scenario
@@ -324,8 +324,8 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
     sem_cand = sem[slots[:, None], candidates]  # (Dmax, G)
     null_w = params.new_object_log_density + logsumexp(params.new_class_log_prior[None] + new_class_loglik, axis=-1)
 
-    def row(opts, upto):
-        """Validity, new / skipped slots and joint log weight of the assignment ``opts`` of slots ``0..upto``."""
+    def flags(opts, upto):
+        """Validity, objects and new / skipped slots of the assignment ``opts`` of slots ``0..upto``."""
         occupied = detections.mask & (slots <= upto)
         used = occupied & (opts < g)
         pick = jnp.minimum(opts, g - 1)
@@ -336,22 +336,37 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
         null = occupied & (opts == g)
         order = jnp.cumsum(null) - 1
         new = null & (state.num_created + order < n_max) if cfg.discovery else jnp.zeros_like(null)
-        log_w = (_joint_log_likelihood(obj, used, inn, cov, gamma)
-                 + jnp.sum(jnp.where(used, sem_cand[slots, pick], 0.0)) + jnp.sum(jnp.where(new, null_w, 0.0)))
-        return ok, new, null & ~new, log_w
+        return ok, used, pick, obj, new, null & ~new
 
     if width is None:  # every joint assignment: the exhaustive reference, (G+1)^Dmax rows
-        options = jnp.asarray(gating.joint_options(g, dmax))
-        dropped, kept = jnp.zeros((), jnp.int32), jnp.ones(options.shape[0], bool)
-    else:  # built one detection at a time, `width` kept (inference.beam); skips rank last
-        def score(opts, upto):
-            ok, _, skip, log_w = row(opts, upto)
-            return jnp.where(ok, log_w, -jnp.inf), jnp.sum(skip)
+        def row(opts):
+            ok, used, pick, obj, new, skip = flags(opts, dmax - 1)
+            log_w = (_joint_log_likelihood(obj, used, inn, cov, gamma)
+                     + jnp.sum(jnp.where(used, sem_cand[slots, pick], 0.0)) + jnp.sum(jnp.where(new, null_w, 0.0)))
+            return ok, new, skip, log_w
 
-        found = beam_search(score, dmax, g + 1, width, fill=g)
-        options, dropped, kept = found.options, found.dropped, found.valid
-    ok, new, skip, log_w = jax.vmap(row, (0, None))(options, dmax - 1)
-    ok &= kept  # a row the beam did not fill is no hypothesis (it may repeat another)
+        options = jnp.asarray(gating.joint_options(g, dmax))
+        dropped = jnp.zeros((), jnp.int32)
+        ok, new, skip, log_w = jax.vmap(row)(options)
+    else:  # built one detection at a time, `width` kept (inference.beam); skips rank last
+        def score(opts, upto, partial_row):
+            """The joint log weight, one detection's term at a time (inference.sequential)."""
+            ok, used, pick, obj, new, skip = flags(opts, upto)
+            term = jnp.where(used[upto],
+                             sequential.innovation_log_density(inn, partial_row, upto, obj[upto]) + sem_cand[upto, pick[upto]],
+                             jnp.where(new[upto], null_w[upto], 0.0))
+            return jnp.where(ok, partial_row.total + term, -jnp.inf), jnp.sum(skip)
+
+        def advance(partial_row, opts, upto, total):
+            _, used, _, obj, _, _ = flags(opts, upto)
+            return sequential.condition(inn, cov, partial_row, upto, obj[upto], used[upto], total)
+
+        found = beam_search(score, dmax, g + 1, width, fill=g, carry=sequential.start(width, mean.shape[0], dmax, mean.dtype),
+                            advance=advance)
+        options, dropped = found.options, found.dropped
+        ok, _, _, _, new, skip = jax.vmap(flags, (0, None))(options, dmax - 1)
+        ok &= found.valid  # a row the beam did not fill is no hypothesis (it may repeat another)
+        log_w = found.score
     num_skip = jnp.sum(skip, axis=-1)
     ok &= num_skip == jnp.min(jnp.where(ok, num_skip, dmax + 1))  # the all-null row is always ok
     log_w = jnp.where(ok, log_w, -jnp.inf)

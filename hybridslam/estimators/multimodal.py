@@ -87,7 +87,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from ..inference import discovery, gating
+from ..inference import discovery, gating, sequential
 from ..inference.beam import beam_search
 from ..inference.update import prior_gauss_newton, support_of, wrap_angles
 from ..io.scenario import Scenario
@@ -250,6 +250,20 @@ def _uniform(m: int) -> Float[Array, " M"]:
     return jnp.full((m,), -math.log(m))
 
 
+def _known_semantic(sensor: SensorModel, x: Float[Array, "3"], obj: Float[Array, "3"], scores: Float[Array, " M"],
+                    class_log_probs: Float[Array, " M"]) -> Float[Array, ""]:
+    """The semantic term of a detection of a created object seen from ``x`` (Eq. 5.10's bracket)."""
+    return semantic_log_marginal(sensor.classifier, scores, geometry.viewpoint(x, obj), class_log_probs)
+
+
+def _new_log_likelihood(sensor: SensorModel, params: Params, x: Float[Array, "3"], geo: Float[Array, "2"],
+                        scores: Float[Array, " M"], theta: Float[Array, ""]) -> Float[Array, ""]:
+    """A detection that creates its object (the null hypothesis, Sec. 3.2.1): ``new_object_log_density``
+    times the semantic term under a uniform class prior, the object back-projected with heading ``theta``."""
+    obj = _new_object(x, geo, theta)
+    return params.new_object_log_density + _known_semantic(sensor, x, obj, scores, _uniform(sensor.classifier.num_classes))
+
+
 def joint_log_likelihood(
     sensor: SensorModel,
     params: Params,
@@ -269,19 +283,13 @@ def joint_log_likelihood(
     back-projected from the detection with orientation ``theta``.
     """
     w, geo_norm = sensor.geometric_sqrt_information()
-    m = sensor.classifier.num_classes
 
     def of_object(obj, geo, scores, class_lp):
         r = w @ geometry.geometric_residual(geo, geometry.range_bearing(x, obj))
-        sem = semantic_log_marginal(sensor.classifier, scores, geometry.viewpoint(x, obj), class_lp)
-        return geo_norm - 0.5 * r @ r + log_visibility(sensor, x, obj) + sem
-
-    def of_new(geo, scores, th):
-        sem = semantic_log_marginal(sensor.classifier, scores, geometry.viewpoint(x, _new_object(x, geo, th)), _uniform(m))
-        return params.new_object_log_density + sem
+        return geo_norm - 0.5 * r @ r + log_visibility(sensor, x, obj) + _known_semantic(sensor, x, obj, scores, class_lp)
 
     per_obj = jax.vmap(of_object)(slot_objects, detections.geo, detections.scores, slot_class_log_probs)
-    per_new = jax.vmap(of_new)(detections.geo, detections.scores, theta)
+    per_new = jax.vmap(partial(_new_log_likelihood, sensor, params, x))(detections.geo, detections.scores, theta)
     return jnp.sum(jnp.where(known, per_obj, 0.0)) + jnp.sum(jnp.where(new, per_new, 0.0))
 
 
@@ -341,9 +349,53 @@ def screen_log_likelihood(
     x, objs = mean[:3], mean[3:].reshape(-1, 3)
     rest = joint_log_likelihood(sensor, params, x, objs[obj], jnp.zeros_like(known), new,
                                 class_log_probs[obj], detections, theta)
-    known_sem = jax.vmap(lambda o, sc, lp: semantic_log_marginal(sensor.classifier, sc, geometry.viewpoint(x, o), lp))(
-        objs[obj], detections.scores, class_log_probs[obj])
+    known_sem = jax.vmap(partial(_known_semantic, sensor, x))(objs[obj], detections.scores, class_log_probs[obj])
     return geo + rest + jnp.sum(jnp.where(known, known_sem, 0.0))
+
+
+class SlotTerms(eqx.Module):
+    """One component's screening inputs, computed once: the linearized predictions, the covariance,
+    the gated candidates and the non-Gaussian terms of every (detection, candidate) and "new" choice."""
+
+    pred: gating.Innovations
+    cov: Float[Array, "D D"]
+    cand: Int[Array, "Dmax G"]
+    known: Float[Array, "Dmax G"]  # semantic term of a detection of each candidate, at the mean
+    new: Float[Array, " Dmax"]  # null-hypothesis term of each detection, at the mean (theta = 0)
+
+
+def slot_terms(sensor: SensorModel, params: Params, pred: gating.Innovations, mean: Float[Array, " D"],
+               cov: Float[Array, "D D"], class_log_probs: Float[Array, "Nmax M"], cand: Int[Array, "Dmax G"],
+               detections: Detections) -> SlotTerms:
+    """The :class:`SlotTerms` of one component (the per-detection terms of :func:`screen_log_likelihood`)."""
+    x, objs = mean[:3], mean[3:].reshape(-1, 3)
+    cid = jnp.maximum(cand, 0)
+    per_candidate = jax.vmap(partial(_known_semantic, sensor, x), (0, None, 0))
+    known = jax.vmap(per_candidate)(objs[cid], detections.scores, class_log_probs[cid])
+    new = jax.vmap(partial(_new_log_likelihood, sensor, params, x))(
+        detections.geo, detections.scores, jnp.zeros(detections.mask.shape, mean.dtype))
+    return SlotTerms(pred, cov, cand, known, new)
+
+
+def slot_log_likelihood(terms: SlotTerms, row: sequential.Conditioned, j: Int[Array, ""], choice: Int[Array, ""],
+                        obj: Int[Array, ""], is_new: Bool[Array, ""]) -> Float[Array, ""]:
+    """Detection ``j``'s factor of the linearized ``log L_ij`` given the earlier slots of ``row``
+    (:mod:`hybridslam.inference.sequential`): the conditional innovation density and semantic term
+    of a created object, the null-hypothesis term of a new one, 0 for an empty slot. Summed over the
+    slots this is :func:`screen_log_likelihood`."""
+    g = terms.cand.shape[1]
+    gauss = sequential.innovation_log_density(terms.pred, row, j, obj)
+    known = (obj >= 0) & ~is_new
+    return jnp.where(known, gauss + terms.known[j, jnp.minimum(choice, g - 1)], jnp.where(is_new, terms.new[j], 0.0))
+
+
+def condition(terms: SlotTerms, mask: Bool[Array, " Dmax"], row: sequential.Conditioned, options: Int[Array, " Dmax"],
+              j: Int[Array, ""], score: Float[Array, ""]) -> sequential.Conditioned:
+    """``row`` extended by detection ``j`` (choice ``options[j]``, joint score ``score``)."""
+    g = terms.cand.shape[1]
+    choice = options[j]
+    obj = terms.cand[j, jnp.minimum(choice, g - 1)]
+    return sequential.condition(terms.pred, terms.cov, row, j, obj, mask[j] & (choice < g) & (obj >= 0), score)
 
 
 def sampled_log_likelihood(
@@ -469,7 +521,6 @@ def hypotheses(
     best by Gauss-Newton and weigh them by Monte Carlo (Eq. 5.9-5.11). ``mean`` / ``cov`` are the
     components at the current pose (after propagation)."""
     cfg, sensor, params = state.config, state.model.sensor, state.params
-    table = jnp.asarray(gating.joint_options(cfg.candidates, cfg.max_detections))
     slots = jnp.arange(cfg.max_detections)
 
     def per_component(m, c, class_lp, created):
@@ -477,24 +528,29 @@ def hypotheses(
         cand = gate(pred.d2, created, cfg.candidates)
         screen_one = partial(screen_log_likelihood, sensor, params, pred, m, c, class_lp)
         if cfg.beam is None:  # every joint assignment: (G+1)^Dmax rows, the reference
-            choices, dropped = table, jnp.zeros((), jnp.int32)
-        else:  # built one detection at a time, the `beam` best kept (inference.beam)
-            def score(opts, j):
+            choices, dropped = jnp.asarray(gating.joint_options(cfg.candidates, cfg.max_detections)), jnp.zeros((), jnp.int32)
+        else:  # built one detection at a time, the `beam` best kept (inference.beam), scored sequentially
+            terms = slot_terms(sensor, params, pred, m, c, class_lp, cand, detections)
+
+            def score(opts, j, row):
                 mask = detections.mask & (slots <= j)
                 objects, new, feasible = assignment_objects(opts[None], cand, mask, created, cfg.max_objects,
                                                             cfg.discovery)
-                return jnp.where(feasible[0], screen_one(objects[0], new[0], detections), -jnp.inf), jnp.zeros(
-                    (), jnp.int32)
+                inc = slot_log_likelihood(terms, row, j, opts[j], objects[0, j], new[0, j])
+                return jnp.where(feasible[0], row.total + inc, -jnp.inf), jnp.zeros((), jnp.int32)
 
-            found = beam_search(score, cfg.max_detections, cfg.candidates + 1, cfg.beam, fill=cfg.candidates)
-            choices, dropped = found.options, found.dropped
+            start = sequential.start(cfg.beam, m.shape[0], cfg.max_detections, m.dtype)
+            found = beam_search(score, cfg.max_detections, cfg.candidates + 1, cfg.beam, fill=cfg.candidates,
+                                carry=start, advance=partial(condition, terms, detections.mask))
+            objects, new, feasible = assignment_objects(found.options, cand, detections.mask, created, cfg.max_objects,
+                                                        cfg.discovery)
+            # A row the beam did not fill is no hypothesis (it may repeat another).
+            return objects, new, jnp.where(feasible & found.valid, found.score, -jnp.inf), found.dropped
         objects, new, feasible = assignment_objects(choices, cand, detections.mask, created, cfg.max_objects, cfg.discovery)
         screen = jax.vmap(screen_one, (0, 0, None))(objects, new, detections)
-        if cfg.beam is not None:
-            feasible &= found.valid  # a row the beam did not fill is no hypothesis (it may repeat another)
         return objects, new, jnp.where(feasible, screen, -jnp.inf), dropped
 
-    rows = table.shape[0] if cfg.beam is None else cfg.beam
+    rows = (cfg.candidates + 1) ** cfg.max_detections if cfg.beam is None else cfg.beam
     per_batch = max(1, SMALL_LAPACK_BATCH // (rows * cfg.max_detections))
     objects, new, screen, beam_dropped = _chunked(per_component, mean, cov, state.class_log_probs, state.num_created,
                                                   batch_size=per_batch)

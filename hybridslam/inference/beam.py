@@ -17,6 +17,12 @@ that could matter says so.
 
 Scores are ranked lexicographically by a *rank* (an integer the caller may use to order classes
 of hypotheses first, e.g. fewer skipped detections) and then by the log score.
+
+A score that is a sum of per-slot terms conditioned on the earlier slots (a joint Gaussian density
+in its sequential form, ``N(r; 0, S) = Π_j N(r_j | r_<j)``) need not be recomputed from scratch for
+every extension: pass a ``carry`` (one row per partial assignment, e.g. a conditioned covariance)
+and an ``advance`` that updates the row of every kept extension. Each extension then costs one
+slot's term instead of a joint score over every slot.
 """
 
 from __future__ import annotations
@@ -26,7 +32,7 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, Bool, Float, Int, PyTree
 
 # Large enough that one unit of rank outweighs any log-likelihood difference, small enough that the
 # sort key keeps the log score's precision to ~1e-9 nats.
@@ -47,7 +53,7 @@ class Beam(eqx.Module):
 
 
 def beam_search(
-    score: Callable[[Int[Array, " S"], Int[Array, ""]], tuple[Float[Array, ""], Int[Array, ""]]],
+    score: Callable[..., tuple[Float[Array, ""], Int[Array, ""]]],  # (options, j) or (options, j, row)
     num_slots: int,
     num_options: int,
     width: int,
@@ -55,6 +61,8 @@ def beam_search(
     keep_nats: float | Float[Array, ""] = 30.0,
     start: tuple[Int[Array, "W S"], Float[Array, " W"]] | None = None,
     first_slot: int = 0,
+    carry: PyTree | None = None,
+    advance: Callable[[PyTree, Int[Array, " S"], Int[Array, ""], Float[Array, ""]], PyTree] | None = None,
 ) -> Beam:
     """Beam search over ``num_slots`` slots of ``num_options`` options each.
 
@@ -62,7 +70,14 @@ def beam_search(
     partial assignment ``options`` whose slots ``0..j`` are set (the others hold ``fill``). The
     search starts from the single assignment with every slot at ``fill``, or from ``start`` (``W``
     partial assignments and their scores, ``-inf`` for none), and extends slots ``first_slot..``.
+
+    With ``carry`` (a pytree of arrays with a leading ``W`` axis: the caller's state of each partial
+    assignment) the score is called as ``score(options, j, row)`` with the row of the assignment
+    being extended, and after each slot ``advance(row, options, j, score)`` returns the row of every
+    kept extension (``options`` its assignment, ``score`` its joint score).
     """
+    if (carry is None) != (advance is None):
+        raise ValueError("beam_search: carry and advance go together")
     if start is None:
         start_options = jnp.full((width, num_slots), fill, dtype=jnp.int32)
         start_score = jnp.full((width,), -jnp.inf).at[0].set(0.0)
@@ -71,12 +86,16 @@ def beam_search(
     start_rank = jnp.zeros((width,), jnp.int32)
     choices = jnp.arange(num_options, dtype=jnp.int32)
 
-    def extend(carry, j):
-        options, live_score, _, dropped = carry
+    def extend(state, j):
+        options, live_score, _, dropped, rows = state
         grown = jnp.broadcast_to(options[:, None, :], (width, num_options, num_slots))
         grown = grown.at[:, :, j].set(jnp.broadcast_to(choices[None, :], (width, num_options)))
         flat = grown.reshape(width * num_options, num_slots)
-        s, r = jax.vmap(score, (0, None))(flat, j)
+        if rows is None:
+            s, r = jax.vmap(score, (0, None))(flat, j)
+        else:
+            s, r = jax.vmap(jax.vmap(score, (0, None, None)), (0, None, 0))(grown, j, rows)
+            s, r = s.reshape(-1), r.reshape(-1)
         parent_live = jnp.repeat(live_score > -jnp.inf, num_options)
         s = jnp.where(parent_live, s, -jnp.inf)
         key = jnp.where(s > -jnp.inf, s - _RANK_NATS * r.astype(s.dtype), -jnp.inf)
@@ -85,8 +104,11 @@ def beam_search(
         best = jnp.max(jnp.where(s > -jnp.inf, key, -jnp.inf))
         lost = (s > -jnp.inf) & ~kept & (key >= best - keep_nats)
         new_score = jnp.where(top > -jnp.inf, s[index], -jnp.inf)
-        return (flat[index], new_score, r[index].astype(jnp.int32), dropped + jnp.sum(lost, dtype=jnp.int32)), None
+        if rows is not None:
+            parent = jax.tree.map(lambda a: a[index // num_options], rows)
+            rows = jax.vmap(advance, (0, 0, None, 0))(parent, flat[index], j, s[index])
+        return (flat[index], new_score, r[index].astype(jnp.int32), dropped + jnp.sum(lost, dtype=jnp.int32), rows), None
 
-    carry = (start_options, start_score, start_rank, jnp.zeros((), jnp.int32))
-    (options, final, rank, dropped), _ = jax.lax.scan(extend, carry, jnp.arange(first_slot, num_slots))
+    init = (start_options, start_score, start_rank, jnp.zeros((), jnp.int32), carry)
+    (options, final, rank, dropped, _), _ = jax.lax.scan(extend, init, jnp.arange(first_slot, num_slots))
     return Beam(options, final, rank, dropped)
