@@ -57,8 +57,12 @@ under a uniform prior over joint assignments.
 
 Gating (Sec. 3.2.1): each detection considers the ``candidates`` created objects nearest in the
 linearized Mahalanobis distance of the component's mean, plus the null / new-object hypothesis;
-joint assignments are all injective tuples of those choices, enumerated once in numpy, and are
-ranked by their linearized likelihood (joint innovation density at the mean).
+joint assignments are injective tuples of those choices, ranked by their linearized likelihood
+(joint innovation density at the mean). By default (``max_assignments``) they are built one
+detection at a time by a beam search that scores each extension by its conditional density given
+the detections already assigned (:mod:`hybridslam.inference.sequential`: the same joint density,
+a 2×2 term per detection); ``max_assignments=None`` enumerates every tuple and scores each at once
+(the reference).
 
 The continuous update uses the geometric part only: the class-marginalized semantic factor is a
 mixture over classes, not a Gaussian; it enters the weights (above) and each object's class
