@@ -34,14 +34,14 @@ def _search(table, pair):
         upto = jnp.arange(SLOTS) <= j
         return jnp.sum(jnp.where(upto, per, 0.0)) + jnp.sum(jnp.where(upto[1:], couple, 0.0)), jnp.zeros((), jnp.int32)
 
-    def incremental(opts, j, row):
-        per, couple = _pair_bonus(opts, table, pair)
-        return row + per[j] + jnp.where(j > 0, couple[jnp.maximum(j - 1, 0)], 0.0), jnp.zeros((), jnp.int32)
+    def incremental(opts, j, previous, parent):
+        """The parent's score plus slot j's terms, the coupling read from the carried previous option."""
+        return parent + table[j, opts[j]] + jnp.where(j > 0, pair[previous, opts[j]], 0.0), jnp.zeros((), jnp.int32)
 
     width = OPTIONS**SLOTS
     a = beam_search(joint, SLOTS, OPTIONS, width, fill=0)
-    b = beam_search(incremental, SLOTS, OPTIONS, width, fill=0, carry=jnp.zeros(width),
-                    advance=lambda row, opts, j, score: score)
+    b = beam_search(incremental, SLOTS, OPTIONS, width, fill=0, carry=jnp.zeros(width, jnp.int32),
+                    advance=lambda previous, opts, j: opts[j])
     c = beam_search(joint, SLOTS, OPTIONS, 4, fill=0)
     return a, b, c
 
@@ -68,4 +68,4 @@ def test_beam_with_room_for_all_is_the_exhaustive_enumeration(table, pair):
 
 def test_carry_and_advance_go_together():
     with pytest.raises(ValueError, match="carry and advance"):
-        beam_search(lambda o, j, r: (0.0, 0), 2, 2, 4, fill=0, carry=jnp.zeros(4))
+        beam_search(lambda o, j, r, p: (0.0, 0), 2, 2, 4, fill=0, carry=jnp.zeros(4))

@@ -349,17 +349,17 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
         dropped = jnp.zeros((), jnp.int32)
         ok, new, skip, log_w = jax.vmap(row)(options)
     else:  # built one detection at a time, `width` kept (inference.beam); skips rank last
-        def score(opts, upto, partial_row):
+        def score(opts, upto, partial_row, parent):
             """The joint log weight, one detection's term at a time (inference.sequential)."""
             ok, used, pick, obj, new, skip = flags(opts, upto)
             term = jnp.where(used[upto],
                              sequential.innovation_log_density(inn, partial_row, upto, obj[upto]) + sem_cand[upto, pick[upto]],
                              jnp.where(new[upto], null_w[upto], 0.0))
-            return jnp.where(ok, partial_row.total + term, -jnp.inf), jnp.sum(skip)
+            return jnp.where(ok, parent + term, -jnp.inf), jnp.sum(skip)
 
-        def advance(partial_row, opts, upto, total):
+        def advance(partial_row, opts, upto):
             _, used, _, obj, _, _ = flags(opts, upto)
-            return sequential.condition(inn, cov, partial_row, upto, obj[upto], used[upto], total)
+            return sequential.condition(inn, cov, partial_row, upto, obj[upto], used[upto])
 
         found = beam_search(score, dmax, g + 1, width, fill=g, carry=sequential.start(width, mean.shape[0], dmax, mean.dtype),
                             advance=advance)

@@ -394,12 +394,12 @@ def slot_log_likelihood(terms: SlotTerms, row: sequential.Conditioned, j: Int[Ar
 
 
 def condition(terms: SlotTerms, mask: Bool[Array, " Dmax"], row: sequential.Conditioned, options: Int[Array, " Dmax"],
-              j: Int[Array, ""], score: Float[Array, ""]) -> sequential.Conditioned:
-    """``row`` extended by detection ``j`` (choice ``options[j]``, joint score ``score``)."""
+              j: Int[Array, ""]) -> sequential.Conditioned:
+    """``row`` extended by detection ``j`` (choice ``options[j]``)."""
     g = terms.cand.shape[1]
     choice = options[j]
     obj = terms.cand[j, jnp.minimum(choice, g - 1)]
-    return sequential.condition(terms.pred, terms.cov, row, j, obj, mask[j] & (choice < g) & (obj >= 0), score)
+    return sequential.condition(terms.pred, terms.cov, row, j, obj, mask[j] & (choice < g) & (obj >= 0))
 
 
 def sampled_log_likelihood(
@@ -530,18 +530,15 @@ def hypotheses(
     def per_component(m, c, class_lp, created):
         pred = gating.innovations(sensor, m, c, detections)
         cand = gate(pred.d2, created, cfg.candidates)
-        screen_one = partial(screen_log_likelihood, sensor, params, pred, m, c, class_lp)
-        if cfg.beam is None:  # every joint assignment: (G+1)^Dmax rows, the reference
-            choices, dropped = jnp.asarray(gating.joint_options(cfg.candidates, cfg.max_detections)), jnp.zeros((), jnp.int32)
-        else:  # built one detection at a time, the `beam` best kept (inference.beam), scored sequentially
+        if cfg.beam is not None:  # built one detection at a time, the `beam` best kept (inference.beam), scored sequentially
             terms = slot_terms(sensor, params, pred, m, c, class_lp, cand, detections)
 
-            def score(opts, j, row):
+            def score(opts, j, row, parent):
                 mask = detections.mask & (slots <= j)
                 objects, new, feasible = assignment_objects(opts[None], cand, mask, created, cfg.max_objects,
                                                             cfg.discovery)
                 inc = slot_log_likelihood(terms, row, j, opts[j], objects[0, j], new[0, j])
-                return jnp.where(feasible[0], row.total + inc, -jnp.inf), jnp.zeros((), jnp.int32)
+                return jnp.where(feasible[0], parent + inc, -jnp.inf), jnp.zeros((), jnp.int32)
 
             start = sequential.start(cfg.beam, m.shape[0], cfg.max_detections, m.dtype)
             found = beam_search(score, cfg.max_detections, cfg.candidates + 1, cfg.beam, fill=cfg.candidates,
@@ -550,9 +547,12 @@ def hypotheses(
                                                         cfg.discovery)
             # A row the beam did not fill is no hypothesis (it may repeat another).
             return objects, new, jnp.where(feasible & found.valid, found.score, -jnp.inf), found.dropped
+        # Every joint assignment, (G+1)^Dmax rows, each scored at once: the reference.
+        choices = jnp.asarray(gating.joint_options(cfg.candidates, cfg.max_detections))
         objects, new, feasible = assignment_objects(choices, cand, detections.mask, created, cfg.max_objects, cfg.discovery)
-        screen = jax.vmap(screen_one, (0, 0, None))(objects, new, detections)
-        return objects, new, jnp.where(feasible, screen, -jnp.inf), dropped
+        screen = jax.vmap(partial(screen_log_likelihood, sensor, params, pred, m, c, class_lp), (0, 0, None))(
+            objects, new, detections)
+        return objects, new, jnp.where(feasible, screen, -jnp.inf), jnp.zeros((), jnp.int32)
 
     rows = (cfg.candidates + 1) ** cfg.max_detections if cfg.beam is None else cfg.beam
     per_batch = max(1, SMALL_LAPACK_BATCH // (rows * cfg.max_detections))

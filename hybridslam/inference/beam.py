@@ -21,8 +21,8 @@ of hypotheses first, e.g. fewer skipped detections) and then by the log score.
 A score that is a sum of per-slot terms conditioned on the earlier slots (a joint Gaussian density
 in its sequential form, ``N(r; 0, S) = Π_j N(r_j | r_<j)``) need not be recomputed from scratch for
 every extension: pass a ``carry`` (one row per partial assignment, e.g. a conditioned covariance)
-and an ``advance`` that updates the row of every kept extension. Each extension then costs one
-slot's term instead of a joint score over every slot.
+and an ``advance`` that updates the row of every kept extension; the score then gets the row and
+the score of the assignment it extends, and adds one slot's term.
 """
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ class Beam(eqx.Module):
 
 
 def beam_search(
-    score: Callable[..., tuple[Float[Array, ""], Int[Array, ""]]],  # (options, j) or (options, j, row)
+    score: Callable[..., tuple[Float[Array, ""], Int[Array, ""]]],  # (options, j) or (options, j, row, parent)
     num_slots: int,
     num_options: int,
     width: int,
@@ -62,7 +62,7 @@ def beam_search(
     start: tuple[Int[Array, "W S"], Float[Array, " W"]] | None = None,
     first_slot: int = 0,
     carry: PyTree | None = None,
-    advance: Callable[[PyTree, Int[Array, " S"], Int[Array, ""], Float[Array, ""]], PyTree] | None = None,
+    advance: Callable[[PyTree, Int[Array, " S"], Int[Array, ""]], PyTree] | None = None,
 ) -> Beam:
     """Beam search over ``num_slots`` slots of ``num_options`` options each.
 
@@ -72,9 +72,9 @@ def beam_search(
     partial assignments and their scores, ``-inf`` for none), and extends slots ``first_slot..``.
 
     With ``carry`` (a pytree of arrays with a leading ``W`` axis: the caller's state of each partial
-    assignment) the score is called as ``score(options, j, row)`` with the row of the assignment
-    being extended, and after each slot ``advance(row, options, j, score)`` returns the row of every
-    kept extension (``options`` its assignment, ``score`` its joint score).
+    assignment) the score is called as ``score(options, j, row, parent)`` with the row and the joint
+    score ``parent`` of the assignment being extended, and after each slot ``advance(row, options,
+    j)`` returns the row of every kept extension (``options``: its assignment).
     """
     if (carry is None) != (advance is None):
         raise ValueError("beam_search: carry and advance go together")
@@ -94,7 +94,7 @@ def beam_search(
         if rows is None:
             s, r = jax.vmap(score, (0, None))(flat, j)
         else:
-            s, r = jax.vmap(jax.vmap(score, (0, None, None)), (0, None, 0))(grown, j, rows)
+            s, r = jax.vmap(jax.vmap(score, (0, None, None, None)), (0, None, 0, 0))(grown, j, rows, live_score)
             s, r = s.reshape(-1), r.reshape(-1)
         parent_live = jnp.repeat(live_score > -jnp.inf, num_options)
         s = jnp.where(parent_live, s, -jnp.inf)
@@ -106,7 +106,7 @@ def beam_search(
         new_score = jnp.where(top > -jnp.inf, s[index], -jnp.inf)
         if rows is not None:
             parent = jax.tree.map(lambda a: a[index // num_options], rows)
-            rows = jax.vmap(advance, (0, 0, None, 0))(parent, flat[index], j, s[index])
+            rows = jax.vmap(advance, (0, 0, None))(parent, flat[index], j)
         return (flat[index], new_score, r[index].astype(jnp.int32), dropped + jnp.sum(lost, dtype=jnp.int32), rows), None
 
     init = (start_options, start_score, start_rank, jnp.zeros((), jnp.int32), carry)

@@ -3,9 +3,8 @@
 Every estimator ranks joint assignments of a step's detections by their linearized likelihood,
 the joint innovation density ``N(r; 0, S)``, ``S = H Σ Hᵀ + I⊗Σ_v`` over the detections associated
 with mapped objects (thesis Eq. 4.14-4.15 stacked over the detections; the multimodal estimator's
-screening of Eq. 5.10). The detections share the robot pose (and an object may be seen twice
-over a beam's alternatives), so ``S`` is not block diagonal; computed at once it costs a
-``2D × 2D`` Cholesky per assignment.
+screening of Eq. 5.10). The detections share the robot pose and correlated objects, so ``S`` is
+not block diagonal; computed at once it costs a ``2D × 2D`` Cholesky per assignment.
 
 A beam search (:func:`hybridslam.inference.beam.beam_search`) extends partial assignments one
 detection at a time, and the chain rule gives the same density in that order:
@@ -33,19 +32,16 @@ _LOG_2PI = math.log(2 * math.pi)
 
 class Conditioned(eqx.Module):
     """Partial assignments' linearized states (leading axis ``W``, one per assignment, inside a
-    beam; none inside its vmapped score): ``Σ_b = Σ − U Uᵀ``, the conditional mean shift ``δ`` of
-    the state ``[x_k, o_0, ...]`` given the residuals of the detections associated so far, and the
-    assignment's score so far."""
+    beam; none inside its vmapped score): ``Σ_b = Σ − U Uᵀ`` and the conditional mean shift ``δ``
+    of the state ``[x_k, o_0, ...]`` given the residuals of the detections associated so far."""
 
     low_rank: Float[Array, "*W D R"]  # R = 2 Dmax: columns 2j, 2j+1 belong to detection j
     shift: Float[Array, "*W D"]
-    total: Float[Array, " *W"]
 
 
 def start(width: int, dim: int, slots: int, dtype=float) -> Conditioned:
     """``width`` empty assignments over a ``dim``-dimensional state and ``slots`` detections."""
-    return Conditioned(jnp.zeros((width, dim, 2 * slots), dtype), jnp.zeros((width, dim), dtype),
-                       jnp.zeros((width,), dtype))
+    return Conditioned(jnp.zeros((width, dim, 2 * slots), dtype), jnp.zeros((width, dim), dtype))
 
 
 def _inverse_chol2(s: Float[Array, "2 2"]) -> tuple[Float[Array, "2 2"], Float[Array, ""]]:
@@ -78,13 +74,13 @@ def innovation_log_density(pred: Innovations, row: Conditioned, j: Int[Array, ""
 
 
 def condition(pred: Innovations, cov: Float[Array, "D D"], row: Conditioned, j: Int[Array, ""],
-              obj: Int[Array, ""], associated: Bool[Array, ""], total: Float[Array, ""]) -> Conditioned:
+              obj: Int[Array, ""], associated: Bool[Array, ""]) -> Conditioned:
     """``row`` extended by detection ``j``: when it is ``associated`` with the mapped object ``obj``,
-    ``Σ_b ← Σ_b − u uᵀ`` with ``u = Σ_b Hᵀ L⁻ᵀ`` and ``δ ← δ + u L⁻¹ e`` (a Kalman update); its score
-    becomes ``total``. ``cov``: the component's ``Σ``."""
+    ``Σ_b ← Σ_b − u uᵀ`` with ``u = Σ_b Hᵀ L⁻ᵀ`` and ``δ ← δ + u L⁻¹ e`` (a Kalman update).
+    ``cov``: the component's ``Σ``."""
     jac, sub, hu, inv_l, _, e = _innovation(pred, row, j, obj)
     u = (cov[:, sub] @ jac.T - row.low_rank @ hu.T) @ inv_l.T
     low_rank = jax.lax.dynamic_update_slice(row.low_rank, u, (0, 2 * j))
     shift = row.shift + u @ (inv_l @ e)
     ok = associated & jnp.all(jnp.isfinite(u))
-    return Conditioned(jnp.where(ok, low_rank, row.low_rank), jnp.where(ok, shift, row.shift), total)
+    return Conditioned(jnp.where(ok, low_rank, row.low_rank), jnp.where(ok, shift, row.shift))
