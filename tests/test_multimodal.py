@@ -308,3 +308,27 @@ def test_sequential_beam_screening_equals_the_exhaustive_joint_screening():
     for key, (lw, lp) in out["exhaustive"].items():
         assert out["beam"][key][0] == pytest.approx(lw, abs=1e-9)
         assert out["beam"][key][1] == pytest.approx(lp, abs=1e-9)
+
+
+def test_merge_keeps_the_mass_of_a_child_too_light_to_be_a_centre():
+    """A child more than ``RELEVANT_NATS`` below the best (here 46 nats) becomes no centre, even with
+    room for it (``K`` = 4), and is not smoothed; its mass joins the nearest centre, so the merged
+    weights still sum to the children's. A dead child (-inf) is nobody's member."""
+    import jax.numpy as jnp
+
+    from hybridslam.estimators.multimodal import RELEVANT_NATS, merge, relevant_children
+
+    log_w = jnp.log(jnp.array([0.6, 0.4, 1e-20, 0.0]))
+    mean = jnp.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [9.0, 0.0, 0.0], [5.0, 5.0, 0.0]])
+    cov = jnp.broadcast_to(jnp.eye(3) * 0.01, (4, 3, 3))
+    created = jnp.zeros(4, jnp.int32)
+    ok = relevant_children(log_w)
+    assert ok.tolist() == [True, True, False, False] and float(log_w[0] - log_w[2]) > RELEVANT_NATS
+    centres, merged, wn, _, _ = merge(log_w, mean, cov, created, jnp.asarray(4.0), 4, ok)
+    assert sorted(int(c) for c in centres[merged > -jnp.inf]) == [0, 1]
+    owner = int(np.flatnonzero(np.asarray(centres) == 1)[0])
+    assert float(wn[owner, 2]) > 0.0 and float(wn[1 - owner, 2]) == 0.0  # child 2 joined its nearest, child 1
+    assert float(jnp.exp(jnp.logaddexp(merged[0], merged[1]))) == pytest.approx(1.0, rel=1e-12)
+    assert np.all(np.asarray(wn)[:, 3] == 0.0)
+    centres_all, merged_all, _, _, _ = merge(log_w, mean, cov, created, jnp.asarray(4.0), 4)  # every live child may centre
+    assert sorted(int(c) for c in centres_all[merged_all > -jnp.inf]) == [0, 1, 2]

@@ -1,12 +1,12 @@
-"""Multimodal (sum-mixture, non-Gaussian) semantic SLAM: Doherty's thesis Ch. 5 as a filter.
+"""Multimodal (sum-mixture, non-Gaussian) semantic SLAM: Doherty's thesis Ch. 5, smoothed or filtered.
 
 The thesis marginalizes each step's association out of the factor graph (Eq. 5.3-5.7) and keeps
 the resulting *sum*-mixture factors (Eq. 5.11), weighted by association probabilities that are
 estimated by Monte Carlo over pose samples with joint compatibility (Eq. 5.9-5.10); mm-iSAM then
 solves the non-Gaussian factor graph with nonparametric belief propagation.
 
-Representation (why a Gaussian sum, not evenly weighted kernels). Like every estimator of this
-library we filter: the belief is a fixed-capacity mixture of ``K`` weighted joint Gaussians over
+Representation (why a Gaussian sum, not evenly weighted kernels). The belief at step ``k`` is a
+fixed-capacity mixture of ``K`` weighted joint Gaussians over
 ``[x_k, o_0, ..., o_{Nmax-1}]`` (object slots and their creation as in :mod:`hybridslam.discovery`),
 each with its own association history ``β_1:k``, number of created objects and per-object class
 posterior. Given the prior mixture ``Σ_i w_i N_i`` and the step's sum-mixture factor
@@ -23,6 +23,9 @@ merging (:func:`merge`): the heaviest unclaimed child becomes a centre and claim
 a squared Mahalanobis distance ``merge_threshold`` that has the same number of created objects;
 ``K`` rounds; children left over are merged into their nearest centre. No mass is ever dropped
 there, and separated modes stay separate components as long as there are at most ``K`` of them.
+A child more than ``RELEVANT_NATS`` (30 nats: relative weight below 1e-13) under the best child
+becomes no centre: its mass joins its nearest centre, so the belief carries no component it could
+not show, and a smoother (below) never spends a solve on it.
 Only the ``children`` best children (a static count, ranked by the linearized likelihood below) get
 a Gauss-Newton update and a Monte Carlo weight: the linearized mass of the rest is reported in
 ``StepInfo.dropped_mass`` and as a warning, never silently.
@@ -63,6 +66,14 @@ detection at a time by a beam search that scores each extension by its condition
 the detections already assigned (:mod:`hybridslam.inference.sequential`: the same joint density,
 a 2×2 term per detection); ``max_assignments=None`` enumerates every tuple and scores each at once
 (the reference).
+
+Smoothing (``smoother=Full()``, the default, or ``Lag(L)``; :mod:`.smoothing`): each child's
+whole trajectory and map (or its window) is relinearized with every geometric factor of its
+association history before the merge, and a merged component keeps its centre's trajectory. This
+is the static-shape stand-in for mm-iSAM: a Gaussian sum of smoothed hypotheses where mm-iSAM
+propagates nonparametric beliefs through one graph. Only the children that may become centres
+(above) are smoothed: the live components and the relevant children each form a prefix, and
+:func:`~hybridslam.inference.batching.map_live` skips the rest.
 
 The continuous update uses the geometric part only: the class-marginalized semantic factor is a
 mixture over classes, not a Gaussian; it enters the weights (above) and each object's class
@@ -556,8 +567,11 @@ def hypotheses(
 
     rows = (cfg.candidates + 1) ** cfg.max_detections if cfg.beam is None else cfg.beam
     per_batch = max(1, SMALL_LAPACK_BATCH // (rows * cfg.max_detections))
-    objects, new, screen, beam_dropped = _chunked(per_component, mean, cov, state.class_log_probs, state.num_created,
-                                                  batch_size=per_batch)
+    # Dead components (weight -inf; a suffix after every merge) are skipped: their rows stay zero,
+    # and their screening weights -inf through ``state.log_weights`` below.
+    alive = state.log_weights > -jnp.inf
+    objects, new, screen, beam_dropped = map_live(per_component, alive, mean, cov, state.class_log_probs,
+                                                  state.num_created, chunk=per_batch)
     num_assign = rows
     screen_w = (state.log_weights[:, None] + screen).reshape(-1)
     sel_w, sel = jax.lax.top_k(screen_w, cfg.children)
@@ -582,7 +596,6 @@ def hypotheses(
     log_prob = tuple_log_probs(objects, log_mass, cfg.max_objects)
     log_weight = log_mass + log_prob if cfg.association_prior == "mc" else log_mass
     dropped = jnp.maximum(-jnp.expm1(jax.nn.logsumexp(sel_w) - jax.nn.logsumexp(screen_w)), 0.0)
-    alive = state.log_weights > -jnp.inf
     return Children(parent, objects, new, post_mean, post_cov, result, log_lik, log_prob, log_weight, dropped,
                     jnp.sum(jnp.where(alive, beam_dropped, 0), dtype=jnp.int32))
 
@@ -659,6 +672,11 @@ def _mahalanobis2(chol: Float[Array, "D D"], centre: Float[Array, " D"], means: 
     return jnp.sum(z**2, axis=0)
 
 
+def relevant_children(log_w: Float[Array, " C"]) -> Bool[Array, " C"]:
+    """The children within ``RELEVANT_NATS`` of the best: with a smoother, the ones smoothed."""
+    return (log_w > -jnp.inf) & (log_w > jnp.max(log_w) - RELEVANT_NATS)
+
+
 def merge(
     log_w: Float[Array, " C"],
     mean: Float[Array, "C D"],
@@ -666,25 +684,28 @@ def merge(
     num_created: Int[Array, " C"],
     threshold: Float[Array, ""],
     capacity: int,
+    centre_ok: Bool[Array, " C"] | None = None,
 ) -> tuple[Int[Array, " K"], Float[Array, " K"], Float[Array, "K C"], Float[Array, "K D"], Float[Array, "K D D"]]:
     """Reduce ``C`` weighted Gaussians to ``K`` without dropping mass.
 
-    ``K`` rounds: the heaviest unclaimed child becomes a centre and claims every unclaimed child with
-    the same number of created objects within squared Mahalanobis distance ``threshold`` (centre's
-    metric). Leftovers join the nearest centre: moment-matched when their object slots are
-    comparable (same number created), by weight only otherwise. Returns the centres, merged log
-    weights (``-inf`` for unused slots), moment weights ``(K, C)``, and merged means and covariances.
+    ``K`` rounds: the heaviest unclaimed child among ``centre_ok`` (default: every live child)
+    becomes a centre and claims every unclaimed child with the same number of created objects within
+    squared Mahalanobis distance ``threshold`` (centre's metric). Leftovers join the nearest centre:
+    moment-matched when their object slots are comparable (same number created), by weight only
+    otherwise. Returns the centres, merged log weights (``-inf`` for unused slots), moment weights
+    ``(K, C)``, and merged means and covariances.
     """
     live = log_w > -jnp.inf
+    centre_ok = live if centre_ok is None else centre_ok & live
     chol = _chunked(jnp.linalg.cholesky, cov)
     pose_chol = jax.vmap(jnp.linalg.cholesky)(cov[:, :3, :3])
 
     def round_(owner, r):
         free = (owner < 0) & live
-        c = jnp.argmax(jnp.where(free, log_w, -jnp.inf))
+        c = jnp.argmax(jnp.where(free & centre_ok, log_w, -jnp.inf))
         close = free & (num_created == num_created[c]) & (_mahalanobis2(chol[c], mean[c], mean) <= threshold)
         close = close | (jnp.arange(owner.shape[0]) == c)
-        return jnp.where(close & jnp.any(free), r, owner), (c, jnp.any(free))
+        return jnp.where(close & jnp.any(free & centre_ok), r, owner), (c, jnp.any(free & centre_ok))
 
     owner, (centres, used) = jax.lax.scan(round_, jnp.full(log_w.shape, -1), jnp.arange(capacity))
     full_d2 = _chunked(lambda ch, m: _mahalanobis2(ch, m, mean), chol[centres], mean[centres])  # (K, C)
@@ -865,6 +886,9 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
         state, ch.mean, ch.cov, state.class_log_probs[ch.parent], state.observed[ch.parent],
         state.num_created[ch.parent], ch.objects, ch.new, detections, theta)
     c_hist = state.history[ch.parent].at[:, state.k].set(jnp.where(detections.mask[None, :], ch.objects, -1))
+    # A child more than RELEVANT_NATS below the best (relative weight < 1e-13) becomes no centre of
+    # the merge: its mass joins the nearest centre, and with a smoother it is not smoothed.
+    centre_ok = relevant_children(ch.log_weight)
     poses, log, c_poses, smooth_failed = state.poses, state.log, None, jnp.zeros((), jnp.int32)
     window, c_window = state.window, None
     if not isinstance(smoother, Filter):
@@ -877,16 +901,22 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
             return smooth_step(smoother, log, history_factors(history_i), state.k + 1, created_i, state.model.sensor,
                                state.model.motion_cov, False, "sum", poses_i, mean_i, cov_i, window_i)
 
-        live = ch.log_weight > -jnp.inf
+        # Only the children that may become centres are smoothed: sorted by weight, they form a
+        # prefix, and map_live skips the chunks after it.
+        order = jnp.argsort(-ch.log_weight)
         parent_window = None if state.window is None else jax.tree.map(lambda a: a[ch.parent], state.window)
-        out = map_live(smoothed, live, state.poses[ch.parent], c_mean, c_cov, c_hist, c_created, parent_window)
-        c_mean = jnp.where(live[:, None], out.mean, c_mean)
-        c_cov = jnp.where(live[:, None, None], out.cov, c_cov)
+        args = jax.tree.map(lambda a: a[order], (state.poses[ch.parent], c_mean, c_cov, c_hist, c_created, parent_window))
+        out = map_live(smoothed, centre_ok[order], *args)
+        # Back in the children's order; a child not smoothed gets the best child's values, so that
+        # later batched math on it stays finite (its mean and covariance are its own, below).
+        inv = jnp.argsort(order)
+        out = jax.tree.map(lambda a: jnp.where(centre_ok.reshape((-1,) + (1,) * (a.ndim - 1)), a[inv], a[:1]), out)
+        c_mean = jnp.where(centre_ok[:, None], out.mean, c_mean)
+        c_cov = jnp.where(centre_ok[:, None, None], out.cov, c_cov)
         c_poses, c_window = out.poses, out.window
-        relevant_live = live & (ch.log_weight > jnp.max(ch.log_weight) - RELEVANT_NATS)
-        smooth_failed = jnp.sum(relevant_live & (out.result != optx.RESULTS.successful), dtype=jnp.int32)
+        smooth_failed = jnp.sum(centre_ok & (out.result != optx.RESULTS.successful), dtype=jnp.int32)
     centres, log_w, wn, m_mean, m_cov = merge(ch.log_weight, c_mean, c_cov, c_created, state.params.merge_threshold,
-                                              cfg.capacity)
+                                              cfg.capacity, centre_ok)
     if c_poses is not None:
         poses = c_poses[centres]
     if c_window is not None:
@@ -894,7 +924,6 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
     # Warnings concern hypotheses within RELEVANT_NATS of the best; the rest carry no visible mass.
     relevant = state.log_weights > jnp.max(state.log_weights) - RELEVANT_NATS
     no_room = cfg.discovery & jnp.any(detections.mask) & jnp.any(relevant & (state.num_created >= cfg.max_objects))
-    relevant_child = ch.log_weight > jnp.max(ch.log_weight) - RELEVANT_NATS
     # No child explains the step (e.g. no room for a new object, or no feasible joint assignment): the
     # step's detections are skipped, and counted, and every component stays, propagated, with its
     # weight and no association for this step, rather than the belief lost.
@@ -905,7 +934,7 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
                                  jnp.sum(state.log_weights > -jnp.inf, dtype=jnp.int32)),
         dropped_mass=ch.dropped_mass,
         dropped_budget=ch.beam_dropped,
-        solver_failures=jnp.sum(relevant_child & (ch.result != optx.RESULTS.successful), dtype=jnp.int32)
+        solver_failures=jnp.sum(centre_ok & (ch.result != optx.RESULTS.successful), dtype=jnp.int32)
         + smooth_failed,
         skipped=jnp.where(explained, 0, jnp.sum(detections.mask, dtype=jnp.int32)),
         object_overflow=no_room,
