@@ -196,3 +196,32 @@ def test_create_object_covariance_matches_monte_carlo():
     scale = np.sqrt(np.outer(np.diag(sample_cov), np.diag(sample_cov)))
     np.testing.assert_allclose(np.asarray(new_cov) / scale, sample_cov / scale, atol=0.03)
     np.testing.assert_array_equal(np.asarray(new_cov)[9:, 9:], np.eye(3))  # the placeholder is untouched
+
+
+def test_create_object_equals_the_dense_affine_map_and_discards_the_slot():
+    """The block-wise update equals ``A Σ Aᵀ + B Σ_v Bᵀ + var·e eᵀ`` with the dense affine map that
+    drops the slot and writes ``p = back_project(x, z)`` into it, for a slot that held correlated
+    values before (they are discarded) and a fully correlated state."""
+    rng = np.random.default_rng(3)
+    dim, slot = 3 + 3 * 4, 2
+    root = rng.normal(size=(dim, dim))
+    cov = root @ root.T / dim + 0.05 * np.eye(dim)
+    mean = rng.normal(size=dim)
+    geo, geometric_cov, var = np.array([2.5, -0.7]), np.array([[0.02, 0.003], [0.003, 0.01]]), 4.0
+    new_mean, new_cov = create_object(jnp.asarray(mean), jnp.asarray(cov), jnp.asarray(slot), jnp.asarray(geo),
+                                      jnp.asarray(geometric_cov), jnp.asarray(var))
+    j_x = np.asarray(jax.jacfwd(back_project, 0)(jnp.asarray(mean[:3]), jnp.asarray(geo)))
+    j_z = np.asarray(jax.jacfwd(back_project, 1)(jnp.asarray(mean[:3]), jnp.asarray(geo)))
+    rows = 3 + 3 * slot + np.arange(3)
+    a = np.eye(dim)
+    a[rows] = 0.0
+    a[rows[:2], :3] = j_x
+    b = np.zeros((dim, 2))
+    b[rows[:2]] = j_z
+    e = np.zeros(dim)
+    e[rows[2]] = 1.0
+    np.testing.assert_allclose(new_cov, a @ cov @ a.T + b @ geometric_cov @ b.T + var * np.outer(e, e),
+                               rtol=1e-12, atol=1e-12)
+    want_mean = mean.copy()
+    want_mean[rows] = np.r_[np.asarray(back_project(jnp.asarray(mean[:3]), jnp.asarray(geo))), 0.0]
+    np.testing.assert_allclose(new_mean, want_mean, rtol=1e-12, atol=1e-12)

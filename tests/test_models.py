@@ -38,6 +38,24 @@ def test_propagate_mean_and_covariance_match_monte_carlo():
     np.testing.assert_array_equal(new_cov[3:, 3:], cov[3:, 3:])  # objects are static
 
 
+def test_propagate_is_the_dense_ekf_prediction_with_correlated_objects():
+    """The pose-rows-only update equals ``A P Aᵀ + B Σ_w Bᵀ`` with the dense ``A = blockdiag(F_x, I)``
+    (Eq. 11), cross-covariances with the objects included."""
+    rng = np.random.default_rng(1)
+    root = rng.standard_normal((9, 9))
+    mean, cov = jnp.asarray(rng.standard_normal(9)), jnp.asarray(root @ root.T + 0.1 * np.eye(9))
+    u, q = jnp.array([0.8, -0.3, 0.4]), jnp.diag(jnp.array([0.01, 0.005, 0.002]))
+    _, new_cov = motion.propagate(mean, cov, u, q)
+    zero = jnp.zeros(3)
+    move = lambda x, w: se2.compose(se2.compose(x, u), se2.exp(w))  # noqa: E731
+    f_x, f_w = jax.jacfwd(move, 0)(mean[:3], zero), jax.jacfwd(move, 1)(mean[:3], zero)
+    a = np.eye(9)
+    a[:3, :3] = f_x
+    b = np.zeros((9, 3))
+    b[:3] = f_w
+    np.testing.assert_allclose(new_cov, a @ np.asarray(cov) @ a.T + b @ np.asarray(q) @ b.T, rtol=1e-12, atol=1e-12)
+
+
 def test_odometry_residual_is_zero_on_the_odometry():
     x0, u = jnp.array([2.0, 1.0, -0.4]), jnp.array([0.7, -0.1, 0.25])
     np.testing.assert_allclose(motion.odometry_residual(x0, se2.compose(x0, u), u), jnp.zeros(3), atol=1e-12)
