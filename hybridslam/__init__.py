@@ -21,6 +21,13 @@ import os as _os
 # on the golden result files of tests/data/golden). Set before the CPU backend starts; a user's own
 # PJRT_NPROC wins.
 _os.environ.setdefault("PJRT_NPROC", str(max(32, 4 * (_os.cpu_count() or 1))))
+# Those kernels call scipy's OpenBLAS, whose own worker threads busy-wait for work. Beside XLA's
+# pool they oversubscribe the cores: on this 2-core CPU an `ml` hallway smoother step took 35-40 ms
+# with one OpenBLAS thread and 40-58 ms with the default, and 4.4 s instead of 37 ms while another
+# process ran (its 210×210 Cholesky factors took 270 ms each). Our matrices (at most a few hundred
+# rows) gain nothing from threaded BLAS. Read when scipy's OpenBLAS loads (the first LAPACK call,
+# after this import); a user's own OPENBLAS_NUM_THREADS wins.
+_os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import jax as _jax  # noqa: E402
 
