@@ -673,8 +673,9 @@ def _mahalanobis2(chol: Float[Array, "D D"], centre: Float[Array, " D"], means: 
 
 
 def relevant_children(log_w: Float[Array, " C"]) -> Bool[Array, " C"]:
-    """The children within ``RELEVANT_NATS`` of the best: with a smoother, the ones smoothed."""
-    return (log_w > -jnp.inf) & (log_w > jnp.max(log_w) - RELEVANT_NATS)
+    """The children (or components) within ``RELEVANT_NATS`` of the best: with a smoother, the
+    children smoothed."""
+    return log_w > jnp.max(log_w) - RELEVANT_NATS  # all -inf: none
 
 
 def merge(
@@ -922,7 +923,7 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
     if c_window is not None:
         window = jax.tree.map(lambda a: a[centres], c_window)
     # Warnings concern hypotheses within RELEVANT_NATS of the best; the rest carry no visible mass.
-    relevant = state.log_weights > jnp.max(state.log_weights) - RELEVANT_NATS
+    relevant = relevant_children(state.log_weights)
     no_room = cfg.discovery & jnp.any(detections.mask) & jnp.any(relevant & (state.num_created >= cfg.max_objects))
     # No child explains the step (e.g. no room for a new object, or no feasible joint assignment): the
     # step's detections are skipped, and counted, and every component stays, propagated, with its
