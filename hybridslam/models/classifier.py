@@ -23,6 +23,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from .unrolled import sum_last
+
 _LOG_2PI = math.log(2.0 * math.pi)
 
 
@@ -55,7 +57,7 @@ class ClassifierModel(eqx.Module):
         r = self.class_sqrt_informations(viewpoint)
         diag = jnp.diagonal(r, axis1=-2, axis2=-1)
         log_norm = jnp.sum(jnp.log(jnp.abs(diag)), axis=-1) - 0.5 * self.num_classes * _LOG_2PI
-        return jnp.sum(r * (scores[None, :] - h)[:, None, :], axis=-1), log_norm
+        return sum_last(r * (scores[None, :] - h)[:, None, :]), log_norm
 
     def log_likelihood(
         self, scores: Float[Array, " M"], c: Int[ArrayLike, ""], viewpoint: Float[Array, "2"]

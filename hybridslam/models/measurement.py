@@ -19,6 +19,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ..io.scenario import StackedSteps
 from . import geometry
 from .classifier import ClassifierModel
+from .unrolled import sum_last
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -65,7 +66,7 @@ def detection_residuals(
     """
     w, geo_norm = sensor.geometric_sqrt_information()
     d = geometry.geometric_residual(z_geo, geometry.range_bearing(x, obj))
-    r_geo = jnp.sum(w * d[None, :], axis=-1)  # W @ d as a broadcast sum: fuses under vmap, tiny dots do not
+    r_geo = sum_last(w * d[None, :])  # W @ d as unrolled adds: fuses under vmap, tiny dots do not
     r_sem, sem_norm = sensor.classifier.residuals(scores, geometry.viewpoint(x, obj))
     return r_geo, r_sem, geo_norm + sem_norm
 

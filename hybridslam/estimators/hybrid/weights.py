@@ -43,7 +43,6 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import jax.scipy.linalg as jsl
 import numpy as np
 import optimistix as optx
 from jax.scipy.special import log_ndtr, logsumexp, ndtr
@@ -62,6 +61,7 @@ from ...models.measurement import (
     slot_residuals,
 )
 from ...models.model import NewObjects
+from ...models.unrolled import gaussian_terms, sum_last
 from .hypotheses import EMPTY, NEW, Children, HypothesisTable
 
 ROW_CHUNK = 16  # hypothesis-table rows per chunk of linearized children (see linearized_log_likelihood)
@@ -100,7 +100,7 @@ def _child_log_means(t: Float[Array, "S Dmax N M"], table: HypothesisTable, kids
 
 def _detection_log_likelihoods(sensor, x, obj, z_geo, scores):
     r_geo, r_sem, log_norm = detection_residuals(sensor, x, obj, z_geo, scores)
-    return log_norm - 0.5 * (jnp.sum(r_geo**2) + jnp.sum(r_sem**2, axis=-1))
+    return log_norm - 0.5 * (sum_last(r_geo**2) + sum_last(r_sem**2))
 
 
 def log_likelihood_table(
@@ -290,10 +290,8 @@ def linear_child(
     s = s + jnp.eye(s.shape[0])
     slots = jnp.arange(rows.shape[0])
     r = jnp.where(occupied[:, None], t.r_bar[slots, obj, slot_class], 0.0).reshape(-1)
-    chol = jnp.linalg.cholesky(s)
-    white = jsl.solve_triangular(chol, r, lower=True)
-    log_det = 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))
-    log_lik = -0.5 * jnp.sum(white**2) - 0.5 * log_det
+    mahalanobis, log_det = gaussian_terms(s, r)
+    log_lik = -0.5 * mahalanobis - 0.5 * log_det
     log_lik += jnp.sum(jnp.where(occupied, t.log_norm[slots, obj, slot_class], 0.0))
     return log_lik + jnp.sum(jnp.where(occupied, t.log_vis[obj], 0.0)), log_lik
 
