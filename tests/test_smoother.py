@@ -98,7 +98,11 @@ def _least_squares(graph):
 
 @pytest.fixture(scope="module")
 def solve():
-    return jax.jit(lambda g, p0, o0: sm.solve(g, p0, o0, max_steps=20))
+    # Undamped (lambda_init = 0): Gauss-Newton, exact in one step on a linear graph. A damped start
+    # converges linearly, and once the cost changes by less than its rounding the acceptance test
+    # stalls it a few 1e-9 from the optimum (seen with the suite's XLA settings on one CPU), while
+    # these tests compare with exact solutions to 1e-9.
+    return jax.jit(lambda g, p0, o0: sm.solve(g, p0, o0, max_steps=20, lambda_init=0.0))
 
 
 def test_linear_graph_solution_is_the_least_squares_solution(solve):
