@@ -17,10 +17,17 @@ semantic term, Eq. 4.13 / 2.14) against "it is a new object", the robot pose's N
 heading error and sd. ``--exact-detections`` replaces the detections by their true range and
 bearing (the odometry stays noisy): then the filter's heading sd meets the Cramér-Rao bound.
 
+**The drift a loop closure must bridge** (``--oracle``): the full smoother with the *true*
+associations (:func:`hybridslam.analysis.consistency.oracle_drift`) on the study's scenarios (5
+levels × ``--seeds`` seeds): its position error and reported sd just before the first
+re-detection, and its final error once the loop has closed. With perfect associations up to the
+loop, this is as close as an estimator of the same model can be when the re-detections arrive.
+
 Usage::
 
     python3 scripts/hallway_loop_closure.py runs/hallway          # after the hallway study
     python3 scripts/hallway_loop_closure.py --probe ml:0.005:0
+    python3 scripts/hallway_loop_closure.py --oracle [--seeds 3]
 """
 
 from __future__ import annotations
@@ -159,6 +166,24 @@ def print_summary(reports: dict[str, list[consistency.LoopClosureReport]], bound
           f"median {np.median(bounds):.2f}, range {min(bounds):.2f}-{max(bounds):.2f} over {len(bounds)} scenarios")
 
 
+def print_oracle(seeds: int, gap: int) -> None:
+    """One row per hallway scenario (level, seed) of :func:`consistency.oracle_drift`, then the means."""
+    print(f"{'tr(Λ_t)':>8} {'seed':>4} {'step':>4} {'error m':>8} {'sd m':>6} {'err/sd':>6} {'θ err':>7} "
+          f"{'θ sd':>6} {'final m':>7}")
+    rows = []
+    for trace in hallway.LEVELS:
+        for seed in range(seeds):
+            d = consistency.oracle_drift(hallway.hallway(seed, trace), gap)
+            rows.append(d)
+            print(f"{trace:8.3f} {seed:4d} {d.before_step or 0:4d} {d.before_error:8.2f} {d.before_sd:6.2f} "
+                  f"{d.before_error / d.before_sd:6.2f} {d.before_heading_error:7.3f} {d.before_heading_sd:6.3f} "
+                  f"{d.final_error:7.2f}", flush=True)
+    mean = lambda f: float(np.mean([f(d) for d in rows]))  # noqa: E731
+    print(f"mean over {len(rows)} runs: error before the loop {mean(lambda d: d.before_error):.2f} m "
+          f"(reported sd {mean(lambda d: d.before_sd):.2f} m, |θ error| {mean(lambda d: abs(d.before_heading_error)):.3f} "
+          f"rad), after it {mean(lambda d: d.final_error):.2f} m")
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("folder", nargs="?", help="a finished hallway study (its scenarios/ and results/)")
@@ -167,9 +192,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--exact-detections", action="store_true",
                         help="with --probe: replace the detections by their true range and bearing")
     parser.add_argument("--gap", type=int, default=20, help="steps since the first detection (default 20)")
+    parser.add_argument("--oracle", action="store_true",
+                        help="the true-association smoother's drift before the loop closes, on the study's scenarios")
+    parser.add_argument("--seeds", type=int, default=3, help="with --oracle: seeds per level (default 3)")
     args = parser.parse_args(argv)
-    if (args.folder is None) == (args.probe is None):
-        parser.error("give a study folder or --probe (one of them)")
+    if sum((args.folder is not None, args.probe is not None, args.oracle)) != 1:
+        parser.error("give a study folder, --probe or --oracle (one of them)")
+    if args.oracle:
+        print_oracle(args.seeds, args.gap)
+        return
     if args.folder:
         print_summary(*summarize(args.folder, args.gap), args.gap)
         return

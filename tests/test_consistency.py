@@ -117,3 +117,26 @@ def test_with_the_true_associations_the_smoother_meets_the_bound():
     ml = run.result.steps[-1].components[0].associations
     assert [list(a[: len(t)]) for a, t in zip(ml, truth)] == truth  # ml got every association right
     np.testing.assert_allclose(oracle.trajectory, run.result.trajectory, atol=1e-6)
+
+
+def test_oracle_drift_is_read_before_the_first_redetection_and_the_loop_closure_removes_it():
+    from hybridslam.sim.hallway import HallwaySetup
+
+    scenario = hallway(0, 0.005, setup=HallwaySetup(length=8.0, width=4.0))  # a 24-step loop
+    drift = consistency.oracle_drift(scenario, gap=10)
+    first = {}
+    redetected = None
+    for k, step in enumerate(scenario.steps, start=1):
+        for d in step.detections:
+            if redetected is None and d.true_object in first and k - first[d.true_object] > 10:
+                redetected = k
+            first.setdefault(d.true_object, k)
+    assert drift.before_step == redetected - 1
+    oracle = consistency.true_association_smoother(scenario)
+    truth = np.asarray(scenario.true_robot_poses)
+    err = np.linalg.norm(oracle.means[drift.before_step - 1, :2] - truth[drift.before_step, :2])
+    assert drift.before_error == pytest.approx(err)
+    assert drift.before_sd > 0 and drift.before_heading_sd > 0
+    assert drift.final_error < drift.before_error  # the re-detections close the loop
+    with pytest.raises(ValueError, match="gap: expected a non-negative int"):
+        consistency.oracle_drift(scenario, gap=-1)

@@ -255,3 +255,49 @@ def true_association_smoother(scenario: Scenario, max_steps: int = 50) -> Oracle
         poses, objects = np.array(out[0]), np.array(out[1])
         means[k - 1], covs[k - 1], failed[k - 1] = np.asarray(out[2]), np.asarray(out[3]), bool(out[4])
     return OracleRun(means, covs, poses, failed)
+
+
+@dataclasses.dataclass(frozen=True)
+class OracleDrift:
+    """How far the true-association smoother is from the truth just before the loop closes, and after.
+
+    ``before_step``: the last step before the first re-detection (1-based; ``None`` if nothing is
+    re-detected, and then the ``before_*`` fields are those of the last step). Position error (m),
+    its reported sd along the worst direction (m, the largest eigenvalue of the marginal's
+    position block), heading error (rad, wrapped) and sd there; ``final_error``: the final
+    smoothed pose's position error (m), after every re-detection has closed the loop.
+    """
+
+    before_step: int | None
+    before_error: float
+    before_sd: float
+    before_heading_error: float
+    before_heading_sd: float
+    final_error: float
+
+
+def oracle_drift(scenario: Scenario, gap: int = 20, max_steps: int = 50) -> OracleDrift:
+    """:func:`true_association_smoother` on ``scenario``, read just before its first re-detection
+    (a landmark first detected more than ``gap`` steps earlier, as in :func:`association_audit`).
+
+    It answers how much drift an estimator has to bridge to close the loop with *perfect*
+    associations before it: no estimator of the same model can be expected to be closer than this
+    when the re-detections arrive, so a gate or a new-object density that rejects an association
+    at that distance rejects the loop closure itself.
+    """
+    if not (isinstance(gap, int) and gap >= 0):
+        raise ValueError(f"gap: expected a non-negative int, got {gap!r}")
+    poses, _ = _truth(scenario)
+    truth = [[d.true_object for d in s.detections] for s in scenario.steps]
+    k = association_audit(truth, truth, gap).first_redetection  # > gap + 1 >= 2: a step precedes it
+    before = scenario.num_steps if k is None else k - 1
+    run = true_association_smoother(scenario, max_steps)
+    mean, cov = run.means[before - 1], run.covs[before - 1]
+    return OracleDrift(
+        before_step=None if k is None else before,
+        before_error=float(np.linalg.norm(mean[:2] - poses[before, :2])),
+        before_sd=float(math.sqrt(np.linalg.eigvalsh(cov[:2, :2])[-1])),
+        before_heading_error=float(se2.wrap(mean[2] - poses[before, 2])),
+        before_heading_sd=float(math.sqrt(cov[2, 2])),
+        final_error=float(np.linalg.norm(run.trajectory[-1, :2] - poses[-1, :2])),
+    )
