@@ -129,6 +129,7 @@ def test_missing_input_and_unwritable_output_exit_2(scenario_path, tmp_path, cap
     error_line(capsys)
 
 
+@pytest.mark.slow  # the demo's compiles, half a minute: the extended suite, CI
 def test_demo_smoke(tmp_path, capsys):
     out = tmp_path / "demo"
     # Linearized weights: three classifier models mean three compiles, and these are the cheapest.

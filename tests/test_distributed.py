@@ -32,6 +32,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow  # two processes compiling the sweep, a minute: the extended suite, CI
 def test_two_processes_give_the_single_process_table(tmp_path, shared_compilation_cache):
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}  # one CPU device per process
     one, two = tmp_path / "one", tmp_path / "two"

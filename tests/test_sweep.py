@@ -147,6 +147,7 @@ def test_resume_after_kill_gives_the_same_table(tiny, tmp_path, cache_env):
     assert len(lines) == 1 + 3 and all(json.loads(line) for line in lines)
 
 
+@pytest.mark.slow  # a sweep in a subprocess over four host devices: the extended suite, CI
 def test_sharded_over_four_devices_equals_one(tiny, tmp_path, cache_env):
     _, expected, _ = tiny
     env = dict(cache_env, XLA_FLAGS="--xla_force_host_platform_device_count=4")
