@@ -289,7 +289,8 @@ def oracle_drift(scenario: Scenario, gap: int = 20, max_steps: int = 50) -> Orac
         raise ValueError(f"gap: expected a non-negative int, got {gap!r}")
     poses, _ = _truth(scenario)
     truth = [[d.true_object for d in s.detections] for s in scenario.steps]
-    k = association_audit(truth, truth, gap).first_redetection  # > gap + 1 >= 2: a step precedes it
+    perfect = [[-1 if t is None else t for t in row] for row in truth]  # every detection to its own landmark
+    k = association_audit(truth, perfect, gap).first_redetection  # > gap + 1 >= 2: a step precedes it
     before = scenario.num_steps if k is None else k - 1
     run = true_association_smoother(scenario, max_steps)
     mean, cov = run.means[before - 1], run.covs[before - 1]

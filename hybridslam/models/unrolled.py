@@ -45,8 +45,8 @@ def gaussian_terms(s: Float[Array, "n n"], r: Float[Array, " n"]) -> tuple[Float
     n = s.shape[-1]
     if n > MAX_UNROLLED_CHOLESKY:
         chol = jnp.linalg.cholesky(s)
-        white = jax.scipy.linalg.solve_triangular(chol, r, lower=True)
-        return jnp.sum(white**2), 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))
+        whitened = jax.scipy.linalg.solve_triangular(chol, r, lower=True)
+        return jnp.sum(whitened**2), 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))
     low: list[list] = [[None] * n for _ in range(n)]
     white: list = [None] * n
     log_det = jnp.zeros((), s.dtype)
