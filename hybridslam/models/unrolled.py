@@ -1,11 +1,13 @@
-"""Sums over short trailing axes written as chains of adds, for the hottest elementwise code.
+"""Short sums and small Cholesky factors written out entry by entry, for the hottest elementwise code.
 
 XLA on CPU lowers a reduction to its own loop that does not fuse with the elementwise work
 around it, so a ``jnp.sum`` over an axis of 2-4 entries inside ``vmap`` over samples and objects
 materializes its operand and loops over it again. Slicing the axis and adding the slices keeps
 the whole computation one fused elementwise loop: the per-sample likelihood table of the sampled
-weights (Eq. 16) is 2.3× faster this way (``scripts/bench_step.py``). The result is the same sum,
-in the same order as a sequential reduction; only the rounding of long sums may differ.
+weights (Eq. 16) takes 100 ns per (draw, object) instead of 200 ns this way. Likewise a batch of
+small Cholesky factorizations is one LAPACK call per matrix plus layout copies, where the
+written-out factorization fuses over the batch (:func:`gaussian_terms`). The results are the same
+sums and factors; only the rounding of the last bits may differ.
 """
 
 from __future__ import annotations
@@ -32,7 +34,8 @@ MAX_UNROLLED_CHOLESKY = 12  # larger matrices: LAPACK (the unrolled program grow
 
 
 def gaussian_terms(s: Float[Array, "n n"], r: Float[Array, " n"]) -> tuple[Float[Array, ""], Float[Array, ""]]:
-    """``(rᵀ S⁻¹ r, log|S|)`` of a symmetric positive-definite ``S``, by Cholesky ``S = L Lᵀ``.
+    """``(rᵀ S⁻¹ r, log|S|)`` of a symmetric positive-definite ``S``, by Cholesky ``S = L Lᵀ``: the two
+    terms of a Gaussian log density such as the joint innovation density (thesis Eq. 4.14-4.15).
 
     Up to :data:`MAX_UNROLLED_CHOLESKY` rows the factorization and the forward substitution are
     written out entry by entry: under ``vmap`` they become one fused elementwise loop over the
