@@ -14,7 +14,10 @@ when a loop closes. These host-side checks make that visible on simulated runs:
   ago), to an object that another landmark created (a wrong merge), or to a new object;
 * :func:`loop_closure_report`: the audit and the pose's consistency, for one scenario and one result file;
 * :func:`true_association_smoother`: the full smoother with the true associations, the reference
-  against which the bound and the NEES are checked (issue 13 §5; ``scripts/hallway_consistency.py``).
+  against which the bound and the NEES are checked (issue 13 §5; ``scripts/hallway_consistency.py``);
+* :func:`gated_oracle_result`: a result file whose associations are the truth, except that a
+  landmark re-detected after ``gap`` steps becomes a new object, as a gated one-step association
+  leaves it: the input on which a loop-closure back end is judged apart from the front end.
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ import optimistix as optx
 
 from ..estimators import smoothing
 from ..inference import smoother as sm
-from ..io.result import Result
+from ..io.result import ComponentRecord, Result, StepRecord
 from ..io.scenario import Scenario
 from ..models import geometry, se2
 from ..models.model import model_from_scenario
@@ -302,3 +305,43 @@ def oracle_drift(scenario: Scenario, gap: int = 20, max_steps: int = 50) -> Orac
         before_heading_sd=float(math.sqrt(cov[2, 2])),
         final_error=float(np.linalg.norm(run.trajectory[-1, :2] - poses[-1, :2])),
     )
+
+
+def gated_oracle_result(scenario: Scenario, gap: int = 20) -> tuple[Result, dict[int, int]]:
+    """A one-component result whose associations are the true ones, except that a detection of a
+    landmark last detected more than ``gap`` steps earlier (and every later detection of it) goes to
+    a new object (module docstring). ``pose_mean`` is dead reckoning (there is no estimator behind
+    it; ``pose_cov`` is a placeholder). Returns it and the true landmark of each object.
+    """
+    if scenario.discovery is None:
+        raise ValueError("gated_oracle_result: needs an unknown map (discovery)")
+    _truth(scenario)
+    slot: dict[object, int] = {}
+    last: dict[int, int] = {}
+    landmark: dict[int, int] = {}
+    assoc: list[list[int]] = []
+    for k, step in enumerate(scenario.steps):
+        row = []
+        for d in step.detections:
+            assert d.true_object is not None  # checked by _truth
+            o = int(d.true_object)
+            key: object = ("late", o) if ("late", o) in slot or (o in last and k - last[o] > gap) else o
+            s = slot.setdefault(key, len(slot))
+            landmark[s] = o
+            if key == o:
+                last[o] = k
+            row.append(s)
+        assoc.append(row)
+    n = scenario.discovery.max_objects
+    if len(slot) > n:
+        raise ValueError(f"gated_oracle_result: {len(slot)} objects, more than discovery.max_objects = {n}")
+    classes = [-1] * n
+    for s, o in landmark.items():
+        classes[s] = int(scenario.true_objects[o][1]) if scenario.true_objects is not None else -1
+    pose = jax.numpy.asarray(scenario.robot_prior_mean, dtype=float)
+    steps = []
+    for k, step in enumerate(scenario.steps):
+        pose = se2.compose(pose, jax.numpy.asarray(step.odometry, dtype=float))
+        steps.append(StepRecord(k + 1, [ComponentRecord(1.0, assoc[: k + 1], classes, np.asarray(pose), 0.01 * np.eye(3))],
+                                {"entropy": 0.0, "det_cov": 1e-4, "num_components": 1}))
+    return Result("true associations, re-detections after the gap as new objects", steps), landmark

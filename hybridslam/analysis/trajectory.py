@@ -142,7 +142,8 @@ def smoothed_trajectory_from_result(result: Result) -> tuple[np.ndarray, np.ndar
 def error_summary(result: Result, scenario: Scenario) -> dict[str, float]:
     """Translation errors of a run against the scenario's ground truth (m): ``ape_online`` (APE mean of
     the online ``x_k``), ``rpe_online`` (RPE mean, 1 frame), ``final`` (the last pose), and, with a
-    smoothed trajectory, ``ape_smoothed`` and ``rpe_smoothed`` (left out if it is not finite). Empty
+    smoothed trajectory, ``ape_smoothed``, ``rpe_smoothed`` and ``final_smoothed`` (its last pose; left
+    out if it is not finite). Empty
     without ground truth or with a non-finite online estimate."""
     if scenario.true_robot_poses is None or not result.steps:
         return {}
@@ -157,6 +158,7 @@ def error_summary(result: Result, scenario: Scenario) -> dict[str, float]:
     smoothed = smoothed_trajectory_from_result(result)
     if smoothed is not None and np.all(np.isfinite(smoothed[1])):
         out["ape_smoothed"] = float(np.mean(ape(truth, smoothed[1]).translation))
+        out["final_smoothed"] = float(np.linalg.norm(smoothed[1][-1, :2] - truth[-1, :2]))
         if truth.shape[0] > 1:
             out["rpe_smoothed"] = float(np.mean(rpe(truth, smoothed[1]).translation))
     return out

@@ -8,6 +8,7 @@
     hybridslam demo [-o runs/demo] [--tracks 4] [--steps 10]
     hybridslam hallway -o runs/hallway [--levels ...] [--seeds 5] [--steps 60] [--known-map]
     hybridslam import mrclam DATASET_DIR --robot N -o FILE [--start S] [--duration D] [--unknown-map]
+    hybridslam close-loops scenario.json result.json -o closed.json [--revisit-log-odds X]
 
 Every user error (bad option, missing or malformed file, invalid setting, unwritable output) ends
 with exit status 2 and one line ``hybridslam: error: <message>`` on stderr. Compiled steps are kept
@@ -21,7 +22,7 @@ import sys
 from collections.abc import Sequence
 
 from ..io.scenario import ScenarioError
-from . import cache, demo, importers, run, simulate, sweep
+from . import cache, demo, importers, loops, run, simulate, sweep
 from .common import PROG, CLIError, Parser
 from .tables import alpha_summary as alpha_summary
 from .tables import summary_table as summary_table
@@ -32,12 +33,13 @@ __all__ = ["CLIError", "alpha_summary", "build_parser", "main", "summary_table"]
 def build_parser() -> argparse.ArgumentParser:
     parser = Parser(prog=PROG, description="Semantic SLAM with ambiguous data association.")
     sub = parser.add_subparsers(dest="command", required=True,
-                                metavar="{simulate,run,demo,sweep,plot,hallway,import}")
+                                metavar="{simulate,run,demo,sweep,plot,hallway,import,close-loops}")
     simulate.add_parsers(sub)
     run.add_parser(sub)
     demo.add_parser(sub)
     sweep.add_parsers(sub)
     importers.register(sub)
+    loops.add_parser(sub)
     return parser
 
 

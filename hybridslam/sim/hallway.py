@@ -174,7 +174,8 @@ def hallway(
 
     ``steps`` defaults to one loop (``setup.loop_steps``); more steps keep driving the loop.
     ``known_map=False`` (default) writes an unknown map: ``objects`` empty, ``discovery`` with
-    ``max_objects = N + setup.discovery_margin`` and ``new_object_log_density`` of
+    ``max_objects = N + setup.discovery_margin`` (plus, beyond one loop, two slots per extra step and
+    at most ``N``: room for the duplicates an estimator that has not closed the loop makes) and ``new_object_log_density`` of
     :attr:`HallwaySetup.new_object_log_density`, ground truth in ``true_objects``.
     ``known_map=True`` lists the ``N`` landmarks as objects whose prior means are their true poses
     perturbed by ``N(0, diag(object_prior_var))`` (the prior is honest), uniform class priors.
@@ -214,7 +215,8 @@ def hallway(
     return Scenario(
         object_prior_means=np.zeros((0, 3)), object_prior_covs=np.zeros((0, 3, 3)),
         class_prior=np.zeros((0, m)),
-        discovery=Discovery(n + setup.discovery_margin, setup.new_object_log_density,
+        discovery=Discovery(n + setup.discovery_margin + min(2 * max(steps - setup.loop_steps, 0), n),
+                            setup.new_object_log_density,
                             setup.new_object_orientation_var),
         true_objects=tuple((p, int(c)) for p, c in zip(objects, classes)), **common,
     )

@@ -1,0 +1,86 @@
+"""The loop-closure pass (:mod:`hybridslam.estimators.loop_closure`) over a finished hallway study.
+
+For every estimator of the study and every scenario: the smoothed trajectory's last-pose error and
+APE before and after :func:`~hybridslam.estimators.loop_closure.close_loops`, and how many of its
+merges join two objects whose detections are mostly of the same true landmark (right) or not
+(wrong). Then the means per estimator.
+
+    python3 experiments/hallway_odometry_sweep.py -o runs/hallway_full --estimators ml,max-mixture
+    python3 scripts/close_hallway_loops.py runs/hallway_full [--revisit-log-odds 5]
+
+``--gated-oracle`` judges the back end apart from the front end: on each scenario of the study, the
+true associations except that landmarks re-detected after ``--gap`` steps are new objects
+(:func:`hybridslam.analysis.consistency.gated_oracle_result`, what a gated one-step association
+that made no other mistake leaves at the loop), then the same pass.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import os
+
+import jax
+import numpy as np
+
+from hybridslam.analysis import consistency
+from hybridslam.analysis.trajectory import error_summary
+from hybridslam.estimators.loop_closure import LoopClosureSettings, close_loops
+from hybridslam.io.result import load_result
+from hybridslam.io.scenario import load_scenario
+
+jax.config.update("jax_enable_x64", True)
+
+
+def landmark_of(scenario, result) -> dict[int, int]:
+    """Per object of the result's final top component, the true landmark most of its detections are of."""
+    votes: dict[int, list[int]] = {}
+    top = result.steps[-1].components[0]
+    for j, step in enumerate(scenario.steps):
+        for i, d in enumerate(step.detections):
+            votes.setdefault(int(top.associations[j][i]), []).append(d.true_object)
+    return {s: max(set(v), key=v.count) for s, v in votes.items()}
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("folder", help="a finished hallway study (scenarios/, results/<estimator>/)")
+    parser.add_argument("--revisit-log-odds", type=float, default=0.0)
+    parser.add_argument("--gap", type=int, default=20)
+    parser.add_argument("--gated-oracle", action="store_true",
+                        help="the true associations with late re-detections as new objects, not the study's results")
+    args = parser.parse_args(argv)
+    settings = LoopClosureSettings(gap=args.gap, revisit_log_odds=args.revisit_log_odds)
+    print(f"{'estimator':<12} {'scenario':<28} {'last before':>11} {'after':>6} {'APE before':>10} {'after':>6} "
+          f"{'right':>5} {'wrong':>5}")
+    scenarios = sorted(glob.glob(os.path.join(args.folder, "scenarios", "*.json")))
+    estimators = ["gated-oracle"] if args.gated_oracle else sorted(os.listdir(os.path.join(args.folder, "results")))
+    for est in estimators:
+        rows = []
+        for path in scenarios:
+            result_path = os.path.join(args.folder, "results", est, os.path.basename(path))
+            if not (args.gated_oracle or os.path.exists(result_path)):
+                continue
+            scenario = load_scenario(path)
+            if args.gated_oracle:
+                result, truth = consistency.gated_oracle_result(scenario, args.gap)
+                # "before": the same graph re-solved with nothing merged
+                result, _ = close_loops(scenario, result, LoopClosureSettings(gap=args.gap, threshold=1e9))
+            else:
+                result = load_result(result_path)
+                truth = landmark_of(scenario, result)
+            closed, report = close_loops(scenario, result, settings)
+            right = sum(truth[a] == truth[b] for c in report.closures for a, b in c.merges)
+            before, after = error_summary(result, scenario), error_summary(closed, scenario)
+            row = (before["final_smoothed"], after["final_smoothed"], before["ape_smoothed"], after["ape_smoothed"],
+                   right, report.merged - right)
+            rows.append(row)
+            print(f"{est:<12} {os.path.basename(path):<28} {row[0]:11.2f} {row[1]:6.2f} {row[2]:10.2f} {row[3]:6.2f} "
+                  f"{row[4]:5d} {row[5]:5d}", flush=True)
+        r = np.array(rows)
+        print(f"{est:<12} {'mean over ' + str(len(rows)):<28} {r[:, 0].mean():11.2f} {r[:, 1].mean():6.2f} "
+              f"{r[:, 2].mean():10.2f} {r[:, 3].mean():6.2f} {int(r[:, 4].sum()):5d} {int(r[:, 5].sum()):5d}")
+
+
+if __name__ == "__main__":
+    main()
