@@ -99,6 +99,7 @@ def test_report_of_the_truth_itself(scenario):
         scenario, report.audit.first_redetection - 1)))
 
 
+@pytest.mark.slow  # 60 smoother solves of a 60-step hallway; the suite's time
 def test_with_the_true_associations_the_smoother_meets_the_bound():
     """The full smoother given the true associations reports the Cramér-Rao heading sd (the
     Laplace marginal at the MAP against the Fisher information at the truth: equal up to the

@@ -169,6 +169,7 @@ def test_step_with_learned_model(fitted, two_steps):
     np.testing.assert_allclose(float(w.sum()), 1.0, rtol=1e-12)
 
 
+@pytest.mark.slow  # a minute-scale compile of its own; the suite's time
 def test_scenario_key_and_relative_path(model_file, two_steps, tmp_path, monkeypatch):
     """``{"model": "learned", "path": ...}``: relative to the scenario file, round trip, a run."""
     folder = tmp_path / "scenarios"

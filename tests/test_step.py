@@ -142,7 +142,7 @@ def test_unexplainable_detection_falls_back_to_likelihood(scenario, key):
     np.testing.assert_allclose(new.weights[new.alive].sum(), 1.0)
 
 
-@pytest.mark.parametrize("weights", ["sampled", "linearized"])
+@pytest.mark.parametrize("weights", [pytest.param("sampled", marks=pytest.mark.slow), "linearized"])
 def test_viewpoint_dependent_model_lowers_entropy(weights):
     """The paper's Fig. 5a at alpha = 0.25: with the mirror model the association entropy after 10
     steps is lower than with geometry only, averaged over tracks. Sampled weights use the paper's
