@@ -51,6 +51,7 @@ def test_make_classifier_and_model_from_scenario_build_it():
         hs.model_from_scenario(scenario, "confusion")
 
 
+@pytest.mark.slow  # a whole run's compile; the suite's time
 def test_hybrid_run_realizes_the_detected_label():
     """Every detection says class 1 (a one-hot score vector); with a 90%-accurate matrix and a uniform
     prior the best component realizes class 1 for every detected object."""

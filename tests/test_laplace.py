@@ -3,6 +3,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from jax.scipy.stats import multivariate_normal as mvn
 from jax.scipy.stats import norm
 
@@ -83,6 +84,7 @@ def test_laplace_is_weights_are_stable_across_seeds(scenario):
     assert np.mean(tvs) < 0.03 and max(tvs) < 0.1, tvs
 
 
+@pytest.mark.slow  # half a minute of compiles; the suite's time
 def test_ess_diagnostic_exposes_the_paper_estimator_under_the_broad_prior(scenario):
     """Step 1 from Σ_p = diag(100, 100, 0.04): the paper's weights rest on ~1 draw of n_s, the
     Laplace-IS weights on most of theirs."""

@@ -158,6 +158,7 @@ def two_steps() -> hs.Scenario:
 SETTINGS = {"capacity": 4, "samples": 32, "max_detections": 2, "weights": "sampled"}
 
 
+@pytest.mark.slow  # a step's compile with the MLP inside; the suite's time
 def test_step_with_learned_model(fitted, two_steps):
     estimator = hs.make_estimator("hybrid", classifier=fitted, **SETTINGS)
     belief = estimator.init(two_steps)

@@ -64,20 +64,20 @@ from .gaussian import chi2_gate
 
 @dataclasses.dataclass(frozen=True)
 class LoopClosureSettings:
-    """``gap``: steps between an old object's last detection and a late object's first (default 20);
-    ``gate``: squared Mahalanobis distance of a candidate pair's position difference (default 25,
-    wide: the pass is about drift of several sd); ``candidates``: old objects kept per late object
+    """``gap``: steps between an old object's last detection and a late object's first (default
+    20); ``gate``: squared Mahalanobis distance of a candidate pair's position difference (default
+    25, wide: the pass is about drift of several sd); ``candidates``: old objects kept per late object
     (default 8); ``beam``: partial joint assignments kept (default 256); ``threshold``: the least log
-    posterior odds to accept (default 0: more likely closed than not); ``revisit_log_odds``: the prior
-    log odds, per merge, that a late object is an old one rather than new (default 0: the
+    posterior odds to accept (default 0: more likely closed than not); ``revisit_log_odds``: the
+    prior log odds, per merge, that a late object is an old one rather than new (default 0: the
     estimators' own model, in which a detection is a new object or a known one with no prior
     preference; a positive value says the robot expects to revisit, e.g. once the map is complete);
-    ``verify_probability`` (default
-    0.999) and ``tries`` (default 8): the sets re-solved and verified per round;
-    ``reopen`` (default True): first undo the run's own loop closures, so that the search decides
-    them jointly with the rest (module docstring); ``detection_probability`` (default 0.9; 0 leaves negative information out) and ``fov_margin``
-    (default 0.5 m, 0.2 rad) of the negative-information term; ``max_rounds`` (default 5); ``max_steps``: Levenberg-Marquardt iterations per solve
-    (default 100)."""
+    ``verify_probability`` (default 0.999) and ``tries`` (default 8): the sets re-solved and
+    verified per round; ``reopen`` (default True): first undo the run's own loop closures, so that
+    the search decides them jointly with the rest (module docstring); ``detection_probability``
+    (default 0.9; 0 leaves negative information out) and ``fov_margin`` (default 0.5 m, 0.2 rad) of
+    the negative-information term; ``max_rounds`` (default 5); ``max_steps``: Levenberg-Marquardt
+    iterations per solve (default 100)."""
 
     gap: int = 20
     gate: float = 25.0
@@ -116,7 +116,8 @@ class LoopClosureSettings:
 @dataclasses.dataclass(frozen=True)
 class Closure:
     """One accepted round: ``merges`` ``(late, old)`` object pairs (indices of the run's final
-    component before the pass), its log Bayes factor and the smoother cost before and after."""
+    component before the pass), its score (``log_bayes_factor``: log posterior odds against no
+    merge, the negative-information term included) and the smoother cost before and after."""
 
     merges: tuple[tuple[int, int], ...]
     log_bayes_factor: float
