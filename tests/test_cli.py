@@ -47,6 +47,7 @@ def test_simulate_writes_loadable_scenario(scenario_path):
     assert s == hs.simulate(0, steps=3, alpha=0.25, K=15.0)
 
 
+@pytest.mark.slow  # half a minute of compile; the README test runs the same command
 def test_run_prints_table_and_writes_result(scenario_path, tmp_path, capsys):
     out = tmp_path / "result.json"
     assert cli.main(["run", scenario_path, "-o", str(out), *SMALL]) == 0

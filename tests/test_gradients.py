@@ -205,6 +205,7 @@ def _finite_differences(program, p, q):
     return labels, np.stack(fd), program.jacobian(p, q, tangents)
 
 
+@pytest.mark.slow  # the two programs compile for a minute (the fixture); the suite's time
 @pytest.mark.parametrize("weights", list(PROGRAMS))
 def test_gradients_match_finite_differences(programs, weights):
     """Relative error ≤ 1e-3 on every (input entry, functional) pair; a derivative much smaller than the
@@ -225,6 +226,7 @@ def test_gradients_match_finite_differences(programs, weights):
         assert np.any(np.abs(fd[rows]) > 1e-4), name
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("temperature", [(0.3, 0.05), (0.0, 0.0)], ids=["smooth", "hard"])
 def test_gradients_are_finite_on_the_paper_setup(programs, temperature):
     p, q = _paper_scene(temperature)
@@ -236,6 +238,7 @@ def test_gradients_are_finite_on_the_paper_setup(programs, temperature):
         assert np.any(jac != 0.0), weights
 
 
+@pytest.mark.slow
 def test_smooth_visibility_explains_what_the_hard_model_cannot(programs):
     """Two detections but one object in view: no hypothesis is possible under the 0/1 model (the step
     falls back to ignoring visibility); the smooth model weighs every hypothesis, with finite gradients.
