@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> None:
             if args.gated_oracle:
                 result, truth = consistency.gated_oracle_result(scenario, args.gap)
                 # "before": the same graph re-solved with nothing merged
-                result, _ = close_loops(scenario, result, LoopClosureSettings(gap=args.gap, threshold=1e9))
+                result, _ = close_loops(scenario, result, LoopClosureSettings(gap=args.gap, max_rounds=0))
             else:
                 result = load_result(result_path)
                 truth = landmark_of(scenario, result)

@@ -62,6 +62,36 @@ def test_the_beam_search_with_room_for_everything_is_the_brute_force_maximum():
     assert dropped > 0
 
 
+def test_candidates_are_the_gated_pairs_of_a_direct_loop():
+    rng = np.random.default_rng(4)
+    num, n = 10, 12
+    history = np.full((50, 3), -1, dtype=np.int32)
+    for o in range(num):
+        for k in rng.choice(50, size=rng.integers(1, 4), replace=False):
+            history[k, rng.integers(3)] = o
+    j = rng.standard_normal((60, 3 + 3 * n))
+    cov, mean = 5.0 * np.linalg.inv(j.T @ j), 2.0 * rng.standard_normal(3 + 3 * n)
+    classes = rng.integers(-1, 2, size=n)
+    settings = lc.LoopClosureSettings(gap=5, gate=30.0)
+    steps = [np.flatnonzero((history == o).any(axis=1)) for o in range(num)]
+    expected = {}
+    for a in range(num):
+        near = []
+        for b in range(num):
+            if not (steps[b][0] < steps[a][0] and steps[a][0] - steps[b][-1] > settings.gap):
+                continue
+            if min(classes[a], classes[b]) >= 0 and classes[a] != classes[b]:
+                continue
+            pa, pb = slice(3 + 3 * a, 5 + 3 * a), slice(3 + 3 * b, 5 + 3 * b)
+            d = mean[pa] - mean[pb]
+            s = cov[pa, pa] + cov[pb, pb] - cov[pa, pb] - cov[pb, pa]
+            if d @ np.linalg.solve(s, d) < settings.gate:
+                near.append((d @ np.linalg.solve(s, d), b))
+        if near:
+            expected[a] = [b for _, b in sorted(near)][: settings.candidates]
+    assert expected and lc.candidates(mean, cov, history, classes, num, settings) == expected
+
+
 GAP = 10
 
 

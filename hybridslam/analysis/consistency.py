@@ -222,16 +222,8 @@ def true_association_smoother(scenario: Scenario, max_steps: int = 50) -> Oracle
             history[j, i] = slot
         created[j + 1] = scenario.num_objects if known else len(slot_of)
     n = scenario.num_objects if known else max(len(slot_of), 1)
-    log = smoothing.data_log(scenario, t, dmax, n)
-    geo = np.zeros((t, dmax, 2))
-    scores = np.zeros((t, dmax, scenario.num_classes))
-    mask = np.zeros((t, dmax), bool)
-    for j, step in enumerate(scenario.steps):
-        for i, d in enumerate(step.detections):
-            geo[j, i], scores[j, i], mask[j, i] = (d.range, d.bearing), d.scores, True
-    odometry = np.array([s.odometry for s in scenario.steps], dtype=float).reshape(t, 3)
-    log = dataclasses.replace(log, odometry=jax.numpy.asarray(odometry), geo=jax.numpy.asarray(geo),
-                              scores=jax.numpy.asarray(scores), mask=jax.numpy.asarray(mask))
+    log = smoothing.scenario_log(scenario, n)
+    odometry = np.asarray(log.odometry)
     factors = smoothing.history_factors(jax.numpy.asarray(history))
     model = model_from_scenario(scenario.replace(discovery=None) if not known else scenario)
 

@@ -47,6 +47,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Sequence
+from statistics import NormalDist
 
 import equinox as eqx
 import jax
@@ -76,7 +77,7 @@ class LoopClosureSettings:
     verified per round; ``reopen`` (default True): first undo the run's own loop closures, so that
     the search decides them jointly with the rest (module docstring); ``detection_probability``
     (default 0.9; 0 leaves negative information out) and ``fov_margin`` (default 0.5 m, 0.2 rad) of
-    the negative-information term; ``max_rounds`` (default 5); ``max_steps``: Levenberg-Marquardt
+    the negative-information term; ``max_rounds`` (default 5; 0: only re-solve the graph); ``max_steps``: Levenberg-Marquardt
     iterations per solve (default 100)."""
 
     gap: int = 20
@@ -95,9 +96,9 @@ class LoopClosureSettings:
 
     def __post_init__(self):
         for name in ("gap", "candidates", "beam", "max_rounds", "tries", "max_steps"):
-            v = getattr(self, name)
-            if not (isinstance(v, int) and not isinstance(v, bool) and v >= (0 if name == "gap" else 1)):
-                raise ValueError(f"LoopClosureSettings.{name}: expected a {'non-negative' if name == 'gap' else 'positive'}"
+            v, least = getattr(self, name), 0 if name in ("gap", "max_rounds") else 1
+            if not (isinstance(v, int) and not isinstance(v, bool) and v >= least):
+                raise ValueError(f"LoopClosureSettings.{name}: expected a {'non-negative' if least == 0 else 'positive'}"
                                  f" int, got {v!r}")
         if not math.isfinite(self.revisit_log_odds):
             raise ValueError(f"LoopClosureSettings.revisit_log_odds: expected a finite number, got {self.revisit_log_odds!r}")
@@ -170,28 +171,19 @@ class _Problem:
 
 
 def _problem(scenario: Scenario, component: ComponentRecord) -> _Problem:
-    t, dmax = scenario.num_steps, max(scenario.max_detections, 1)
-    history = np.full((t, dmax), -1, dtype=np.int32)
-    geo = np.zeros((t, dmax, 2))
-    scores = np.zeros((t, dmax, scenario.num_classes))
-    mask = np.zeros((t, dmax), bool)
+    classes = np.asarray(component.classes, dtype=np.int64)
+    log = smoothing.scenario_log(scenario, len(classes))
+    history = np.full(log.mask.shape, -1, dtype=np.int32)
     for j, step in enumerate(scenario.steps):
         assoc = np.asarray(component.associations[j], dtype=np.int64)
         if assoc.shape[0] != len(step.detections):
             raise ValueError(f"result: step {j + 1} lists {assoc.shape[0]} associations for "
                              f"{len(step.detections)} detections of the scenario")
-        for i, d in enumerate(step.detections):
-            geo[j, i], scores[j, i], mask[j, i] = (d.range, d.bearing), d.scores, True
-            history[j, i] = assoc[i]
-    classes = np.asarray(component.classes, dtype=np.int64)
-    n = len(classes)
-    if history.max(initial=-1) >= n:
-        raise ValueError(f"result: an association names object {history.max()}, but the component has {n} classes")
-    log = smoothing.data_log(scenario, t, dmax, n)
-    odometry = np.array([s.odometry for s in scenario.steps], dtype=float).reshape(t, 3)
-    log = dataclasses.replace(log, odometry=jnp.asarray(odometry), geo=jnp.asarray(geo),
-                              scores=jnp.asarray(scores), mask=jnp.asarray(mask))
-    return _Problem(scenario, log, history, classes, geo)
+        history[j, : assoc.shape[0]] = assoc
+    if history.max(initial=-1) >= len(classes):
+        raise ValueError(f"result: an association names object {history.max()}, but the component has "
+                         f"{len(classes)} classes")
+    return _Problem(scenario, log, history, classes, np.asarray(log.geo))
 
 
 def _compact(history: np.ndarray, classes: np.ndarray, merges: dict[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -233,54 +225,61 @@ class _Solver:
         return tuple(np.asarray(x) for x in out[:5]) + (bool(out[5]),)
 
 
+def _span(history: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per object (``n``): the step of its first and of its last detection (-1: none), and the flat
+    index ``j * Dmax + i`` of its first detection (-1: none)."""
+    flat = history.ravel()
+    seen = np.flatnonzero(flat >= 0)  # row-major: in time order
+    objects, at = np.unique(flat[seen], return_index=True)
+    creating = np.full(n, -1)
+    creating[objects] = seen[at]
+    last = np.full(n, -1)
+    np.maximum.at(last, flat[seen], seen // history.shape[1])
+    first = np.where(creating >= 0, creating // history.shape[1], -1)
+    return first, last, creating
+
+
 def _initial_objects(problem: _Problem, history: np.ndarray, poses: np.ndarray) -> np.ndarray:
     """Each object back-projected from its first detection at ``poses`` (``x_{j+1}`` for step ``j``)."""
     n = len(problem.classes)
+    _, _, creating = _span(history, n)
+    has = creating >= 0
+    j = creating[has] // history.shape[1]
+    r, b = problem.geo.reshape(-1, 2)[creating[has]].T
+    x = poses[j + 1]
     objects = np.zeros((n, 3))
-    seen = np.zeros(n, bool)
-    for j, i in zip(*np.nonzero(history >= 0)):
-        s = history[j, i]
-        if not seen[s]:
-            r, b = problem.geo[j, i]
-            x = poses[j + 1]
-            objects[s, :2] = x[:2] + r * np.array([math.cos(x[2] + b), math.sin(x[2] + b)])
-            seen[s] = True
+    objects[has, 0] = x[:, 0] + r * np.cos(x[:, 2] + b)
+    objects[has, 1] = x[:, 1] + r * np.sin(x[:, 2] + b)
     return objects
 
 
-def _span(history: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per object: the step of its first and of its last detection (-1: none)."""
-    first = np.full(n, -1)
-    last = np.full(n, -1)
-    for j, i in zip(*np.nonzero(history >= 0)):
-        s = history[j, i]
-        if first[s] < 0:
-            first[s] = j
-        last[s] = j
-    return first, last
+def _creating_ranges(geo: np.ndarray, history: np.ndarray, n: int) -> np.ndarray:
+    """Per object, the range (m) of the detection that created it (1 where none)."""
+    _, _, creating = _span(history, n)
+    return np.where(creating >= 0, geo[..., 0].ravel()[np.maximum(creating, 0)], 1.0)
 
 
 def candidates(
     mean: np.ndarray, cov: np.ndarray, history: np.ndarray, classes: np.ndarray, num: int, settings: LoopClosureSettings,
 ) -> dict[int, list[int]]:
     """Per late object, its gated old objects, nearest first (module docstring; ``num`` objects in use)."""
-    first, last = _span(history, num)
-    pos = lambda s: slice(3 + 3 * s, 5 + 3 * s)  # noqa: E731
+    first, last, _ = _span(history, num)
+    idx = 3 + 3 * np.arange(num)[:, None] + np.arange(2)  # (num, 2): each object's x, y in [x_T, objects]
+    p = mean[idx]
+    c = cov[idx[:, :, None, None], idx[None, None]]  # (a, 2, b, 2)
+    block = np.einsum("aiaj->aij", c)
+    cross = c.transpose(0, 2, 1, 3)  # (a, b, 2, 2): Cov(p_a, p_b)
+    s = block[:, None] + block[None, :] - cross - cross.transpose(1, 0, 2, 3)  # ... − Cov(p_b, p_a)
+    d = p[:, None] - p[None, :]
+    ok = (last[None, :] >= 0) & (first[:, None] - last[None, :] > settings.gap) & (first[None, :] < first[:, None])
+    ok &= (classes[:num, None] < 0) | (classes[None, :num] < 0) | (classes[:num, None] == classes[None, :num])
+    s = np.where(ok[..., None, None], s, np.eye(2))  # pairs left out: any invertible matrix
+    d2 = np.einsum("abi,abi->ab", d, np.linalg.solve(s, d[..., None])[..., 0])
+    ok &= d2 < settings.gate
     out: dict[int, list[int]] = {}
-    for a in range(num):
-        scored = []
-        for b in range(num):
-            if last[b] < 0 or first[a] - last[b] <= settings.gap or first[b] >= first[a]:
-                continue
-            if classes[a] >= 0 and classes[b] >= 0 and classes[a] != classes[b]:
-                continue
-            d = mean[pos(a)] - mean[pos(b)]
-            s = cov[pos(a), pos(a)] + cov[pos(b), pos(b)] - cov[pos(a), pos(b)] - cov[pos(b), pos(a)]
-            d2 = float(d @ np.linalg.solve(s, d))
-            if d2 < settings.gate:
-                scored.append((d2, b))
-        if scored:
-            out[a] = [b for _, b in sorted(scored)[: settings.candidates]]
+    for a in np.flatnonzero(ok.any(axis=1)):
+        near = np.flatnonzero(ok[a])
+        out[int(a)] = [int(b) for b in near[np.argsort(d2[a, near], kind="stable")][: settings.candidates]]
     return out
 
 
@@ -417,12 +416,8 @@ def _chi2(dof: int, probability: float) -> float:
     """The chi-square ``probability`` quantile with ``dof`` degrees of freedom (Wilson-Hilferty; exact for 2)."""
     if dof == 2:
         return chi2_gate(probability)
-    z = math.sqrt(2.0) * _erfinv(2.0 * probability - 1.0)
+    z = NormalDist().inv_cdf(probability)
     return dof * (1.0 - 2.0 / (9.0 * dof) + z * math.sqrt(2.0 / (9.0 * dof))) ** 3
-
-
-def _erfinv(y: float) -> float:
-    return float(jax.scipy.special.erfinv(jnp.asarray(y)))
 
 
 def _pad(objects: np.ndarray, n: int) -> np.ndarray:
@@ -435,17 +430,6 @@ def _pad_index(index: np.ndarray, n: int) -> np.ndarray:
     out = np.full(n, -1, dtype=np.int64)
     out[: len(index)] = index
     return out
-
-
-def _creating_ranges(geo: np.ndarray, history: np.ndarray, n: int) -> np.ndarray:
-    """Per object, the range (m) of the detection that created it."""
-    ranges = np.ones(n)
-    seen = np.zeros(n, bool)
-    for j, i in zip(*np.nonzero(history >= 0)):
-        s = history[j, i]
-        if not seen[s]:
-            ranges[s], seen[s] = geo[j, i, 0], True
-    return ranges
 
 
 def _online_trajectory(scenario: Scenario, result: Result) -> np.ndarray:

@@ -46,7 +46,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from ..inference import smoother as sm
-from ..io.scenario import Scenario
+from ..io.scenario import Scenario, stack_steps
 from ..models.measurement import Detections, SensorModel
 
 
@@ -147,6 +147,15 @@ def data_log(scenario: Scenario, max_steps: int, max_detections: int, max_object
         scores=jnp.zeros((max_steps, max_detections, m)), mask=jnp.zeros((max_steps, max_detections), bool),
         prior_mean=f(mean), prior_sqrt_info=f(info_sqrt),
     )
+
+
+def scenario_log(scenario: Scenario, max_objects: int) -> DataLog:
+    """:func:`data_log` with every step of ``scenario`` already recorded (a whole run, for batch
+    solves after the fact: the oracle smoother, the loop-closure pass)."""
+    stacked = stack_steps(scenario)
+    log = data_log(scenario, scenario.num_steps, stacked.mask.shape[1], max_objects)
+    return eqx.tree_at(lambda d: (d.odometry, d.geo, d.scores, d.mask), log,
+                       tuple(jnp.asarray(a) for a in (stacked.odometry, stacked.geo, stacked.scores, stacked.mask)))
 
 
 class WindowPrior(eqx.Module):

@@ -175,8 +175,9 @@ def hallway(
     ``steps`` defaults to one loop (``setup.loop_steps``); more steps keep driving the loop.
     ``known_map=False`` (default) writes an unknown map: ``objects`` empty, ``discovery`` with
     ``max_objects = N + setup.discovery_margin`` (plus, beyond one loop, two slots per extra step and
-    at most ``N``: room for the duplicates an estimator that has not closed the loop makes) and ``new_object_log_density`` of
-    :attr:`HallwaySetup.new_object_log_density`, ground truth in ``true_objects``.
+    at most ``N``: room for the duplicates an estimator that has not closed the loop makes) and
+    ``new_object_log_density`` of :attr:`HallwaySetup.new_object_log_density`, ground truth in
+    ``true_objects``.
     ``known_map=True`` lists the ``N`` landmarks as objects whose prior means are their true poses
     perturbed by ``N(0, diag(object_prior_var))`` (the prior is honest), uniform class priors.
     """
