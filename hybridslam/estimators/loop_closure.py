@@ -328,7 +328,9 @@ def close_loops(scenario: Scenario, result: Result, settings: LoopClosureSetting
     Needs an unknown map (``discovery``: a known map has no late objects to merge) and a result of
     this scenario (associations of every step). The returned result differs from ``result`` only in
     its last step's top component (associations, classes), its ``trajectory`` and ``objects`` and its
-    ``estimator`` text; with nothing merged it still carries the re-solved trajectory and objects.
+    ``estimator`` text. With nothing merged or re-opened, a result that has a ``trajectory`` is returned as
+    it is (this pass's graph is geometric only, the run's may be richer); one without (a filter's)
+    gets the re-solved trajectory and objects.
     """
     if scenario.discovery is None:
         raise ValueError("close_loops: the scenario has a known map (no discovery); there are no new objects to merge")
@@ -384,6 +386,8 @@ def close_loops(scenario: Scenario, result: Result, settings: LoopClosureSetting
         history, classes, origin = h2, c2, _pad_index(origin[used], len(classes))
         poses, objects, cost, mean, cov, num = p2, o2, cost2, mean2, cov2, len(used)
     report = LoopClosureReport(tuple(closures), considered, dropped, rejected, failed, reopened)
+    if not closures and not reopened and result.trajectory is not None:
+        return result, report  # nothing changed: the run's own smoother (its factors, its window) stands
     return _rewrite(result, history, classes, poses, objects, num, report), report
 
 
