@@ -132,7 +132,7 @@ def test_structured_eliminations_match_the_dense_solve():
 def test_marginal_is_the_block_of_the_inverse_hessian(solve, k):
     graph = _graph(np.random.default_rng(3))
     sol = solve(graph, jnp.zeros((P, 3)), jnp.zeros((N, 3)))
-    mean, cov = sm.marginal(graph, sol, k)
+    mean, cov = sm.marginal(sol, k)
     _, full = _least_squares(graph)
     idx = np.concatenate([np.arange(3 * k, 3 * k + 3), 3 * P + np.arange(3 * N)])
     np.testing.assert_allclose(np.asarray(cov), full[np.ix_(idx, idx)], rtol=1e-8, atol=1e-12)
@@ -217,9 +217,8 @@ def test_max_mixture_picks_the_component_that_explains_the_data():
     np.testing.assert_allclose(np.asarray(out.objects), np.asarray(ref.objects), atol=1e-7)
 
 
-def test_nonlinear_graph_converges_to_a_stationary_point():
-    """Range-bearing factors and SE(2) odometry: LM converges and the gradient vanishes there."""
-    rng = np.random.default_rng(6)
+def _nonlinear_graph(rng):
+    """Range-bearing factors and SE(2) odometry around a true trajectory: (graph, truth, objects)."""
     true_poses = np.cumsum(np.tile([[1.0, 0.0, 0.1]], (P, 1)), axis=0)
     objects = np.array([[3.0, 4.0, 0.0], [6.0, -3.0, 0.0], [1.0, -5.0, 0.0]])
     base = _graph(rng, linear=False)
@@ -233,6 +232,13 @@ def test_nonlinear_graph_converges_to_a_stationary_point():
                               "meas_data": jnp.asarray(z), "odometry": jnp.asarray(odo),
                               "meas_log_weight": jnp.where(jnp.arange(G) == 0, 0.0, -jnp.inf)[None].repeat(F, 0),
                               "prior_mean": jnp.concatenate([jnp.asarray(true_poses[0]), jnp.asarray(objects).reshape(-1)])})
+    return graph, true_poses, objects
+
+
+def test_nonlinear_graph_converges_to_a_stationary_point():
+    """Range-bearing factors and SE(2) odometry: LM converges and the gradient vanishes there."""
+    rng = np.random.default_rng(6)
+    graph, true_poses, objects = _nonlinear_graph(rng)
     start = true_poses + rng.normal(size=(P, 3)) * 0.2
     out = sm.solve(graph, jnp.asarray(start), jnp.asarray(objects), max_steps=50)
     assert out.result == optx.RESULTS.successful
@@ -240,6 +246,26 @@ def test_nonlinear_graph_converges_to_a_stationary_point():
     assert float(jnp.max(jnp.abs(lin.grad_pose))) < 1e-6
     assert float(jnp.max(jnp.abs(lin.grad_object))) < 1e-6
     assert float(jnp.max(jnp.abs(out.poses[:, :2] - true_poses[:, :2]))) < 0.3
+
+
+def test_a_warm_start_ends_by_the_newton_decrement_at_the_strict_solution():
+    """A smoother step's solve (warm start: last step's solution, a new pose 30 cm off) stops once
+    a Gauss-Newton step's model gain is below ``cost_atol``: fewer iterates than without the test
+    (``cost_atol=0``), the same solution to 1e-7, and the linearization it returns is the one at its
+    solution (what ``marginal`` uses)."""
+    graph, true_poses, objects = _nonlinear_graph(np.random.default_rng(6))
+    out = sm.solve(graph, jnp.asarray(true_poses), jnp.asarray(objects), max_steps=50)
+    warm = out.poses.at[-1].add(jnp.array([0.3, -0.3, 0.06]))
+    fast = sm.solve(graph, warm, out.objects, max_steps=50)
+    strict = sm.solve(graph, warm, out.objects, max_steps=50, cost_atol=0.0)
+    assert fast.result == optx.RESULTS.successful and strict.result == optx.RESULTS.successful
+    assert int(fast.steps) < int(strict.steps)
+    np.testing.assert_allclose(np.asarray(fast.poses), np.asarray(strict.poses), atol=1e-7)
+    np.testing.assert_allclose(np.asarray(fast.objects), np.asarray(strict.objects), atol=1e-7)
+    assert 0.0 <= float(fast.cost - strict.cost) <= 1e-9
+    again = sm.linearize(graph, fast.poses, fast.objects)
+    for a, b in zip(jax.tree.leaves(fast.linearization), jax.tree.leaves(again)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-12)
 
 
 def test_bad_shapes_name_the_field(unchecked_types):

@@ -231,7 +231,7 @@ def true_association_smoother(scenario: Scenario, max_steps: int = 50) -> Oracle
     def solve(k, poses, objects, num_created):
         g = smoothing.graph(log, factors, k, num_created, model.sensor, model.motion_cov, semantic=False)
         sol = sm.solve(g, poses, objects, max_steps=max_steps)
-        mean, cov = sm.marginal(g, sol, k)
+        mean, cov = sm.marginal(sol, k)
         return sol.poses, sol.objects, mean[:3], cov[:3, :3], sol.result != optx.RESULTS.successful
 
     poses = np.tile(np.asarray(scenario.robot_prior_mean, float), (t + 1, 1))

@@ -208,7 +208,7 @@ def _solve_graph(log: smoothing.DataLog, model, history, poses, objects, num_cre
     g = smoothing.graph(log, smoothing.history_factors(history), jnp.asarray(t), num_created, model.sensor,
                         model.motion_cov, semantic=False)
     sol = sm.solve(g, poses, objects, max_steps=max_steps)
-    mean, cov = sm.marginal(g, sol, t)
+    mean, cov = sm.marginal(sol, t)
     return sol.poses, sol.objects, sol.cost, mean, cov, sol.result == optx.RESULTS.successful
 
 

@@ -58,9 +58,10 @@ class Filter(eqx.Module):
 
 class Full(eqx.Module):
     """The whole trajectory re-solved at every step (``max_steps`` Levenberg-Marquardt iterations at
-    most; warm-started, a step usually needs one to three, but the semantic factors of a strongly
-    viewpoint-dependent classifier make Gauss-Newton converge linearly and take up to ~15: see
-    :mod:`hybridslam.inference.smoother`)."""
+    most; warm-started, an ``ml`` hallway step takes 5.3 on average, the last two or three refining
+    the cost by less than 1e-6 nats down to the solver's 1e-9-nat tests, and the semantic factors of
+    a strongly viewpoint-dependent classifier make Gauss-Newton converge linearly and take up to
+    ~15: see :mod:`hybridslam.inference.smoother`)."""
 
     max_steps: int = eqx.field(default=20, static=True)
     name: ClassVar[str] = "full"
@@ -113,6 +114,7 @@ class DataLog(eqx.Module):
     mask: Bool[Array, "T Dmax"]
     prior_mean: Float[Array, " D0"]  # [x_0, o_0..o_{N-1}]
     prior_sqrt_info: Float[Array, "D0 D0"]
+    prior_info: Float[Array, "D0 D0"]  # RᵀR, formed once here rather than once per step
 
     def record(self, k: Int[Array, ""], odometry: Float[Array, "3"], detections: Detections) -> DataLog:
         """The log with step ``k + 1``'s inputs written in row ``k``."""
@@ -145,7 +147,7 @@ def data_log(scenario: Scenario, max_steps: int, max_detections: int, max_object
     return DataLog(
         odometry=jnp.zeros((max_steps, 3)), geo=jnp.zeros((max_steps, max_detections, 2)),
         scores=jnp.zeros((max_steps, max_detections, m)), mask=jnp.zeros((max_steps, max_detections), bool),
-        prior_mean=f(mean), prior_sqrt_info=f(info_sqrt),
+        prior_mean=f(mean), prior_sqrt_info=f(info_sqrt), prior_info=f(info_sqrt.T @ info_sqrt),
     )
 
 
@@ -223,7 +225,7 @@ def graph(
         meas_pose=flat(jnp.broadcast_to((steps + 1)[:, None], (t, dmax))),
         meas_objects=flat(factors.objects), meas_log_weight=flat(log_w), meas_null_log_weight=flat(null),
         meas_data=data, pose_active=jnp.arange(t + 1) <= k, object_active=jnp.arange(n) < num_created,
-        residual_fn=residual, mode=mode,
+        residual_fn=residual, mode=mode, prior_info=log.prior_info,
     )
 
 
@@ -293,7 +295,7 @@ def smooth(
     """
     start = poses.at[k].set(mean[:3])
     sol = sm.solve(g, start, mean[3:].reshape(-1, 3), max_steps=settings.max_steps)
-    m, c = sm.marginal(g, sol, k)
+    m, c = sm.marginal(sol, k)
     ok = jnp.all(jnp.isfinite(sol.poses)) & jnp.all(jnp.isfinite(m)) & jnp.all(jnp.isfinite(c))
     result = optx.RESULTS.where(ok, sol.result, optx.RESULTS.nonfinite)
     return Smoothed(jnp.where(ok, sol.poses, start), jnp.where(ok, m, mean), jnp.where(ok, c, cov), result)
@@ -324,7 +326,7 @@ def smooth_lag(
     prior = WindowPrior(jnp.where(slide, m_mean, window.mean), jnp.where(slide, m_sqrt, window.sqrt_info))
     g = window_graph(log, factors, k, new, length, num_created, sensor, motion_cov, semantic, mode, prior)
     sol = sm.solve(g, jax.lax.dynamic_slice_in_dim(start, new, length + 1), objects, max_steps=settings.max_steps)
-    m, c = sm.marginal(g, sol, k - new)
+    m, c = sm.marginal(sol, k - new)
     finite = lambda *a: jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in a]))  # noqa: E731
     ok = finite(sol.poses, m, c, prior.mean, prior.sqrt_info)
     result = optx.RESULTS.where(ok, sol.result, optx.RESULTS.nonfinite)
