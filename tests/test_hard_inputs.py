@@ -70,13 +70,15 @@ detection = st.tuples(
     st.floats(0.0, 1.0),  # score of class 0
     st.booleans(),  # repeat it
 )
-scenarios = st.builds(
-    _scenario,
+# The strategy draws plain values and the test builds the Scenario: built inside the strategy, the
+# code it runs changed the global `random` state during generation, which Hypothesis reports as a
+# deprecated use of `random` inside a strategy.
+scenario_args = st.fixed_dictionaries(dict(
     dets_per_step=st.lists(st.sampled_from([0, 0, 1, 2, 3, 12]), min_size=STEPS, max_size=STEPS),
     values=st.lists(detection, min_size=STEPS * 12, max_size=STEPS * 12),
     odometry_scale=st.sampled_from([0.3, 0.0, -2.0, 5.0]),  # the last two disagree with everything
     flat=st.booleans(), tiny_cov=st.booleans(), discovery=st.just(False), truth=st.booleans(),
-)
+))
 
 
 def _finite(obj) -> bool:
@@ -95,8 +97,9 @@ def _finite(obj) -> bool:
 # No shrinking: each example is a CLI run, and shrinking a failure would take longer than the suite.
 @settings(max_examples=2, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True,
           phases=(Phase.explicit, Phase.reuse, Phase.generate))
-@given(scenario=scenarios)
-def test_hard_files_end_in_a_result_or_one_line(estimator, scenario, tmp_path_factory, capsys):
+@given(args=scenario_args)
+def test_hard_files_end_in_a_result_or_one_line(estimator, args, tmp_path_factory, capsys):
+    scenario = _scenario(**args)
     if DISCOVERY[estimator]:
         scenario = dataclasses.replace(scenario, object_prior_means=scenario.object_prior_means[:0],
                                        object_prior_covs=scenario.object_prior_covs[:0],
