@@ -53,7 +53,7 @@ comes with it). Stops when ``max|δ| < state_tol`` (1 µm / 1 µrad by default, 
 the gain still to come, estimated from the observed rate, is below ``cost_atol`` (below), when the
 step just taken was (nearly, ``λ ≤ 1e-3``) Gauss-Newton's and its model gain ``L(0) − L(δ)`` is
 below ``cost_atol`` (the Newton decrement test: the quadratic model has less than that left to give,
-so the step is taken and nothing more is tried), or after ``max_steps`` iterations. The last test
+so the step is kept if it lowered the cost and nothing more is tried), or after ``max_steps`` iterations. The last test
 is what ends a warm-started solve: from the previous step's trajectory a hallway solve reached
 gains ``0.47, 2e-4, 4e-7, 1e-8, 1e-10`` nats and used to take one more iterate to see the relative
 test pass.
