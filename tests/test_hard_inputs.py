@@ -91,8 +91,9 @@ def _finite(obj) -> bool:
     return True
 
 
-# The mixtures' CLI compiles take a minute each: they run in the extended suite (marker `slow`, CI).
-@pytest.mark.parametrize("estimator", [pytest.param(e, marks=pytest.mark.slow) if e in ("hybrid", "multimodal") else e
+# Each estimator's CLI compiles take 20 s to a minute: `ml` runs in the quick suite, the others in the
+# extended suite (marker `slow`, CI).
+@pytest.mark.parametrize("estimator", [pytest.param(e, marks=pytest.mark.slow) if e != "ml" else e
                                        for e in ESTIMATORS])
 # No shrinking: each example is a CLI run, and shrinking a failure would take longer than the suite.
 @settings(max_examples=2, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True,

@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 from scipy.optimize import least_squares
 
 import hybridslam as hs
@@ -126,6 +127,7 @@ def _lag2(scenario):
     return hs.make_estimator("ml", smoother="lag:2", max_steps=STEPS, max_detections=max(scenario.max_detections, 1))
 
 
+@pytest.mark.slow  # its own lag:2 compiles, 20 s: the extended suite, CI
 def test_poses_that_left_the_window_keep_their_last_smoothed_value():
     """With ``Lag(2)`` pose ``j`` is last re-solved at step ``j + 2`` and marginalized at ``j + 3``."""
     scenario = hs.simulate(0, steps=STEPS)

@@ -97,6 +97,7 @@ def test_batched_run_equals_single_runs(tiny):
                 np.testing.assert_allclose(a.metrics[key], b.metrics[key], rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.slow  # two batch widths, 20 s of compiles: the extended suite, CI
 def test_wide_batches_run_as_slices(tiny, monkeypatch):
     """More tracks than MAX_TRACKS_PER_DEVICE: equal slices in sequence, same numbers."""
     scenarios = [hs.simulate(t, steps=3, alpha=0.4) for t in range(3)]
@@ -110,6 +111,7 @@ def test_wide_batches_run_as_slices(tiny, monkeypatch):
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.slow  # two batch widths, 20 s of compiles: the extended suite, CI
 def test_batches_too_big_for_memory_are_split(tiny, monkeypatch):
     """A batch whose compiled program needs more memory than the budget runs as smaller slices (halved
     until it fits, here down to one track each), with the same numbers, and says so."""
@@ -127,6 +129,7 @@ def test_batches_too_big_for_memory_are_split(tiny, monkeypatch):
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.slow  # two sweeps in subprocesses, 30 s: the extended suite, CI
 def test_resume_after_kill_gives_the_same_table(tiny, tmp_path, cache_env):
     _, expected, _ = tiny
     folder = str(tmp_path / "killed")
@@ -183,6 +186,7 @@ def test_a_subset_of_the_grid_reuses_finished_cells(tiny):
     assert calls == [] and again == [r for r in rows if r["alpha"] == 0.4]
 
 
+@pytest.mark.slow  # a file study and single runs, 40 s of compiles: the extended suite, CI
 def test_scenario_files_give_result_files_equal_to_single_runs(tiny, tmp_path):
     """`--scenarios`: files of equal shape run as one batch; each gets the result `run` would write."""
     files = tmp_path / "logs"
