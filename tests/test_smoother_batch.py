@@ -111,6 +111,7 @@ def _first_steps(scenario, k):
     return dataclasses.replace(scenario, steps=scenario.steps[:k], true_robot_poses=scenario.true_robot_poses[: k + 1])
 
 
+@pytest.mark.slow  # its own lag compile, 20 s: the extended suite, CI
 def test_a_window_as_long_as_the_run_is_the_full_smoother():
     """``Lag(L)`` with ``L`` the run's steps never marginalizes: it is the full smoother."""
     scenario = hs.simulate(0, steps=STEPS)

@@ -129,6 +129,7 @@ def test_history_overflow_is_refused(scenario):
         hs.run(estimator, scenario.replace(steps=scenario.steps + scenario.steps[:1], true_robot_poses=None))
 
 
+@pytest.mark.slow  # its own compile, 25 s: the extended suite, CI
 def test_unexplainable_detection_falls_back_to_likelihood(scenario, key):
     """The robot surely faces away from every object, yet detects two: no hypothesis has its
     objects in view (a model violation). The step weighs by likelihood instead and stays finite."""
@@ -142,7 +143,9 @@ def test_unexplainable_detection_falls_back_to_likelihood(scenario, key):
     np.testing.assert_allclose(new.weights[new.alive].sum(), 1.0)
 
 
-@pytest.mark.parametrize("weights", [pytest.param("sampled", marks=pytest.mark.slow), "linearized"])
+# Two studies of their own (25 s each): the extended suite, CI; the default study shows the same drop.
+@pytest.mark.slow
+@pytest.mark.parametrize("weights", ["sampled", "linearized"])
 def test_viewpoint_dependent_model_lowers_entropy(weights):
     """The paper's Fig. 5a at alpha = 0.25: with the mirror model the association entropy after 10
     steps is lower than with geometry only, averaged over tracks. Sampled weights use the paper's
