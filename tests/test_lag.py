@@ -9,12 +9,13 @@ compiled step. Here: the mixtures run with a window; bad values are one-line err
 
 from __future__ import annotations
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import hybridslam as hs
 from hybridslam import cli
-from hybridslam.estimators.smoothing import Full, Lag, parse_smoother
+from hybridslam.estimators.smoothing import FINAL_ATOL, Full, Lag, data_log, parse_smoother, step_tolerance
 
 STEPS = 6
 
@@ -43,6 +44,21 @@ def test_parse_smoother():
             parse_smoother(bad)
     with pytest.raises(ValueError, match="Lag.length"):
         Lag(0)
+    for bad in (-1e-4, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="step_atol"):
+            Full(step_atol=bad)
+        with pytest.raises(ValueError, match="step_atol"):
+            Lag(3, step_atol=bad)
+
+
+def test_every_step_but_the_last_is_solved_to_the_step_tolerance(scenario):
+    """``Full.step_atol`` before the scenario's last step; the last (and any after it) to ``FINAL_ATOL``,
+    also in a log padded to more rows than the scenario's steps."""
+    log = data_log(scenario, STEPS + 4, 2, scenario.num_objects)
+    for settings in (Full(), Lag(3), Full(step_atol=1e-6)):
+        got = [float(step_tolerance(settings, log, jnp.asarray(k))) for k in range(1, STEPS + 3)]
+        assert got == [settings.step_atol] * (STEPS - 1) + [FINAL_ATOL] * 3
+    assert FINAL_ATOL < Full().step_atol
 
 
 def test_a_bad_window_is_a_one_line_cli_error(tmp_path, capsys):
