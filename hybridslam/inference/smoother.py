@@ -56,7 +56,9 @@ below ``cost_atol`` (the Newton decrement test: the quadratic model has less tha
 give, so the step is kept if it lowered the cost and nothing more is tried), or after
 ``max_steps`` iterations. The decrement test is what ends a warm-started solve: from the previous
 step's trajectory a hallway solve reached gains ``0.47, 2e-4, 4e-7, 1e-8, 1e-10`` nats and used to
-take one more iterate to see the relative test pass.
+take one more iterate to see the relative test pass. (The estimators' smoother steps pass a looser
+``cost_atol`` before a scenario's last step, :class:`~hybridslam.estimators.smoothing.Full`'s
+``step_atol``: the third of those iterates ends such a solve.)
 
 **Linear convergence.** Gauss-Newton converges quadratically only on zero-residual problems. The
 viewpoint-dependent semantic factors at ``alpha = 0.5`` (Eq. 18) are not: their second-order term,
