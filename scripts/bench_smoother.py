@@ -5,7 +5,11 @@ the paper setup P = 11, N = 6) a random range-bearing graph with 4 detections pe
 linearized once; the script prints the median time of ``solve_normal`` for each elimination order
 (``poses-first``: block-tridiagonal scan then a Schur complement onto the objects, the default;
 ``objects-first``; ``dense``: the reference) and of a whole ``solve`` (10 iterations at most) from a
-perturbed start. Asserts nothing; run it on an idle machine.
+perturbed start. The graph's prior couples no two objects, so ``objects-first`` is timed twice:
+with the object part ``C`` inverted densely (``dense C``) and block by block (``blocks``, what
+``FactorGraph.independent_objects`` selects and every run's smoother uses); the LM solve and the
+Laplace marginal (``marginal``, of the middle pose) use the blocks. Asserts nothing; run it on an
+idle machine.
 
     python scripts/bench_smoother.py [--sizes 11x6,61x70,201x15] [--repeats 20]
 """
@@ -13,6 +17,7 @@ perturbed start. Asserts nothing; run it on an idle machine.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 
 import jax
@@ -69,18 +74,25 @@ def main() -> None:
     parser.add_argument("--sizes", default="11x6,61x70,201x15")
     parser.add_argument("--repeats", type=int, default=20)
     a = parser.parse_args()
-    print(f"{'P':>5} {'N':>4} {'poses-first':>12} {'objects-first':>14} {'dense':>8} {'solve (LM)':>11} {'iters':>6}  ms")
+    print(f"{'P':>5} {'N':>4} {'poses-first':>12} {'obj-first dense C':>18} {'obj-first blocks':>17} {'dense':>8} "
+          f"{'marginal':>9} {'solve (LM)':>11} {'iters':>6}  ms")
     for size in a.sizes.split(","):
         p, n = (int(v) for v in size.split("x"))
         g, poses, objects = graph(p, n)
+        blocks = dataclasses.replace(g, independent_objects=True)
         lin = jax.jit(sm.linearize)(g, poses, objects)
-        row = [median_ms(jax.jit(lambda lin, m=m: sm.solve_normal(lin, m)), lin, repeats=a.repeats)
-               for m in ("poses-first", "objects-first", "dense")]
+        lin_blocks = jax.jit(sm.linearize)(blocks, poses, objects)
+        normal = lambda m: jax.jit(lambda lin: sm.solve_normal(lin, m))  # noqa: E731
+        row = [median_ms(normal("poses-first"), lin, repeats=a.repeats),
+               median_ms(normal("objects-first"), lin, repeats=a.repeats),
+               median_ms(normal("objects-first"), lin_blocks, repeats=a.repeats),
+               median_ms(normal("dense"), lin, repeats=a.repeats)]
         solve = jax.jit(lambda g, x, o: sm.solve(g, x, o, max_steps=10))
-        lm = median_ms(solve, g, poses, objects, repeats=max(3, a.repeats // 4))
-        iters = int(solve(g, poses, objects).steps)
-        print(f"{p:>5} {n:>4} {row[0]:>12.2f} {row[1]:>14.2f} {row[2]:>8.2f} {lm:>11.1f} {iters:>6}", flush=True)
-
+        sol = solve(blocks, poses, objects)
+        marg = median_ms(jax.jit(lambda s: sm.marginal(s, p // 2)), sol, repeats=a.repeats)
+        lm = median_ms(solve, blocks, poses, objects, repeats=max(3, a.repeats // 4))
+        print(f"{p:>5} {n:>4} {row[0]:>12.2f} {row[1]:>18.2f} {row[2]:>17.2f} {row[3]:>8.2f} {marg:>9.2f} {lm:>11.1f} "
+              f"{int(sol.steps):>6}", flush=True)
 
 if __name__ == "__main__":
     main()

@@ -39,11 +39,16 @@ class Offset(eqx.Module):
         return self.sqrt_info @ (data - (o[:2] - x[:2])), jnp.asarray(0.0)
 
 
-def _graph(rng, mode="sum", poses=P, linear=True):
-    """A random graph: prior on x_0 and the map, odometry chain, F factors with G candidates."""
+def _graph(rng, mode="sum", poses=P, linear=True, independent=False):
+    """A random graph: prior on x_0 and the map, odometry chain, F factors with G candidates.
+
+    ``independent``: a block-diagonal prior (no two objects coupled; ``independent_objects``)."""
     n0 = 3 + 3 * N
     a = rng.normal(size=(n0, n0)) * 0.1
-    sqrt_info = np.linalg.cholesky(np.eye(n0) * 4.0 + a @ a.T).T
+    info = np.eye(n0) * 4.0 + a @ a.T
+    if independent:
+        info = info * np.kron(np.eye(N + 1), np.ones((3, 3)))
+    sqrt_info = np.linalg.cholesky(info).T
     meas_objects = rng.integers(0, N, size=(F, G))
     log_w = np.log(rng.uniform(0.2, 1.0, size=(F, G)))
     log_w[0, 1] = -np.inf  # a padded candidate
@@ -63,6 +68,7 @@ def _graph(rng, mode="sum", poses=P, linear=True):
         residual_fn=Offset(jnp.asarray(W_MEAS)) if linear else sm.RangeBearingResidual(jnp.asarray(W_MEAS)),
         odometry_fn=linear_odometry if linear else odometry_residual,
         mode=mode,
+        independent_objects=independent,
     )
 
 
@@ -117,8 +123,9 @@ def test_linear_graph_solution_is_the_least_squares_solution(solve):
     assert np.all(np.diff(hist) <= 1e-12), hist  # the LM cost never increases
 
 
-def test_structured_eliminations_match_the_dense_solve():
-    graph = _graph(np.random.default_rng(1))
+@pytest.mark.parametrize("independent", [False, True])
+def test_structured_eliminations_match_the_dense_solve(independent):
+    graph = _graph(np.random.default_rng(1), independent=independent)
     lin = sm.linearize(graph, jnp.asarray(np.random.default_rng(2).normal(size=(P, 3)) * 0.1), jnp.zeros((N, 3)))
     h, g = lin.dense()
     ref = -np.linalg.solve(np.asarray(h), np.asarray(g))
@@ -132,11 +139,35 @@ def test_structured_eliminations_match_the_dense_solve():
 def test_marginal_is_the_block_of_the_inverse_hessian(solve, k):
     graph = _graph(np.random.default_rng(3))
     sol = solve(graph, jnp.zeros((P, 3)), jnp.zeros((N, 3)))
-    mean, cov = sm.marginal(sol, k)
     _, full = _least_squares(graph)
     idx = np.concatenate([np.arange(3 * k, 3 * k + 3), 3 * P + np.arange(3 * N)])
-    np.testing.assert_allclose(np.asarray(cov), full[np.ix_(idx, idx)], rtol=1e-8, atol=1e-12)
-    np.testing.assert_allclose(np.asarray(mean[:3]), np.asarray(sol.poses[k]))
+    for method in ("auto", "objects-first"):  # poses first, and objects first with a dense C
+        mean, cov = sm.marginal(sol, k, method)
+        np.testing.assert_allclose(np.asarray(cov), full[np.ix_(idx, idx)], rtol=1e-8, atol=1e-12, err_msg=method)
+        np.testing.assert_allclose(np.asarray(mean[:3]), np.asarray(sol.poses[k]))
+
+
+@pytest.mark.parametrize("k", [0, 1])
+def test_marginal_of_independent_objects_inverts_their_blocks(solve, k):
+    """Fewer poses than objects and a block-diagonal object prior: ``"auto"`` eliminates the objects
+    first, block by block, and still gives the block of ``H⁻¹``, inactive objects at identity."""
+    graph = _graph(np.random.default_rng(8), poses=2, independent=True)
+    graph = eqx.tree_at(lambda g: g.object_active, graph, jnp.array([True, True, False]))
+    assert sm.resolve_method("auto", graph.num_poses, graph.num_objects) == "objects-first"
+    sol = solve(graph, jnp.zeros((2, 3)), jnp.zeros((N, 3)))
+    assert sol.linearization.object_blocks
+    mean, cov = sm.marginal(sol, k)
+    reference = jax.jit(lambda g, p0, o0: sm.solve(g, p0, o0, max_steps=20, lambda_init=0.0, method="dense"))(
+        dataclasses.replace(graph, independent_objects=False), jnp.zeros((2, 3)), jnp.zeros((N, 3)))
+    h, _ = reference.linearization.dense()
+    idx = np.concatenate([np.arange(3 * k, 3 * k + 3), 6 + np.arange(3 * N)])
+    np.testing.assert_allclose(np.asarray(cov), np.linalg.inv(np.asarray(h))[np.ix_(idx, idx)], rtol=1e-8,
+                               atol=1e-12)
+    np.testing.assert_allclose(np.asarray(cov)[-3:, -3:], np.eye(3), atol=1e-12)  # the inactive object
+    np.testing.assert_allclose(np.asarray(cov)[:-3, -3:], 0.0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(mean), np.concatenate([np.asarray(reference.poses[k]),
+                                                                 np.asarray(reference.objects).reshape(-1)]),
+                               atol=1e-9)
 
 
 def test_marginalizing_the_first_pose_is_exact_for_linear_factors(solve):

@@ -247,6 +247,7 @@ def graph(
         meas_objects=flat(factors.objects), meas_log_weight=flat(log_w), meas_null_log_weight=flat(null),
         meas_data=data, pose_active=jnp.arange(t + 1) <= k, object_active=jnp.arange(n) < num_created,
         residual_fn=residual, mode=mode, prior_info=log.prior_info,
+        independent_objects=True,  # the run's prior (data_log) is block-diagonal
     )
 
 

@@ -39,9 +39,13 @@ The elimination ``method="poses-first"`` (the default unless there are more obje
 Cholesky of the tridiagonal pose part (a ``lax.scan`` with closed-form 3×3 Cholesky factors,
 elementwise so it fuses on CPU) solves ``A X = [B | −g_p]`` for all right-hand sides at once; the
 Schur complement ``S = C − Bᵀ A⁻¹ B`` onto the objects is one dense matmul and a dense ``3N``
-Cholesky; back-substitution is ``δ_p = A⁻¹(−g_p) − (A⁻¹B) δ_o``. ``"objects-first"`` (dense
-object Cholesky, then a dense ``3P`` pose system) and ``"dense"`` (the full ``H``,
-``jnp.linalg.solve``: the reference) are selectable; see ``scripts/bench_smoother.py`` for timings.
+Cholesky; back-substitution is ``δ_p = A⁻¹(−g_p) − (A⁻¹B) δ_o``. ``"objects-first"`` (``C``
+inverted, then a dense ``3P`` pose system) and ``"dense"`` (the full ``H``, ``jnp.linalg.solve``:
+the reference) are selectable; see ``scripts/bench_smoother.py`` for timings. When the prior couples
+no two objects (``FactorGraph.independent_objects``: every run's prior is so, a fixed-lag window's
+is not), ``C`` is block-diagonal and objects-first inverts it block by block, in closed form: the
+hallway's step (61 poses, 70 object slots) then costs one ``3P`` Schur product and Cholesky instead
+of two dense ``3N`` factorizations besides.
 
 **Damping.** Levenberg-Marquardt with Marquardt's scaling ``D = diag(H)`` (clipped to
 ``[1e-6, 1e32]`` like Ceres, so an unobserved direction is still damped) and Nielsen's update of
@@ -206,6 +210,13 @@ class FactorGraph(eqx.Module):
     * ``prior_info (D₀, D₀)``, optional: ``Λ = RᵀR`` of ``prior_sqrt_info``, if the caller has it.
       A run's prior is constant, so its smoothers form this ``O(N³)`` product once
       (:class:`~hybridslam.estimators.smoothing.DataLog`) instead of once per step.
+    * ``independent_objects`` (static): the caller promises that the prior couples no two objects
+      (``Λ`` restricted to the objects is block-diagonal in 3×3 blocks; ``x_0`` may be coupled to
+      them). A measurement factor touches one object, so the object part ``C`` of ``H`` is then
+      block-diagonal too and the objects-first elimination inverts it block by block
+      (:func:`solve_normal`, :func:`marginal`). :func:`~hybridslam.estimators.smoothing.graph`
+      sets it: a run's prior is the scenario's, block-diagonal. A fixed-lag window's
+      marginalized prior couples the map, so its graphs do not.
     """
 
     prior_mean: Float[Array, " D0"]
@@ -224,6 +235,7 @@ class FactorGraph(eqx.Module):
     odometry_fn: Callable = eqx.field(default=odometry_residual, converter=_as_pytree)
     mode: Mode = eqx.field(default="sum", static=True)
     prior_info: Float[Array, "D0 D0"] | None = None
+    independent_objects: bool = eqx.field(default=False, static=True)
 
     @property
     def num_poses(self) -> int:
@@ -290,6 +302,7 @@ class Linearization(eqx.Module):
     grad_object: Float[Array, " N3"]
     cost: Float[Array, ""]
     active: Int[Array, " F"]
+    object_blocks: bool = eqx.field(default=False, static=True)
 
     def dense(self) -> tuple[Float[Array, "D D"], Float[Array, " D"]]:
         """The full ``H (3P+3N, 3P+3N)`` and ``g`` (reference solver and tests)."""
@@ -495,6 +508,7 @@ def linearize(
         grad_object=go.reshape(-1) + prior_grad[3:],
         cost=prior_cost + odo_cost + meas_cost,
         active=active,
+        object_blocks=graph.independent_objects,
     )
     return _identity_for_inactive(lin, graph.pose_active, graph.object_active)
 
@@ -608,16 +622,49 @@ def _tridiagonal_dense(diag: Float[Array, "P 3 3"], off: Float[Array, "P1 3 3"])
     return lin.dense()[0]
 
 
-def _solve_objects_first(lin: Linearization) -> tuple[Float[Array, "P 3"], Float[Array, " N3"]]:
-    """Schur complement onto the poses: dense ``3N`` Cholesky of ``C``, then a dense ``3P`` system."""
+def _object_blocks(lin: Linearization) -> Float[Array, "N 3 3"]:
+    """The diagonal 3×3 blocks of ``C``."""
+    n = lin.grad_object.shape[0] // 3
+    i = jnp.arange(n)
+    return lin.object.reshape(n, 3, n, 3)[i, :, i, :]
+
+
+def _object_solve(lin: Linearization, rhs: Float[Array, "N3 K"]) -> Float[Array, "N3 K"]:
+    """``C⁻¹ rhs``: block by block (closed-form 3×3 Cholesky factors, ``O(N K)``) if ``C`` is
+    block-diagonal (``lin.object_blocks``), else by a dense ``3N`` Cholesky (``O(N³ + N² K)``)."""
+    if lin.object_blocks:
+        n = rhs.shape[0] // 3
+        chol = _chol3(_object_blocks(lin))
+        return _backward3(chol, _forward3(chol, rhs.reshape(n, 3, -1))).reshape(rhs.shape)
+    return jsl.cho_solve((jnp.linalg.cholesky(lin.object), True), rhs)
+
+
+class _ObjectElimination(eqx.Module):
+    """Objects eliminated: ``Y = C⁻¹ [Bᵀ | extra]`` and the Cholesky factor of ``S = A − B C⁻¹ Bᵀ``."""
+
+    c_inv_bt: Float[Array, "N3 P3"]
+    c_inv_extra: Float[Array, "N3 K"]
+    schur_chol: Float[Array, "P3 P3"]
+
+
+def _eliminate_objects(lin: Linearization, extra: Float[Array, "N3 K"]) -> _ObjectElimination:
     p = lin.pose_diag.shape[0]
     b = lin.pose_object.reshape(3 * p, -1)
-    chol_c = jnp.linalg.cholesky(lin.object)
-    y = jsl.cho_solve((chol_c, True), jnp.concatenate([b.T, -lin.grad_object[:, None]], axis=-1))
-    s = _tridiagonal_dense(lin.pose_diag, lin.pose_off) - b @ y[:, :-1]
+    y = _object_solve(lin, jnp.concatenate([b.T, extra], axis=-1))
+    s = _tridiagonal_dense(lin.pose_diag, lin.pose_off) - b @ y[:, : 3 * p]
     s = 0.5 * (s + s.T)
-    d_p = jsl.cho_solve((jnp.linalg.cholesky(s), True), -lin.grad_pose.reshape(-1) - b @ y[:, -1])
-    return d_p.reshape(p, 3), y[:, -1] - y[:, :-1] @ d_p
+    return _ObjectElimination(y[:, : 3 * p], y[:, 3 * p:], jnp.linalg.cholesky(s))
+
+
+def _solve_objects_first(lin: Linearization) -> tuple[Float[Array, "P 3"], Float[Array, " N3"]]:
+    """Schur complement onto the poses: ``C`` inverted (blockwise if block-diagonal, else by a dense
+    ``3N`` Cholesky), then a dense ``3P`` system: ``S δ_p = −g_p + B C⁻¹ g_o``, ``δ_o = C⁻¹(−g_o − Bᵀδ_p)``."""
+    p = lin.pose_diag.shape[0]
+    b = lin.pose_object.reshape(3 * p, -1)
+    elim = _eliminate_objects(lin, -lin.grad_object[:, None])
+    y_g = elim.c_inv_extra[:, 0]
+    d_p = jsl.cho_solve((elim.schur_chol, True), -lin.grad_pose.reshape(-1) - b @ y_g)
+    return d_p.reshape(p, 3), y_g - elim.c_inv_bt @ d_p
 
 
 def _solve_dense(lin: Linearization) -> tuple[Float[Array, "P 3"], Float[Array, " N3"]]:
@@ -637,7 +684,7 @@ def resolve_method(method: Method, num_poses: int, num_objects: int) -> Method:
     dominates, so ``"auto"`` eliminates the larger set first: poses-first unless there are more
     objects than poses (``scripts/bench_smoother.py`` on a 2-core CPU, per solve: P = 201, N = 15
     0.77 ms poses-first against 4.8 ms objects-first; P = 61, N = 70, the hallway, 2.45 against
-    1.52 ms).
+    1.52 ms, and 0.7-0.9 ms objects-first with a block-diagonal ``C``).
     """
     if method != "auto":
         return method
@@ -794,29 +841,47 @@ def solve(
 # --------------------------------------------------------------------------------------------
 
 
-def marginal(solution: Solution, k: Int[Array, ""] | int) -> tuple[Float[Array, " D0"], Float[Array, "D0 D0"]]:
+def marginal(
+    solution: Solution, k: Int[Array, ""] | int, method: Method = "auto"
+) -> tuple[Float[Array, " D0"], Float[Array, "D0 D0"]]:
     """Laplace marginal of ``[x_k, o_0..o_{N-1}]`` (``D₀ = 3 + 3N``): the mean at the solution and
     the matching block of ``H⁻¹`` (Gauss-Newton Hessian), every other pose marginalized.
 
-    From the pose elimination (no inverse of the full ``H``): ``Σ_OO = S⁻¹``,
-    ``Σ_kO = −(A⁻¹B)_k S⁻¹``, ``Σ_kk = (A⁻¹)_kk + (A⁻¹B)_k S⁻¹ (A⁻¹B)_kᵀ``, with ``(A⁻¹)_kk`` from
-    the same tridiagonal solve (three extra right-hand sides ``e_k``). ``k`` may be traced.
-    Inactive objects get identity covariance, uncorrelated (the filters' uncreated slots). The
-    blocks are the solver's own linearization at the solution (``solution.linearization``), not
-    formed again.
+    ``method="auto"`` eliminates the objects first where :func:`resolve_method` would and ``C`` is
+    block-diagonal, else the poses (``"dense"`` takes the poses-first path too). Poses first:
+    ``Σ_OO = S⁻¹`` with ``S = C − BᵀA⁻¹B``, ``Σ_kO = −(A⁻¹B)_k S⁻¹``,
+    ``Σ_kk = (A⁻¹)_kk + (A⁻¹B)_k S⁻¹ (A⁻¹B)_kᵀ``, with ``(A⁻¹)_kk`` from the same tridiagonal solve
+    (three extra right-hand sides ``e_k``). Objects
+    first, with ``S_p = A − B C⁻¹ Bᵀ = L Lᵀ``, ``Z = L⁻¹ B C⁻¹`` and ``u = L⁻¹ e_k``:
+    ``Σ_OO = C⁻¹ + ZᵀZ``, ``Σ_kO = −uᵀZ``, ``Σ_kk = uᵀu`` (the block inverse of ``H``; only
+    ``C⁻¹`` is inverted, blockwise when ``C`` is block-diagonal). ``k`` may be traced. Inactive
+    objects get identity covariance, uncorrelated (the filters' uncreated slots). The blocks are
+    the solver's own linearization at the solution (``solution.linearization``), not formed again.
     """
     lin = solution.linearization
     p, n3 = lin.pose_diag.shape[0], lin.grad_object.shape[0]
+    mean = jnp.concatenate([solution.poses[k], solution.objects.reshape(-1)])
     eye = jnp.eye(3, dtype=lin.pose_diag.dtype)
-    e_k = jnp.where((jnp.arange(p) == k)[:, None, None], eye[None], 0.0)
-    elim = _eliminate_poses(lin, e_k)
-    chol_inv = jsl.solve_triangular(elim.schur_chol, jnp.eye(n3, dtype=eye.dtype), lower=True)
-    s_oo = chol_inv.T @ chol_inv  # S⁻¹ = L⁻ᵀL⁻¹, symmetric by construction
-    x_k = elim.a_inv_b[k]  # (A⁻¹B)_k, (3, 3N)
-    s_ko = -x_k @ s_oo
-    s_kk = elim.a_inv_extra[k] - s_ko @ x_k.T
+    order = resolve_method(method, p, n3 // 3)
+    # With a dense C, "auto" keeps the poses-first path: inverting C densely buys nothing there.
+    if order == "objects-first" and (lin.object_blocks or method == "objects-first"):
+        c_inv = _object_solve(lin, jnp.eye(n3, dtype=eye.dtype))
+        elim = _eliminate_objects(lin, jnp.zeros((n3, 0), eye.dtype))
+        z = jsl.solve_triangular(elim.schur_chol, elim.c_inv_bt.T, lower=True)  # (3P, 3N)
+        e_k = jnp.where((jnp.arange(3 * p) // 3 == k)[:, None], jnp.tile(eye, (p, 1)), 0.0)
+        u = jsl.solve_triangular(elim.schur_chol, e_k, lower=True)  # (3P, 3)
+        s_oo = c_inv + z.T @ z
+        s_oo, s_ko, s_kk = 0.5 * (s_oo + s_oo.T), -u.T @ z, u.T @ u
+    else:
+        e_k = jnp.where((jnp.arange(p) == k)[:, None, None], eye[None], 0.0)
+        pelim = _eliminate_poses(lin, e_k)
+        chol_inv = jsl.solve_triangular(pelim.schur_chol, jnp.eye(n3, dtype=eye.dtype), lower=True)
+        s_oo = chol_inv.T @ chol_inv  # S⁻¹ = L⁻ᵀL⁻¹, symmetric by construction
+        x_k = pelim.a_inv_b[k]  # (A⁻¹B)_k, (3, 3N)
+        s_ko = -x_k @ s_oo
+        s_kk = pelim.a_inv_extra[k] - s_ko @ x_k.T
     cov = jnp.block([[0.5 * (s_kk + s_kk.T), s_ko], [s_ko.T, s_oo]])
-    return jnp.concatenate([solution.poses[k], solution.objects.reshape(-1)]), cov
+    return mean, cov
 
 
 def first_pose_factors(graph: FactorGraph) -> FactorGraph:
