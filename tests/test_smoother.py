@@ -147,6 +147,17 @@ def test_marginal_is_the_block_of_the_inverse_hessian(solve, k):
         np.testing.assert_allclose(np.asarray(mean[:3]), np.asarray(sol.poses[k]))
 
 
+def test_auto_order_eliminates_the_larger_set_or_a_small_pose_chain_last():
+    """``"auto"``: objects first when they outnumber the poses, or when the pose system is small and
+    the objects are independent (the paper setup); poses first on long chains; explicit orders kept."""
+    assert sm.resolve_method("auto", 61, 70) == "objects-first"
+    assert sm.resolve_method("auto", 201, 15, True) == "poses-first"
+    assert sm.resolve_method("auto", 11, 6) == "poses-first"
+    assert sm.resolve_method("auto", 11, 6, True) == "objects-first"
+    assert sm.resolve_method("auto", sm.SMALL_POSE_SYSTEM + 1, 6, True) == "poses-first"
+    assert sm.resolve_method("dense", 11, 6, True) == "dense"
+
+
 @pytest.mark.parametrize("k", [0, 1])
 def test_marginal_of_independent_objects_inverts_their_blocks(solve, k):
     """Fewer poses than objects and a block-diagonal object prior: ``"auto"`` eliminates the objects

@@ -22,6 +22,7 @@ from scipy.optimize import least_squares
 
 import hybridslam as hs
 from hybridslam.estimators.smoothing import FINAL_ATOL, Lag
+from hybridslam.io.scenario import Classifier
 
 
 def _wrap(a):
@@ -52,11 +53,9 @@ def _sqrt_info(cov):
     return np.linalg.cholesky(np.linalg.inv(cov)).T  # RᵀR = Σ⁻¹
 
 
-def test_ml_trajectory_equals_a_batch_least_squares_solve():
-    scenario = hs.simulate(0, steps=6)
-    run = hs.run_estimator(scenario, "ml")  # smoother=Full() by default
-    assert all(int(i.skipped) == 0 and int(i.rejected) == 0 for i in run.infos)  # every detection has a factor
-    history = run.result.steps[-1].components[0].associations
+def _batch_solve(scenario, history) -> np.ndarray:
+    """The graph of ``scenario`` with the associations ``history`` (per step, per detection; −1: none),
+    solved from dead reckoning by scipy's Levenberg-Marquardt: the poses ``(T+1, 3)``."""
     t, n = scenario.num_steps, scenario.num_objects
     w_odo, w_geo = _sqrt_info(scenario.motion_cov), _sqrt_info(scenario.geometric_cov)
     prior_mean = np.concatenate([scenario.robot_prior_mean, scenario.object_prior_means.reshape(-1)])
@@ -93,12 +92,34 @@ def test_ml_trajectory_equals_a_batch_least_squares_solve():
     sol = least_squares(residuals, y0, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=10000)
     poses = sol.x[: 3 * (t + 1)].reshape(t + 1, 3)
     poses[:, 2] = _wrap(poses[:, 2])
+    return poses
+
+
+def _assert_trajectory_is(run, poses):
     smoothed = np.asarray(run.result.trajectory)
-    assert smoothed.shape == (t + 1, 3)
+    assert smoothed.shape == poses.shape
     np.testing.assert_allclose(smoothed[:, :2], poses[:, :2], atol=1e-6)
     np.testing.assert_allclose(_wrap(smoothed[:, 2] - poses[:, 2]), 0.0, atol=1e-6)
     # ... and it is the online estimate at the last step (the smoother's x_T).
     np.testing.assert_allclose(run.result.steps[-1].components[0].pose_mean, smoothed[-1], atol=1e-9)
+
+
+def test_ml_trajectory_equals_a_batch_least_squares_solve():
+    scenario = hs.simulate(0, steps=6)
+    run = hs.run_estimator(scenario, "ml")  # smoother=Full() by default
+    assert all(int(i.skipped) == 0 and int(i.rejected) == 0 for i in run.infos)  # every detection has a factor
+    _assert_trajectory_is(run, _batch_solve(scenario, run.result.steps[-1].components[0].associations))
+
+
+@pytest.mark.slow  # the hybrid belief's smoother compile, 20 s: the extended suite, CI
+def test_hybrid_trajectory_equals_a_batch_least_squares_solve():
+    """The hybrid belief's best component, where components that differ only in their classes share
+    one smoothing (a viewpoint-independent classifier: the classes do not move the solution)."""
+    scenario = hs.simulate(0, steps=6)  # scores too noisy (K = 1) to settle the classes: 8 components
+    scenario = dataclasses.replace(scenario, classifier=Classifier("independent", alpha=0.25, K=1.0))
+    run = hs.run_estimator(scenario, "hybrid", capacity=8, weights="linearized")
+    assert any(int(i.details.smoothings) < int(i.num_components) for i in run.infos)  # copies were made
+    _assert_trajectory_is(run, _batch_solve(scenario, run.result.steps[-1].components[0].associations))
 
 
 # Fixed lag (sharing the compiled full-smoother step above)

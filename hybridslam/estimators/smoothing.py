@@ -10,9 +10,10 @@ Doherty's estimators run on iSAM / mm-iSAM.
 With ``smoother=Full()`` every component also keeps its trajectory ``x_0..x_T``. A step first runs
 the estimator's own filter step (association, weights, pruning: unchanged), then re-solves each
 kept component's whole factor graph by Levenberg-Marquardt (:mod:`hybridslam.inference.smoother`),
-warm-started from its previous trajectory and the filter's new estimate, and replaces the
-component's Gaussian over ``[x_k, objects]`` by the smoother's Laplace marginal at the new
-solution, so the next step's association and weights (Eq. 16-17) are computed from the smoothed
+warm-started from its previous trajectory and the filter's new estimate (the hybrid belief skips
+its per-component filter update and starts from the prediction: the solve is the same), and
+replaces the component's Gaussian over ``[x_k, objects]`` by the smoother's Laplace marginal at
+the new solution, so the next step's association and weights (Eq. 16-17) are computed from the smoothed
 state. The graph is rebuilt from what the state already holds: the data received so far
 (:class:`DataLog`, shared by the components) and each component's association history (and, for
 Gaussian PDA and max-mixtures, its per-detection candidates and weights).
@@ -308,13 +309,14 @@ def smooth(
     cov: Float[Array, "D0 D0"], k: Int[Array, ""], cost_atol: Float[Array, ""] | float = FINAL_ATOL,
 ) -> Smoothed:
     """Re-solve a component's graph, warm-started from its trajectory ``poses`` with ``x_k`` and the
-    objects taken from the filter's new ``mean``, to ``cost_atol`` nats (:func:`step_tolerance`),
+    objects taken from ``mean`` (the filter's update, or a prediction), to ``cost_atol`` nats (:func:`step_tolerance`),
     and return its marginal over ``[x_k, objects]``.
 
     If the solution or its marginal is not finite (a near-singular graph: noise variances of 1e-10
-    next to unobserved object headings), the component keeps the filter's ``mean`` and ``cov`` and
-    its previous trajectory with ``x_k`` from the filter, and the result says ``nonfinite``: the
-    step's warning counts it, and nothing downstream sees a NaN.
+    next to unobserved object headings), the component keeps the ``mean`` and ``cov`` it was given
+    (the filter's update; the hybrid belief's prediction) and its previous trajectory with ``x_k``
+    from ``mean``, and the result says ``nonfinite``: the step's warning counts it, and nothing
+    downstream sees a NaN.
     """
     start = poses.at[k].set(mean[:3])
     sol = sm.solve(g, start, mean[3:].reshape(-1, 3), max_steps=settings.max_steps, cost_atol=cost_atol)

@@ -3,16 +3,18 @@
 A belief has a fixed capacity of component slots and a step has a fixed grid of child
 hypotheses, but only some of either are alive. :func:`map_live` runs a per-slot function over
 chunks of slots and skips chunks with no live slot, so work scales with what is alive while all
-shapes stay static.
+shapes stay static. :func:`map_distinct` also computes once for slots known to give the same
+output (components whose factor graphs are equal).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool
+from jaxtyping import Array, Bool, Int
 
 
 def map_live(fn: Callable, live: Bool[Array, " K"], *args, chunk: int = 4, axis_name: str | None = None):
@@ -48,3 +50,25 @@ def map_live(fn: Callable, live: Bool[Array, " K"], *args, chunk: int = 4, axis_
 
     out = jax.lax.map(one_chunk, (split(live), jax.tree.map(split, args)))
     return jax.tree.map(lambda x: x.reshape((k + pad,) + x.shape[2:])[:k], out)
+
+
+def map_distinct(
+    fn: Callable, live: Bool[Array, " K"], same: Bool[Array, "K K"], *args, chunk: int = 4,
+    axis_name: str | None = None,
+) -> tuple[Any, Int[Array, ""]]:
+    """:func:`map_live`, computing ``fn`` once per class of live slots that ``same`` calls equal.
+
+    ``same[i, j]`` says slots ``i`` and ``j`` give the same output (an equivalence on the live
+    slots, e.g. equal factor graphs; ``same[i, i]`` must hold). Each live slot gets the output of
+    the first live slot of its class; those representatives are moved to the front first, so the
+    chunks of copies are skipped. Dead slots get an arbitrary slot's output (mask them). Returns
+    the outputs and the number of distinct live slots (calls of ``fn`` that count).
+    """
+    k = live.shape[0]
+    index = jnp.arange(k)
+    representative = jnp.argmax(same & live[None, :], axis=1)  # the first live slot equal to slot i
+    distinct = live & (representative == index)
+    order = jnp.argsort(~distinct, stable=True)  # representatives first, in slot order
+    position = jnp.zeros(k, index.dtype).at[order].set(index)
+    out = map_live(fn, distinct[order], *jax.tree.map(lambda a: a[order], args), chunk=chunk, axis_name=axis_name)
+    return jax.tree.map(lambda a: a[position[representative]], out), jnp.sum(distinct, dtype=jnp.int32)

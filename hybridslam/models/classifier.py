@@ -46,6 +46,13 @@ class ClassifierModel(eqx.Module):
         """False for the geometry-only model, whose semantic factor is identically 1."""
         return True
 
+    @property
+    def viewpoint_dependent(self) -> bool:
+        """False where the semantic factor does not depend on the viewpoint, i.e. on the state: then
+        class realizations change a factor graph's cost by a constant and not its solution, and
+        components that differ only in their classes share one smoothing. True unless a model says so."""
+        return True
+
     def residuals(
         self, scores: Float[Array, " M"], viewpoint: Float[Array, "2"]
     ) -> tuple[Float[Array, "M M"], Float[Array, " M"]]:
@@ -114,6 +121,10 @@ class Independent(_AlphaK):
     ``Σ̄ = Σ_c + (α²/8) [[1, −1], [−1, 1]]`` — the paper's "viewpoint-independent model" (Sec. V).
     """
 
+    @property
+    def viewpoint_dependent(self) -> bool:
+        return False
+
     def class_means(self, viewpoint):
         h0 = jnp.stack([1.0 - self.alpha / 2.0, self.alpha / 2.0])
         return jnp.stack([h0, h0[::-1]])
@@ -138,6 +149,10 @@ class NoClassifier(ClassifierModel):
 
     @property
     def uses_scores(self) -> bool:
+        return False
+
+    @property
+    def viewpoint_dependent(self) -> bool:
         return False
 
     def class_means(self, viewpoint):
@@ -174,6 +189,10 @@ class Confusion(ClassifierModel):
             raise ValueError(f"classifier.matrix: expected a square matrix, got shape {m.shape}")
         self.num_classes = int(m.shape[0])
         self.matrix = m
+
+    @property
+    def viewpoint_dependent(self) -> bool:
+        return False
 
     def class_means(self, viewpoint):
         return self.matrix.T

@@ -1,0 +1,48 @@
+"""map_live and map_distinct: the batched map over live slots, and once per class of equal slots."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from hybridslam.inference.batching import map_distinct, map_live
+
+K = 7  # not a multiple of the chunk: the padded last chunk is exercised too
+
+
+def _fn(x, y):
+    return {"sum": x + y[0], "prod": x * y}
+
+
+_live = jax.jit(lambda live, x, y: map_live(_fn, live, x, y))
+_distinct = jax.jit(lambda live, same, x, y: map_distinct(_fn, live, same, x, y))
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.integers(0, 3), min_size=K, max_size=K), st.lists(st.booleans(), min_size=K, max_size=K))
+def test_each_live_slot_gets_the_output_of_the_first_live_slot_of_its_class(keys, live):
+    keys, live = np.array(keys), np.array(live)
+    rng = np.random.default_rng(0)
+    x, y = rng.normal(size=K), rng.normal(size=(K, 2))  # equal keys, different inputs: copies are visible
+    same = keys[:, None] == keys[None, :]
+    out, count = _distinct(jnp.asarray(live), jnp.asarray(same), jnp.asarray(x), jnp.asarray(y))
+    reference = _live(jnp.ones(K, bool), jnp.asarray(x), jnp.asarray(y))
+    for i in np.flatnonzero(live):
+        first = np.flatnonzero(live & (keys == keys[i]))[0]
+        for name in ("sum", "prod"):
+            np.testing.assert_array_equal(out[name][i], reference[name][first])
+    assert int(count) == len(set(keys[live].tolist()))
+
+
+def test_with_every_slot_distinct_it_is_map_live():
+    live = jnp.array([True, True, False, True, False, False, True])
+    x, y = jnp.arange(K, dtype=float), jnp.ones((K, 2))
+    out, count = _distinct(live, jnp.eye(K, dtype=bool), x, y)
+    reference = _live(live, x, y)
+    for name in ("sum", "prod"):
+        np.testing.assert_array_equal(np.asarray(out[name])[np.asarray(live)],
+                                      np.asarray(reference[name])[np.asarray(live)])
+    assert int(count) == 4
