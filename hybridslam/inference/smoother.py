@@ -111,7 +111,7 @@ Mode = Literal["sum", "max"]
 Method = Literal["auto", "poses-first", "objects-first", "dense"]
 
 _LOG_2PI = math.log(2.0 * math.pi)
-SMALL_POSE_SYSTEM = 16  # poses; below it a dense 3P pose system beats the tridiagonal scan (resolve_method)
+SMALL_POSE_SYSTEM = 16  # poses; up to it a dense 3P pose system beats the tridiagonal scan (resolve_method)
 _DAMPING_RANGE = (1e-6, 1e32)  # Marquardt's diag(H), clipped like Ceres' min/max_lm_diagonal
 _LAMBDA_RANGE = (1e-15, 1e15)
 _DECREMENT_LAMBDA = 1e-3  # damping below which a step's model gain stands for Gauss-Newton's
