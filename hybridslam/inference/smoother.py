@@ -289,7 +289,10 @@ class Linearization(eqx.Module):
 
     ``H = [[A, B], [Bᵀ, C]]`` over ``[x_0..x_{P-1}, o_0..o_{N-1}]``: ``A`` block tridiagonal with
     ``pose_diag[i] = A[i, i]`` and ``pose_off[i] = A[i, i+1]``; ``pose_object[i] = B[i]`` (rows of
-    pose ``i``); ``object = C``. ``cost = ½‖r‖²`` (in ``"max"`` mode plus each factor's constant
+    pose ``i``); ``object = C``, dense ``(3N, 3N)``, or its diagonal 3×3 blocks ``(N, 3, 3)`` when
+    ``object_blocks`` (the graph's ``independent_objects``: ``C`` is then block-diagonal, and
+    forming, damping and inverting it block by block is ``O(N)``; :meth:`object_dense` gives it
+    dense either way). ``cost = ½‖r‖²`` (in ``"max"`` mode plus each factor's constant
     ``κ_g* − min_g κ_g``, ``κ_g = −log η_g − log w_g``: the negative log posterior up to a constant,
     so costs compare across a switch of component). ``active[f]``: the component of factor ``f``
     with the least cost (the max-mixture's active one): ``0..G-1``, ``G`` the null, ``-1`` none.
@@ -298,7 +301,7 @@ class Linearization(eqx.Module):
     pose_diag: Float[Array, "P 3 3"]
     pose_off: Float[Array, "P1 3 3"]
     pose_object: Float[Array, "P 3 N3"]
-    object: Float[Array, "N3 N3"]
+    object: Float[Array, "N3 N3"] | Float[Array, "N 3 3"]  # dense, or diagonal blocks (object_blocks)
     grad_pose: Float[Array, "P 3"]
     grad_object: Float[Array, " N3"]
     cost: Float[Array, ""]
@@ -314,21 +317,35 @@ class Linearization(eqx.Module):
         a = a.at[i[:-1], :, i[1:], :].set(self.pose_off)
         a = a.at[i[1:], :, i[:-1], :].set(jnp.swapaxes(self.pose_off, -1, -2))
         b = self.pose_object.reshape(3 * p, -1)
-        h = jnp.block([[a.reshape(3 * p, 3 * p), b], [b.T, self.object]])
+        h = jnp.block([[a.reshape(3 * p, 3 * p), b], [b.T, self.object_dense()]])
         return h, jnp.concatenate([self.grad_pose.reshape(-1), self.grad_object])
+
+    def object_dense(self) -> Float[Array, "N3 N3"]:
+        """``C`` as a dense ``(3N, 3N)`` matrix."""
+        return _block_diag(self.object) if self.object_blocks else self.object
+
+    def _object_diagonal(self) -> Float[Array, " N3"]:
+        if self.object_blocks:
+            return jnp.diagonal(self.object, axis1=-2, axis2=-1).reshape(-1)
+        return jnp.diagonal(self.object)
 
     def damped(self, lam: Float[Array, ""]) -> Linearization:
         """``H + λD`` with Marquardt's ``D = diag(H)`` clipped to ``_DAMPING_RANGE``."""
+        eye = jnp.eye(3, dtype=self.pose_diag.dtype)
         dp = jnp.clip(jnp.diagonal(self.pose_diag, axis1=-2, axis2=-1), *_DAMPING_RANGE)
-        do = jnp.clip(jnp.diagonal(self.object), *_DAMPING_RANGE)
-        pose_diag = self.pose_diag + lam * dp[..., None] * jnp.eye(3, dtype=dp.dtype)[None]
-        i = jnp.arange(do.shape[0])
-        return eqx.tree_at(lambda s: (s.pose_diag, s.object), self, (pose_diag, self.object.at[i, i].add(lam * do)))
+        do = jnp.clip(self._object_diagonal(), *_DAMPING_RANGE)
+        pose_diag = self.pose_diag + lam * dp[..., None] * eye[None]
+        if self.object_blocks:
+            obj = self.object + lam * do.reshape(-1, 3)[..., None] * eye[None]
+        else:
+            i = jnp.arange(do.shape[0])
+            obj = self.object.at[i, i].add(lam * do)
+        return eqx.tree_at(lambda s: (s.pose_diag, s.object), self, (pose_diag, obj))
 
     def damping_norm(self, dp: Float[Array, "P 3"], do: Float[Array, " N3"]) -> Float[Array, ""]:
         """``δᵀDδ`` with the same ``D`` as :meth:`damped`."""
         wp = jnp.clip(jnp.diagonal(self.pose_diag, axis1=-2, axis2=-1), *_DAMPING_RANGE)
-        wo = jnp.clip(jnp.diagonal(self.object), *_DAMPING_RANGE)
+        wo = jnp.clip(self._object_diagonal(), *_DAMPING_RANGE)
         return jnp.sum(wp * dp**2) + jnp.sum(wo * do**2)
 
 
@@ -435,6 +452,13 @@ def _scatter_measurements(hess, grad, pose_idx, obj_idx, p: int, n: int):
     return pp, oo, po, gp, go
 
 
+def _diagonal_blocks(m: Float[Array, "N3 N3"]) -> Float[Array, "N 3 3"]:
+    """The diagonal 3×3 blocks of ``m``."""
+    n = m.shape[0] // 3
+    i = jnp.arange(n)
+    return m.reshape(n, 3, n, 3)[i, :, i, :]
+
+
 def _block_diag(blocks: Float[Array, "N 3 3"]) -> Float[Array, "N3 N3"]:
     n = blocks.shape[0]
     eye = jnp.eye(n, dtype=blocks.dtype)
@@ -464,11 +488,14 @@ def _identity_for_inactive(lin: Linearization, pose_active, object_active) -> Li
     eye = jnp.eye(3, dtype=lin.pose_diag.dtype)
     oa = jnp.repeat(object_active, 3)
     n3 = oa.shape[0]
+    if lin.object_blocks:
+        obj = lin.object + jnp.where(object_active[:, None, None], 0.0, eye[None])
+    else:
+        obj = lin.object.at[jnp.arange(n3), jnp.arange(n3)].add(jnp.where(oa, 0.0, 1.0))
     return eqx.tree_at(
         lambda s: (s.pose_diag, s.object, s.grad_pose, s.grad_object),
         lin,
-        (lin.pose_diag + jnp.where(pose_active[:, None, None], 0.0, eye[None]),
-         lin.object.at[jnp.arange(n3), jnp.arange(n3)].add(jnp.where(oa, 0.0, 1.0)),
+        (lin.pose_diag + jnp.where(pose_active[:, None, None], 0.0, eye[None]), obj,
          jnp.where(pose_active[:, None], lin.grad_pose, 0.0), jnp.where(oa, lin.grad_object, 0.0)),
     )
 
@@ -504,7 +531,7 @@ def linearize(
         pose_diag=pose_diag,
         pose_off=odo_h[:, :3, 3:],
         pose_object=pose_object,
-        object=info[3:, 3:] + _block_diag(oo),
+        object=_diagonal_blocks(info[3:, 3:]) + oo if graph.independent_objects else info[3:, 3:] + _block_diag(oo),
         grad_pose=grad_pose.at[0].add(prior_grad[:3]),
         grad_object=go.reshape(-1) + prior_grad[3:],
         cost=prior_cost + odo_cost + meas_cost,
@@ -600,7 +627,7 @@ def _eliminate_poses(lin: Linearization, extra: Float[Array, "P 3 K"]) -> _PoseE
     p = lin.pose_diag.shape[0]
     x = tridiagonal_solve(lin.pose_diag, lin.pose_off, jnp.concatenate([lin.pose_object, extra], axis=-1))
     a_inv_b = x[..., :n3]
-    s = lin.object - lin.pose_object.reshape(3 * p, n3).T @ a_inv_b.reshape(3 * p, n3)
+    s = lin.object_dense() - lin.pose_object.reshape(3 * p, n3).T @ a_inv_b.reshape(3 * p, n3)
     s = 0.5 * (s + s.T)  # symmetric to rounding; Cholesky reads one triangle
     return _PoseElimination(a_inv_b, x[..., n3:], jnp.linalg.cholesky(s))
 
@@ -625,9 +652,7 @@ def _tridiagonal_dense(diag: Float[Array, "P 3 3"], off: Float[Array, "P1 3 3"])
 
 def _object_blocks(lin: Linearization) -> Float[Array, "N 3 3"]:
     """The diagonal 3×3 blocks of ``C``."""
-    n = lin.grad_object.shape[0] // 3
-    i = jnp.arange(n)
-    return lin.object.reshape(n, 3, n, 3)[i, :, i, :]
+    return lin.object if lin.object_blocks else _diagonal_blocks(lin.object)
 
 
 def _object_solve(lin: Linearization, rhs: Float[Array, "N3 K"]) -> Float[Array, "N3 K"]:
@@ -873,11 +898,15 @@ def marginal(
     if order == "objects-first" and (lin.object_blocks or method == "objects-first"):
         c_inv = _object_solve(lin, jnp.eye(n3, dtype=eye.dtype))
         elim = _eliminate_objects(lin, jnp.zeros((n3, 0), eye.dtype))
-        z = jsl.solve_triangular(elim.schur_chol, elim.c_inv_bt.T, lower=True)  # (3P, 3N)
+        # Zᵀ = (C⁻¹Bᵀ) L⁻ᵀ, solved from the right so that Zᵀ comes out row-major and ZᵀZ contracts
+        # both operands' last axis: half the time of L⁻¹(C⁻¹Bᵀ)ᵀ and a transposed product
+        # (hallway, 3P = 183, 3N = 210: 0.78 against 1.41 ms).
+        z_t = jax.lax.linalg.triangular_solve(elim.schur_chol, elim.c_inv_bt, left_side=False, lower=True,
+                                              transpose_a=True)  # (3N, 3P)
         e_k = jnp.where((jnp.arange(3 * p) // 3 == k)[:, None], jnp.tile(eye, (p, 1)), 0.0)
         u = jsl.solve_triangular(elim.schur_chol, e_k, lower=True)  # (3P, 3)
-        s_oo = c_inv + z.T @ z
-        s_oo, s_ko, s_kk = 0.5 * (s_oo + s_oo.T), -u.T @ z, u.T @ u
+        s_oo = c_inv + z_t @ z_t.T
+        s_oo, s_ko, s_kk = 0.5 * (s_oo + s_oo.T), -(z_t @ u).T, u.T @ u
     else:
         e_k = jnp.where((jnp.arange(p) == k)[:, None, None], eye[None], 0.0)
         pelim = _eliminate_poses(lin, e_k)
@@ -920,7 +949,7 @@ def marginalize_first(
     """
     lin = linearize(first_pose_factors(graph), poses, objects)
     h_0r = jnp.concatenate([lin.pose_off[0], lin.pose_object[0]], axis=-1)  # (3, 3 + 3N)
-    h_rr = jnp.block([[lin.pose_diag[1], lin.pose_object[1]], [lin.pose_object[1].T, lin.object]])
+    h_rr = jnp.block([[lin.pose_diag[1], lin.pose_object[1]], [lin.pose_object[1].T, lin.object_dense()]])
     g_r = jnp.concatenate([lin.grad_pose[1], lin.grad_object])
     t = jsl.cho_solve((jnp.linalg.cholesky(lin.pose_diag[0]), True),
                       jnp.concatenate([h_0r, lin.grad_pose[0][:, None]], axis=-1))
