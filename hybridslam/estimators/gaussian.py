@@ -62,8 +62,8 @@ from ..models.model import Model, model_from_scenario
 from ..models.motion import propagate
 from ..models.classifier import ClassifierModel
 from .base import AbstractEstimator, Mixture, StepInfo, classifier_name, history_length
-from .smoothing import (DataLog, Factors, Filter, Full, Lag, Smoother, WindowPrior, data_log, initial_trajectory,
-                        initial_window, smooth_step)
+from .smoothing import (DataLog, Factors, Filter, Full, Lag, Smoother, WindowPrior, data_log, factor_budget,
+                        initial_trajectory, initial_window, new_overflow, smooth_step)
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -231,7 +231,7 @@ class SingleGaussian(AbstractEstimator):
             return state
         none = Factors(jnp.zeros((steps, slots, g), jnp.int32), jnp.full((steps, slots, g), -jnp.inf),
                        jnp.full((steps, slots), -jnp.inf), jnp.zeros((steps, slots, g), jnp.int32))
-        log = data_log(scenario, steps, slots, n_max)
+        log = data_log(scenario, steps, slots, n_max, factor_budget(scenario, self.max_steps, slots))
         return dataclasses.replace(state, poses=initial_trajectory(scenario, steps), log=log, factors=none,
                                    window=initial_window(log) if isinstance(self.smoother, Lag) else None)
 
@@ -517,6 +517,7 @@ def commit(est: SingleGaussian, state: GaussianState, mean, cov, class_log_post,
         skipped=info.get("skipped", zero).astype(jnp.int32), rejected=info.get("rejected", zero).astype(jnp.int32),
         dropped_budget=info.get("dropped", zero).astype(jnp.int32),
         solver_failures=(result != optx.RESULTS.successful).astype(jnp.int32),
+        log_overflow=new_overflow(state.log, log),
         details=GaussianDetails(num_created, result),
     )
     return new_state, step_info

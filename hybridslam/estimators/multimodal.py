@@ -113,8 +113,8 @@ from ..models.model import Model, model_from_scenario
 from .. import __version__
 from ..inference.batching import map_live
 from .base import AbstractEstimator, Mixture, StepInfo, classifier_name, history_length
-from .smoothing import (DataLog, Filter, Full, Lag, Smoother, WindowPrior, data_log, history_factors,
-                        initial_trajectory, initial_window, smooth_step)
+from .smoothing import (DataLog, Filter, Full, Lag, Smoother, WindowPrior, data_log, factor_budget,
+                        history_factors, initial_trajectory, initial_window, new_overflow, smooth_step)
 
 NAME = "multimodal"
 
@@ -830,7 +830,8 @@ class Multimodal(AbstractEstimator):
         k = cfg.capacity
         smoothing: dict[str, Any] = {} if isinstance(self.smoother, Filter) else dict(
             poses=jnp.broadcast_to(initial_trajectory(scenario, cfg.max_steps), (k, cfg.max_steps + 1, 3)),
-            log=data_log(scenario, cfg.max_steps, cfg.max_detections, n_max))
+            log=data_log(scenario, cfg.max_steps, cfg.max_detections, n_max,
+                         factor_budget(scenario, self.max_steps, cfg.max_detections)))
         if isinstance(self.smoother, Lag):
             smoothing["window"] = initial_window(smoothing["log"], k)
         return State(
@@ -939,6 +940,7 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
         + smooth_failed,
         skipped=jnp.where(explained, 0, jnp.sum(detections.mask, dtype=jnp.int32)),
         object_overflow=no_room,
+        log_overflow=new_overflow(state.log, log),
         details=Details(ch.parent, ch.objects, ch.log_prob),
     )
     keep = lambda new, old: jnp.where(explained, new, old)  # noqa: E731

@@ -126,29 +126,53 @@ def parse_smoother(text: str) -> Smoother:
 
 class DataLog(eqx.Module):
     """The odometry and detections received so far (steps ``0..k-1``; the rest zeros), and the
-    Gaussian prior of the run: shared by every component of a state."""
+    Gaussian prior of the run: shared by every component of a state.
+
+    ``rows`` lists the detections received, in arrival order, as flat indices ``t·Dmax + d`` into
+    the ``(T, Dmax)`` arrays: the full smoother's graph (:func:`graph`) has one measurement factor
+    per entry, not one per padded slot. Its length is the log's factor budget: the scenario's own
+    number of detections when the state is sized for that scenario (MRCLAM robot 3: 372 factors
+    instead of 200 × 8 slots, a 4× cheaper linearization), else ``T·Dmax``. ``count`` counts every
+    detection recorded; those beyond the budget (only a state stepped on other data than the
+    scenario it was built for) are not in the graph, and :meth:`overflow` counts them.
+    """
 
     odometry: Float[Array, "T 3"]
     geo: Float[Array, "T Dmax 2"]
     scores: Float[Array, "T Dmax M"]
     mask: Bool[Array, "T Dmax"]
+    rows: Int[Array, " F"]
+    count: Int[Array, ""]
     prior_mean: Float[Array, " D0"]  # [x_0, o_0..o_{N-1}]
     prior_sqrt_info: Float[Array, "D0 D0"]
     prior_info: Float[Array, "D0 D0"]  # RᵀR, formed once here rather than once per step
     last_step: Int[Array, ""]  # the scenario's steps: the step solved to FINAL_ATOL (a padded log has more rows)
 
     def record(self, k: Int[Array, ""], odometry: Float[Array, "3"], detections: Detections) -> DataLog:
-        """The log with step ``k + 1``'s inputs written in row ``k``."""
+        """The log with step ``k + 1``'s inputs written in row ``k`` (and its detections appended
+        to ``rows``, those beyond the budget dropped and counted by :meth:`overflow`)."""
+        dmax = self.mask.shape[1]
+        budget = self.rows.shape[0]
+        at = jnp.where(detections.mask, self.count + jnp.cumsum(detections.mask) - 1, budget)
+        rows = self.rows.at[at].set(k * dmax + jnp.arange(dmax, dtype=self.rows.dtype), mode="drop")
         return eqx.tree_at(
-            lambda d: (d.odometry, d.geo, d.scores, d.mask), self,
+            lambda d: (d.odometry, d.geo, d.scores, d.mask, d.rows, d.count), self,
             (self.odometry.at[k].set(odometry), self.geo.at[k].set(detections.geo),
-             self.scores.at[k].set(detections.scores), self.mask.at[k].set(detections.mask)),
+             self.scores.at[k].set(detections.scores), self.mask.at[k].set(detections.mask), rows,
+             self.count + jnp.sum(detections.mask, dtype=self.count.dtype)),
         )
 
+    def overflow(self) -> Int[Array, ""]:
+        """Detections recorded beyond the factor budget (not in the full smoother's graph)."""
+        return jnp.maximum(self.count - self.rows.shape[0], 0)
 
-def data_log(scenario: Scenario, max_steps: int, max_detections: int, max_objects: int) -> DataLog:
+
+def data_log(scenario: Scenario, max_steps: int, max_detections: int, max_objects: int,
+             max_factors: int | None = None) -> DataLog:
     """An empty log for ``scenario`` and the prior of its smoothing problems.
 
+    ``max_factors``: the factor budget (:class:`DataLog`), by default ``max_steps · max_detections``
+    (room for anything); :func:`factor_budget` gives the scenario's own count where that is safe.
     The prior is the scenario's robot prior and object priors, block-diagonal; an object slot a
     detection may create later gets a prior on its heading only (``N(0, new_object_orientation_var)``).
     """
@@ -165,21 +189,48 @@ def data_log(scenario: Scenario, max_steps: int, max_detections: int, max_object
     for i in range(n, max_objects):
         info_sqrt[5 + 3 * i, 5 + 3 * i] = 1.0 / np.sqrt(var)
     f = lambda a: jnp.asarray(a, dtype=float)  # noqa: E731
+    budget = max_steps * max_detections if max_factors is None else max_factors
+    if not 1 <= budget <= max_steps * max_detections:
+        raise ValueError(f"max_factors: expected 1 to {max_steps * max_detections} (steps × detection slots), "
+                         f"got {budget}")
     return DataLog(
         odometry=jnp.zeros((max_steps, 3)), geo=jnp.zeros((max_steps, max_detections, 2)),
         scores=jnp.zeros((max_steps, max_detections, m)), mask=jnp.zeros((max_steps, max_detections), bool),
+        rows=jnp.zeros((budget,), jnp.int32), count=jnp.zeros((), jnp.int32),
         prior_mean=f(mean), prior_sqrt_info=f(info_sqrt), prior_info=f(info_sqrt.T @ info_sqrt),
         last_step=jnp.asarray(scenario.num_steps, dtype=jnp.int32),
     )
+
+
+def new_overflow(old: DataLog | None, new: DataLog | None) -> Int[Array, ""]:
+    """Detections of the step just recorded (``old`` → ``new``) that the log's factor budget could
+    not hold (0 without a log): the steps' ``StepInfo.log_overflow``."""
+    if old is None or new is None:
+        return jnp.zeros((), jnp.int32)
+    return (new.overflow() - old.overflow()).astype(jnp.int32)
+
+
+def factor_budget(scenario: Scenario, max_steps: int | None, max_detections: int) -> int:
+    """The factor budget of a state built for ``scenario``: its number of detections if the state is
+    sized for it alone (``max_steps`` None: the estimators' default), else ``steps · max_detections``
+    (a shared ``max_steps`` lets other files of other lengths run on the same shapes)."""
+    total = sum(len(step.detections) for step in scenario.steps)
+    if max_steps is None:
+        return max(total, 1)
+    return max(max_steps, 1) * max_detections
 
 
 def scenario_log(scenario: Scenario, max_objects: int) -> DataLog:
     """:func:`data_log` with every step of ``scenario`` already recorded (a whole run, for batch
     solves after the fact: the oracle smoother, the loop-closure pass)."""
     stacked = stack_steps(scenario)
-    log = data_log(scenario, scenario.num_steps, stacked.mask.shape[1], max_objects)
-    return eqx.tree_at(lambda d: (d.odometry, d.geo, d.scores, d.mask), log,
-                       tuple(jnp.asarray(a) for a in (stacked.odometry, stacked.geo, stacked.scores, stacked.mask)))
+    dmax = stacked.mask.shape[1]
+    log = data_log(scenario, scenario.num_steps, dmax, max_objects, factor_budget(scenario, None, dmax))
+    rows = np.flatnonzero(stacked.mask.reshape(-1))  # row-major: arrival order
+    rows = np.concatenate([rows, np.zeros(log.rows.shape[0] - rows.size, int)]).astype(np.int32)
+    return eqx.tree_at(lambda d: (d.odometry, d.geo, d.scores, d.mask, d.rows, d.count), log,
+                       tuple(jnp.asarray(a) for a in (stacked.odometry, stacked.geo, stacked.scores, stacked.mask))
+                       + (jnp.asarray(rows), jnp.asarray(int(stacked.mask.sum()), jnp.int32)))
 
 
 class WindowPrior(eqx.Module):
@@ -231,21 +282,24 @@ def graph(
     log: DataLog, factors: Factors, k: Int[Array, ""], num_created: Int[Array, ""] | int, sensor: SensorModel,
     motion_cov: Float[Array, "3 3"], semantic: bool, mode: sm.Mode = "sum",
 ) -> sm.FactorGraph:
-    """The factor graph of a component after ``k`` steps (see the module docstring)."""
+    """The factor graph of a component after ``k`` steps (see the module docstring): one
+    measurement factor per detection logged (``log.rows``)."""
     t, dmax = log.mask.shape
     n = (log.prior_mean.shape[0] - 3) // 3
     steps = jnp.arange(t)
-    reached = (steps < k)[:, None] & log.mask  # (T, Dmax)
-    flat = lambda a: a.reshape((t * dmax,) + a.shape[2:])  # noqa: E731
-    log_w = jnp.where(reached[..., None], factors.log_weight, -jnp.inf)
-    null = jnp.where(reached, factors.null_log_weight, -jnp.inf)
+    rows = log.rows
+    flat = lambda a: a.reshape((t * dmax,) + a.shape[2:])[rows]  # noqa: E731
+    step_of = rows // dmax
+    reached = (jnp.arange(rows.shape[0]) < log.count) & (step_of < k) & flat(log.mask)  # (F,)
+    log_w = jnp.where(reached[:, None], flat(factors.log_weight), -jnp.inf)
+    null = jnp.where(reached, flat(factors.null_log_weight), -jnp.inf)
     residual, data = _measurements(sensor, semantic, flat(log.geo), flat(log.scores), flat(factors.classes))
     motion_sqrt = jnp.linalg.cholesky(jnp.linalg.inv(motion_cov)).T
     return sm.FactorGraph(
         prior_mean=log.prior_mean, prior_sqrt_info=log.prior_sqrt_info,
         odometry=log.odometry, odometry_active=steps < k, motion_sqrt_info=motion_sqrt,
-        meas_pose=flat(jnp.broadcast_to((steps + 1)[:, None], (t, dmax))),
-        meas_objects=flat(factors.objects), meas_log_weight=flat(log_w), meas_null_log_weight=flat(null),
+        meas_pose=step_of + 1,
+        meas_objects=flat(factors.objects), meas_log_weight=log_w, meas_null_log_weight=null,
         meas_data=data, pose_active=jnp.arange(t + 1) <= k, object_active=jnp.arange(n) < num_created,
         residual_fn=residual, mode=mode, prior_info=log.prior_info,
         independent_objects=True,  # the run's prior (data_log) is block-diagonal

@@ -16,7 +16,7 @@ from ...io.scenario import Scenario
 from ...models.classifier import ClassifierModel
 from ...models.measurement import Detections
 from ...models.model import model_from_scenario
-from ..smoothing import Filter, Full, Lag, Smoother, data_log, initial_trajectory, initial_window
+from ..smoothing import Filter, Full, Lag, Smoother, data_log, factor_budget, initial_trajectory, initial_window
 from ..base import AbstractEstimator, Mixture, StepInfo, classifier_name, history_length
 from .belief import Belief, init_belief, priors_from_scenario
 from .branching import Beam, Branching, Exhaustive
@@ -120,7 +120,7 @@ class Hybrid(AbstractEstimator):
         belief = init_belief(priors_from_scenario(scenario), model, self.capacity, steps, slots)
         if isinstance(self.smoother, Filter):
             return belief
-        log = data_log(scenario, steps, slots, belief.num_objects)
+        log = data_log(scenario, steps, slots, belief.num_objects, factor_budget(scenario, self.max_steps, slots))
         poses = jnp.broadcast_to(initial_trajectory(scenario, steps), (self.capacity, steps + 1, 3))
         window = initial_window(log, self.capacity) if isinstance(self.smoother, Lag) else None
         return eqx.tree_at(lambda b: (b.poses, b.log, b.window), belief, (poses, log, window),

@@ -35,7 +35,7 @@ from ...models.measurement import Detections
 from ...models.model import NewObjects
 from ...models.motion import propagate
 from ..base import StepInfo
-from ..smoothing import Filter, Smoother, history_factors, smooth_step
+from ..smoothing import Filter, Smoother, history_factors, new_overflow, smooth_step
 from .belief import Belief
 from .branching import Beam, Branching, beam_children
 from .hypotheses import Children, children, hypothesis_table
@@ -328,6 +328,7 @@ def hybrid_step(
         is_failures=jnp.sum(alive & ~converged, dtype=jnp.int32),
         # The ESS of a visibility-ignored step is that of an estimate the step did not use.
         min_ess=jnp.where(visibility_ignored | ~jnp.any(alive), jnp.nan, jnp.min(jnp.where(alive, kept_ess, jnp.inf))),
+        log_overflow=new_overflow(belief.log, log),
         details=HybridDetails(stats, parent, result, kept_ess, num_smoothed),
     )
     return new_belief, info

@@ -1,0 +1,107 @@
+"""The smoother's data log (``estimators.smoothing.DataLog``): one measurement factor per detection.
+
+The full smoother's graph lists the detections received, not the padded ``(steps, slots)`` grid:
+the same graph with fewer rows. Checked here against the padded layout at the level that matters,
+the normal equations (``H``, ``g``, cost) of the two graphs at random states; the runs' trajectories
+against an independent batch solve are in tests/test_smoother_batch.py. A log sized for fewer
+detections than it is given keeps the first ones and counts the rest, which the step's warnings
+name.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import hybridslam as hs
+from hybridslam.driver import inputs_from_scenario
+from hybridslam.estimators.base import messages, StepInfo, _totals
+from hybridslam.estimators.smoothing import (data_log, factor_budget, graph, history_factors, new_overflow,
+                                             scenario_log)
+from hybridslam.inference import smoother as sm
+
+STEPS = 6
+
+
+@pytest.fixture(scope="module")
+def scenario():
+    return hs.simulate(3, steps=STEPS)
+
+
+def _recorded(log, scenario, slots):
+    inputs = inputs_from_scenario(scenario, slots)
+    logs = [log]
+    for k in range(scenario.num_steps):
+        det = hs.Detections(inputs.detections.geo[k], inputs.detections.scores[k], inputs.detections.mask[k])
+        logs.append(logs[-1].record(jnp.asarray(k), inputs.odometry[k], det))
+    return logs
+
+
+def test_the_budget_is_the_scenario_s_detections_unless_the_shapes_are_shared(scenario):
+    total = sum(len(s.detections) for s in scenario.steps)
+    assert 0 < total < STEPS * scenario.max_detections  # else the test shows nothing
+    assert factor_budget(scenario, None, scenario.max_detections) == total
+    assert factor_budget(scenario, STEPS + 4, 3) == (STEPS + 4) * 3
+    with pytest.raises(ValueError, match="max_factors"):
+        data_log(scenario, STEPS, 2, scenario.num_objects, max_factors=0)
+
+
+def _grid_graph(log, factors, k, sensor, motion_cov) -> sm.FactorGraph:
+    """The reference: one factor per (step, slot) of the padded grid, written out independently."""
+    t, dmax = log.mask.shape
+    reached = (jnp.arange(t) < k)[:, None] & log.mask
+    flat = lambda a: a.reshape((t * dmax,) + a.shape[2:])  # noqa: E731
+    w = jnp.linalg.cholesky(jnp.linalg.inv(motion_cov)).T
+    return sm.FactorGraph(
+        prior_mean=log.prior_mean, prior_sqrt_info=log.prior_sqrt_info, odometry=log.odometry,
+        odometry_active=jnp.arange(t) < k, motion_sqrt_info=w,
+        meas_pose=jnp.repeat(jnp.arange(1, t + 1), dmax), meas_objects=flat(factors.objects),
+        meas_log_weight=jnp.where(flat(reached)[:, None], flat(factors.log_weight), -jnp.inf),
+        meas_null_log_weight=jnp.full(t * dmax, -jnp.inf),
+        meas_data=sm.DetectionData(flat(log.geo), flat(log.scores), flat(factors.classes)),
+        pose_active=jnp.arange(t + 1) <= k, object_active=jnp.ones((log.prior_mean.shape[0] - 3) // 3, bool),
+        residual_fn=sm.SensorResidual(sensor), independent_objects=True,
+    )
+
+
+def test_the_compact_graph_has_the_normal_equations_of_the_padded_grid(scenario):
+    slots, n = scenario.max_detections, scenario.num_objects
+    sensor = hs.model_from_scenario(scenario).sensor
+    logs = _recorded(data_log(scenario, STEPS, slots, n, factor_budget(scenario, None, slots)), scenario, slots)
+    rng = np.random.default_rng(0)
+    history = jnp.asarray(rng.integers(-1, n, size=(STEPS, slots)))
+    factors = history_factors(history, jnp.asarray(rng.integers(0, scenario.num_classes, size=n)))
+    poses = jnp.asarray(rng.normal(size=(STEPS + 1, 3)))
+    objects = jnp.asarray(rng.normal(size=(n, 3)) * 3.0)
+    for k in (1, 3, STEPS):
+        graphs = [graph(logs[-1], factors, jnp.asarray(k), n, sensor, jnp.eye(3) * 0.01, True),
+                  _grid_graph(logs[-1], factors, k, sensor, jnp.eye(3) * 0.01)]
+        assert graphs[0].meas_pose.shape[0] < graphs[1].meas_pose.shape[0]
+        live = [int(jnp.sum(g.meas_log_weight > -jnp.inf)) for g in graphs]
+        assert live[0] == live[1] > 0
+        (h0, g0), (h1, g1) = (sm.linearize(g, poses, objects).dense() for g in graphs)
+        np.testing.assert_allclose(np.asarray(h0), np.asarray(h1), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(g0), np.asarray(g1), rtol=1e-12, atol=1e-12)
+        c0, c1 = (float(sm.linearize(g, poses, objects).cost) for g in graphs)
+        assert c0 == pytest.approx(c1, rel=1e-12)
+
+
+def test_a_whole_run_log_lists_every_detection_in_order(scenario):
+    log = scenario_log(scenario, scenario.num_objects)
+    slots = log.mask.shape[1]
+    expected = [k * slots + d for k, s in enumerate(scenario.steps) for d in range(len(s.detections))]
+    assert np.asarray(log.rows).tolist() == expected and int(log.count) == len(expected)
+
+
+def test_detections_beyond_the_budget_are_counted_and_named(scenario):
+    slots, n = scenario.max_detections, scenario.num_objects
+    logs = _recorded(data_log(scenario, STEPS, slots, n, max_factors=2), scenario, slots)
+    per_step = [int(new_overflow(a, b)) for a, b in zip(logs[:-1], logs[1:])]
+    total = sum(len(s.detections) for s in scenario.steps)
+    assert sum(per_step) == int(logs[-1].overflow()) == total - 2
+    first = [k * slots + d for k, s in enumerate(scenario.steps) for d in range(len(s.detections))][:2]
+    assert np.asarray(logs[-1].rows).tolist() == first  # the first two kept, nothing overwritten
+    info = StepInfo(k=jnp.asarray(STEPS), num_components=jnp.asarray(1), log_overflow=jnp.asarray(sum(per_step)))
+    assert any("factor budget" in line for line in messages(_totals(info), per_step=True))
+    assert int(new_overflow(None, logs[-1])) == 0
