@@ -225,3 +225,22 @@ def test_create_object_equals_the_dense_affine_map_and_discards_the_slot():
     want_mean = mean.copy()
     want_mean[rows] = np.r_[np.asarray(back_project(jnp.asarray(mean[:3]), jnp.asarray(geo))), 0.0]
     np.testing.assert_allclose(new_mean, want_mean, rtol=1e-12, atol=1e-12)
+
+
+def test_create_object_with_apply_false_changes_nothing():
+    """``apply=False`` (a detection that creates nothing) returns the Gaussian bit for bit, also
+    under vmap with a per-member flag, where the members that apply get the full update."""
+    rng = np.random.default_rng(4)
+    dim = 3 + 3 * 3
+    root = rng.normal(size=(dim, dim))
+    cov = jnp.asarray(root @ root.T / dim + 0.05 * np.eye(dim))
+    mean = jnp.asarray(rng.normal(size=dim))
+    args = (jnp.asarray(1), jnp.asarray([2.0, 0.3]), jnp.eye(2) * 0.01, jnp.asarray(4.0))
+    same_mean, same_cov = create_object(mean, cov, *args, apply=jnp.asarray(False))
+    np.testing.assert_array_equal(np.asarray(same_mean), np.asarray(mean))
+    np.testing.assert_array_equal(np.asarray(same_cov), np.asarray(cov))
+    full = create_object(mean, cov, *args)
+    batched = jax.vmap(lambda a: create_object(mean, cov, *args, apply=a))(jnp.asarray([True, False]))
+    np.testing.assert_array_equal(np.asarray(batched[1][0]), np.asarray(full[1]))
+    np.testing.assert_array_equal(np.asarray(batched[1][1]), np.asarray(cov))
+    assert not np.allclose(np.asarray(full[1]), np.asarray(cov))

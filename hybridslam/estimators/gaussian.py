@@ -406,10 +406,8 @@ def create_objects(state: GaussianState, mean, cov, slots: Int[Array, " Dmax"], 
     def one(carry, item):
         m, c = carry
         slot, geo = item
-        m2, c2 = discovery.create_object(m, c, jnp.maximum(slot, 0), geo, state.model.sensor.geometric_cov,
-                                         state.params.new_object_orientation_var)
-        keep = slot >= 0
-        return (jnp.where(keep, m2, m), jnp.where(keep, c2, c)), None
+        return discovery.create_object(m, c, jnp.maximum(slot, 0), geo, state.model.sensor.geometric_cov,
+                                       state.params.new_object_orientation_var, slot >= 0), None
 
     (mean, cov), _ = jax.lax.scan(one, (mean, cov), (slots, detections.geo))
     return mean, cov

@@ -617,8 +617,8 @@ def _create_objects(mean, cov, objects, new, geo, sensor, params):
     def one(carry, slot):
         m, c = carry
         obj, is_new, z = slot
-        m2, c2 = discovery.create_object(m, c, jnp.maximum(obj, 0), z, sensor.geometric_cov, params.orientation_var)
-        return (jnp.where(is_new, m2, m), jnp.where(is_new, c2, c)), None
+        return discovery.create_object(m, c, jnp.maximum(obj, 0), z, sensor.geometric_cov, params.orientation_var,
+                                       is_new), None
 
     (mean, cov), _ = jax.lax.scan(one, (mean, cov), (objects, new, geo))
     return mean, cov

@@ -84,9 +84,8 @@ def _realize(classes: Int[Array, " N"], assign: Int[Array, " Dmax"], slot_class:
 def _create(sensor, discovery, mean, cov, assign, creates, detections: Detections):
     """Write the objects a child creates into its Gaussian (:func:`~hybridslam.discovery.create_object`)."""
     for j in range(assign.shape[0]):  # detection slots (static, a few)
-        made = create_object(mean, cov, jnp.maximum(assign[j], 0), detections.geo[j], sensor.geometric_cov,
-                             discovery.orientation_var)
-        mean, cov = (jnp.where(creates[j], new, old) for new, old in zip(made, (mean, cov)))
+        mean, cov = create_object(mean, cov, jnp.maximum(assign[j], 0), detections.geo[j], sensor.geometric_cov,
+                                  discovery.orientation_var, creates[j])
     return mean, cov
 
 
