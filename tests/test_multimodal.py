@@ -264,10 +264,10 @@ def test_result_file_validates(discovery_run):
 # --------------------------------------------------------------------------- #
 
 
-def _crowded():
+def _crowded(objects=None, max_objects=6):
     """Four correlated, uncertain objects in a row, a broad robot prior, three detections: the pose
     and map correlations make each detection's conditional density depend on the earlier ones."""
-    objects = [(2.0, -0.6, 0.0), (2.2, 0.0, 0.0), (2.0, 0.6, 0.0), (3.0, 0.2, 0.0)]
+    objects = objects or [(2.0, -0.6, 0.0), (2.2, 0.0, 0.0), (2.0, 0.6, 0.0), (3.0, 0.2, 0.0)]
     dets = [{"range": 2.05, "bearing": -0.28, "scores": SEEN}, {"range": 2.18, "bearing": 0.02, "scores": SEEN},
             {"range": 2.1, "bearing": 0.3, "scores": SEEN}]
     return parse_scenario({
@@ -277,7 +277,7 @@ def _crowded():
         "motion_cov": _diag(1e-4, 1e-4, 1e-6), "geometric_cov": GEO_COV.tolist(),
         "classifier": {"model": "mirror", "alpha": ALPHA, "K": K_SEM},
         "sensor": {"max_range": 20.0, "fov": 2 * math.pi},
-        "discovery": {"max_objects": 6, "new_object_log_density": -3.0, "new_object_orientation_var": 9.87},
+        "discovery": {"max_objects": max_objects, "new_object_log_density": -3.0, "new_object_orientation_var": 9.87},
         "steps": [{"odometry": [0, 0, 0], "detections": dets}],
     })
 
@@ -332,3 +332,45 @@ def test_merge_keeps_the_mass_of_a_child_too_light_to_be_a_centre():
     assert np.all(np.asarray(wn)[:, 3] == 0.0)
     centres_all, merged_all, _, _, _ = merge(log_w, mean, cov, created, jnp.asarray(4.0), 4)  # every live child may centre
     assert sorted(int(c) for c in centres_all[merged_all > -jnp.inf]) == [0, 1, 2]
+
+
+def test_screening_over_the_candidates_rows_equals_screening_over_the_whole_map():
+    """``localized_terms``: the beam's sequential screening (densities and rank-2 conditioning) on
+    the pose and candidate rows only gives every partial assignment the same score as on the whole
+    state, for every joint choice of 3 detections × (2 candidates + new) on a 10-object map."""
+    import itertools
+
+    import jax
+    import jax.numpy as jnp
+
+    from hybridslam.driver import inputs_from_scenario
+    from hybridslam.estimators import multimodal as mm
+    from hybridslam.estimators.smoothing import Filter
+    from hybridslam.inference import gating, sequential
+
+    rng = np.random.default_rng(5)
+    scenario = _crowded([(2.0 + 0.1 * i, -0.9 + 0.2 * i, 0.0) for i in range(10)], max_objects=12)
+    detections = jax.tree.map(lambda a: a[0], inputs_from_scenario(scenario, 3).detections)
+    est = mm.Multimodal(capacity=2, samples=8, candidates=2, max_detections=3, max_steps=2, smoother=Filter())
+    state = est.init(scenario)
+    m, c = state.mean[0], state.cov[0]
+    root = jnp.asarray(rng.normal(size=c.shape)) * 0.02
+    c = c + root @ root.T  # correlate the pose and the objects
+    pred = gating.innovations(state.model.sensor, m, c, detections)
+    cand = mm.gate(pred.d2, state.num_created[0], 2)
+    terms = mm.slot_terms(state.model.sensor, state.params, pred, m, c, state.class_log_probs[0], cand, detections)
+    local = mm.localized_terms(terms)
+    assert local.cov.shape[0] == 3 + 3 * cand.size < c.shape[0]
+    for options in itertools.product(range(3), repeat=3):
+        opts = jnp.asarray(options)
+        objs, new, feasible = mm.assignment_objects(opts[None], cand, detections.mask, state.num_created[0],
+                                                    state.config.max_objects, True)
+        scores = []
+        for t in (terms, local):
+            row = jax.tree.map(lambda a: a[0], sequential.start(1, t.cov.shape[0], 3, m.dtype))
+            total = 0.0
+            for j in range(3):
+                total += float(mm.slot_log_likelihood(t, row, jnp.asarray(j), opts[j], objs[0, j], new[0, j]))
+                row = mm.condition(t, detections.mask, row, opts, jnp.asarray(j))
+            scores.append(total)
+        assert scores[1] == pytest.approx(scores[0], rel=1e-10, abs=1e-10), options
