@@ -16,7 +16,7 @@ import pytest
 
 import hybridslam as hs
 from hybridslam.driver import inputs_from_scenario
-from hybridslam.estimators.base import messages, StepInfo, _totals
+from hybridslam.estimators.base import StepInfo, _totals, messages
 from hybridslam.estimators.smoothing import (data_log, factor_budget, graph, history_factors, new_overflow,
                                              scenario_log)
 from hybridslam.inference import smoother as sm
@@ -91,7 +91,7 @@ def test_a_whole_run_log_lists_every_detection_in_order(scenario):
     log = scenario_log(scenario, scenario.num_objects)
     slots = log.mask.shape[1]
     expected = [k * slots + d for k, s in enumerate(scenario.steps) for d in range(len(s.detections))]
-    assert np.asarray(log.rows).tolist() == expected and int(log.count) == len(expected)
+    assert np.asarray(log.rows).tolist() == expected and int(log.count()) == len(expected)
 
 
 def test_detections_beyond_the_budget_are_counted_and_named(scenario):

@@ -132,17 +132,16 @@ class DataLog(eqx.Module):
     the ``(T, Dmax)`` arrays: the full smoother's graph (:func:`graph`) has one measurement factor
     per entry, not one per padded slot. Its length is the log's factor budget: the scenario's own
     number of detections when the state is sized for that scenario (MRCLAM robot 3: 372 factors
-    instead of 200 × 8 slots, a 4× cheaper linearization), else ``T·Dmax``. ``count`` counts every
-    detection recorded; those beyond the budget (only a state stepped on other data than the
-    scenario it was built for) are not in the graph, and :meth:`overflow` counts them.
+    instead of 200 × 8 slots, a 4× cheaper linearization), else ``T·Dmax``. Detections beyond the
+    budget (only a state stepped on other data than the scenario it was built for) are not in the
+    graph, and :meth:`overflow` counts them.
     """
 
     odometry: Float[Array, "T 3"]
     geo: Float[Array, "T Dmax 2"]
     scores: Float[Array, "T Dmax M"]
     mask: Bool[Array, "T Dmax"]
-    rows: Int[Array, " F"]
-    count: Int[Array, ""]
+    rows: Int[Array, " F"]  # the first count() entries are filled
     prior_mean: Float[Array, " D0"]  # [x_0, o_0..o_{N-1}]
     prior_sqrt_info: Float[Array, "D0 D0"]
     prior_info: Float[Array, "D0 D0"]  # RᵀR, formed once here rather than once per step
@@ -153,18 +152,21 @@ class DataLog(eqx.Module):
         to ``rows``, those beyond the budget dropped and counted by :meth:`overflow`)."""
         dmax = self.mask.shape[1]
         budget = self.rows.shape[0]
-        at = jnp.where(detections.mask, self.count + jnp.cumsum(detections.mask) - 1, budget)
+        at = jnp.where(detections.mask, self.count() + jnp.cumsum(detections.mask) - 1, budget)
         rows = self.rows.at[at].set(k * dmax + jnp.arange(dmax, dtype=self.rows.dtype), mode="drop")
         return eqx.tree_at(
-            lambda d: (d.odometry, d.geo, d.scores, d.mask, d.rows, d.count), self,
+            lambda d: (d.odometry, d.geo, d.scores, d.mask, d.rows), self,
             (self.odometry.at[k].set(odometry), self.geo.at[k].set(detections.geo),
-             self.scores.at[k].set(detections.scores), self.mask.at[k].set(detections.mask), rows,
-             self.count + jnp.sum(detections.mask, dtype=self.count.dtype)),
+             self.scores.at[k].set(detections.scores), self.mask.at[k].set(detections.mask), rows),
         )
+
+    def count(self) -> Int[Array, ""]:
+        """Detections recorded so far (every one sets its ``mask`` entry)."""
+        return jnp.sum(self.mask, dtype=jnp.int32)
 
     def overflow(self) -> Int[Array, ""]:
         """Detections recorded beyond the factor budget (not in the full smoother's graph)."""
-        return jnp.maximum(self.count - self.rows.shape[0], 0)
+        return jnp.maximum(self.count() - self.rows.shape[0], 0)
 
 
 def data_log(scenario: Scenario, max_steps: int, max_detections: int, max_objects: int,
@@ -196,7 +198,7 @@ def data_log(scenario: Scenario, max_steps: int, max_detections: int, max_object
     return DataLog(
         odometry=jnp.zeros((max_steps, 3)), geo=jnp.zeros((max_steps, max_detections, 2)),
         scores=jnp.zeros((max_steps, max_detections, m)), mask=jnp.zeros((max_steps, max_detections), bool),
-        rows=jnp.zeros((budget,), jnp.int32), count=jnp.zeros((), jnp.int32),
+        rows=jnp.zeros((budget,), jnp.int32),
         prior_mean=f(mean), prior_sqrt_info=f(info_sqrt), prior_info=f(info_sqrt.T @ info_sqrt),
         last_step=jnp.asarray(scenario.num_steps, dtype=jnp.int32),
     )
@@ -228,9 +230,8 @@ def scenario_log(scenario: Scenario, max_objects: int) -> DataLog:
     log = data_log(scenario, scenario.num_steps, dmax, max_objects, factor_budget(scenario, None, dmax))
     rows = np.flatnonzero(stacked.mask.reshape(-1))  # row-major: arrival order
     rows = np.concatenate([rows, np.zeros(log.rows.shape[0] - rows.size, int)]).astype(np.int32)
-    return eqx.tree_at(lambda d: (d.odometry, d.geo, d.scores, d.mask, d.rows, d.count), log,
-                       tuple(jnp.asarray(a) for a in (stacked.odometry, stacked.geo, stacked.scores, stacked.mask))
-                       + (jnp.asarray(rows), jnp.asarray(int(stacked.mask.sum()), jnp.int32)))
+    return eqx.tree_at(lambda d: (d.odometry, d.geo, d.scores, d.mask, d.rows), log,
+                       tuple(jnp.asarray(a) for a in (stacked.odometry, stacked.geo, stacked.scores, stacked.mask, rows)))
 
 
 class WindowPrior(eqx.Module):
@@ -290,7 +291,7 @@ def graph(
     rows = log.rows
     flat = lambda a: a.reshape((t * dmax,) + a.shape[2:])[rows]  # noqa: E731
     step_of = rows // dmax
-    reached = (jnp.arange(rows.shape[0]) < log.count) & (step_of < k) & flat(log.mask)  # (F,)
+    reached = (jnp.arange(rows.shape[0]) < log.count()) & (step_of < k)  # (F,): rows name only detections
     log_w = jnp.where(reached[:, None], flat(factors.log_weight), -jnp.inf)
     null = jnp.where(reached, flat(factors.null_log_weight), -jnp.inf)
     residual, data = _measurements(sensor, semantic, flat(log.geo), flat(log.scores), flat(factors.classes))
