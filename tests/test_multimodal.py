@@ -12,6 +12,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 
 from hybridslam.driver import run_estimator
 from hybridslam.inference import gating
@@ -316,7 +318,7 @@ def test_merge_keeps_the_mass_of_a_child_too_light_to_be_a_centre():
     weights still sum to the children's. A dead child (-inf) is nobody's member."""
     import jax.numpy as jnp
 
-    from hybridslam.estimators.multimodal import RELEVANT_NATS, merge, relevant_children
+    from hybridslam.estimators.multimodal import RELEVANT_NATS, cluster, relevant_children
 
     log_w = jnp.log(jnp.array([0.6, 0.4, 1e-20, 0.0]))
     mean = jnp.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [9.0, 0.0, 0.0], [5.0, 5.0, 0.0]])
@@ -324,13 +326,13 @@ def test_merge_keeps_the_mass_of_a_child_too_light_to_be_a_centre():
     created = jnp.zeros(4, jnp.int32)
     ok = relevant_children(log_w)
     assert ok.tolist() == [True, True, False, False] and float(log_w[0] - log_w[2]) > RELEVANT_NATS
-    centres, merged, wn, _, _ = merge(log_w, mean, cov, created, jnp.asarray(4.0), 4, ok)
+    centres, merged, wn = cluster(log_w, mean, cov, created, jnp.asarray(4.0), 4, ok)
     assert sorted(int(c) for c in centres[merged > -jnp.inf]) == [0, 1]
     owner = int(np.flatnonzero(np.asarray(centres) == 1)[0])
     assert float(wn[owner, 2]) > 0.0 and float(wn[1 - owner, 2]) == 0.0  # child 2 joined its nearest, child 1
     assert float(jnp.exp(jnp.logaddexp(merged[0], merged[1]))) == pytest.approx(1.0, rel=1e-12)
     assert np.all(np.asarray(wn)[:, 3] == 0.0)
-    centres_all, merged_all, _, _, _ = merge(log_w, mean, cov, created, jnp.asarray(4.0), 4)  # every live child may centre
+    centres_all, merged_all, _ = cluster(log_w, mean, cov, created, jnp.asarray(4.0), 4)  # every live child may centre
     assert sorted(int(c) for c in centres_all[merged_all > -jnp.inf]) == [0, 1, 2]
 
 
@@ -374,3 +376,31 @@ def test_screening_over_the_candidates_rows_equals_screening_over_the_whole_map(
                 row = mm.condition(t, detections.mask, row, opts, jnp.asarray(j))
             scores.append(total)
         assert scores[1] == pytest.approx(scores[0], rel=1e-10, abs=1e-10), options
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.floats(-math.pi, math.pi))
+@example(0, math.pi - 0.05)
+def test_spread_is_the_moment_match_about_the_anchor(seed, heading):
+    """``spread``: ``anchor + shift`` is the members' weighted mean and ``scatter`` their weighted
+    covariance about it (numpy, two passes), with headings averaged on the circle — members on both
+    sides of ±π (around ``heading``) average near it, not near 0."""
+    import jax.numpy as jnp
+
+    from hybridslam.estimators.multimodal import spread
+
+    rng = np.random.default_rng(seed)
+    c, d = 5, 6
+    mean = rng.normal(size=(c, d)) * 0.3
+    mean[:, 2::3] += heading
+    mean[:, 2::3] = (mean[:, 2::3] + math.pi) % (2 * math.pi) - math.pi
+    wn = rng.dirichlet(np.ones(c), size=2)  # (K=2, C)
+    anchor = mean[[0, 3]]
+    shift, scatter = spread(jnp.asarray(wn), jnp.asarray(anchor), jnp.asarray(mean))
+    for k in range(2):
+        delta = mean - anchor[k]
+        delta[:, 2::3] = (delta[:, 2::3] + math.pi) % (2 * math.pi) - math.pi  # offsets on the circle
+        mu = wn[k] @ delta
+        np.testing.assert_allclose(np.asarray(shift[k]), mu, atol=1e-12)
+        dev = delta - mu
+        np.testing.assert_allclose(np.asarray(scatter[k]), (wn[k][:, None] * dev).T @ dev, atol=1e-12)

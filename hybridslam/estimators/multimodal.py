@@ -19,13 +19,13 @@ sum represents a mode with one component however unlikely it is, whereas evenly 
 late-mode failure Sec. 5.2.1 warns about. We keep the weights explicit instead.
 
 Reduction without pruning. The children are reduced back to ``K`` by greedy moment-matching
-merging (:func:`merge`): the heaviest unclaimed child becomes a centre and claims every child within
+merging (:func:`cluster`, :func:`spread`): the heaviest unclaimed child becomes a centre and claims every child within
 a squared Mahalanobis distance ``merge_threshold`` that has the same number of created objects;
 ``K`` rounds; children left over are merged into their nearest centre. No mass is ever dropped
 there, and separated modes stay separate components as long as there are at most ``K`` of them.
 A child more than ``RELEVANT_NATS`` (30 nats: relative weight below 1e-13) under the best child
 becomes no centre: its mass joins its nearest centre, so the belief carries no component it could
-not show, and a smoother (below) never spends a solve on it.
+not show.
 Only the ``children`` best children (a static count, ranked by the linearized likelihood below) get
 a Gauss-Newton update and a Monte Carlo weight: the linearized mass of the rest is reported in
 ``StepInfo.dropped_mass`` and as a warning, never silently.
@@ -67,12 +67,15 @@ the detections already assigned (:mod:`hybridslam.inference.sequential`: the sam
 a 2×2 term per detection); ``max_assignments=None`` enumerates every tuple and scores each at once
 (the reference).
 
-Smoothing (``smoother=Full()``, the default, or ``Lag(L)``; :mod:`.smoothing`): each child's
-whole trajectory and map (or its window) is relinearized with every geometric factor of its
-association history before the merge, and a merged component keeps its centre's trajectory. This
-is the static-shape stand-in for mm-iSAM: a Gaussian sum of smoothed hypotheses where mm-iSAM
-propagates nonparametric beliefs through one graph. Only the children that may become centres
-(above) are smoothed: the live components and the relevant children each form a prefix, and
+Smoothing (``smoother=Full()``, the default, or ``Lag(L)``; :mod:`.smoothing`): the children are
+clustered on their filter estimates (above), then each merged component's centre has its whole
+trajectory and map (or its window) relinearized with every geometric factor of its association
+history, and the component is its cluster moment-matched about the centre's smoothed estimate:
+members keep their filter offsets from the centre and take the centre's smoothed covariance (they
+are within ``merge_threshold`` of it and created the same objects). A component keeps its centre's
+trajectory. This is the static-shape stand-in for mm-iSAM: a Gaussian sum of smoothed hypotheses
+where mm-iSAM propagates nonparametric beliefs through one graph. ``K`` smoothings per step, not
+one per child (2·K): the used centres form a prefix, and
 :func:`~hybridslam.inference.batching.map_live` skips the rest.
 
 The continuous update uses the geometric part only: the class-marginalized semantic factor is a
@@ -702,7 +705,7 @@ def relevant_children(log_w: Float[Array, " C"]) -> Bool[Array, " C"]:
     return log_w > jnp.max(log_w) - RELEVANT_NATS  # all -inf: none
 
 
-def merge(
+def cluster(
     log_w: Float[Array, " C"],
     mean: Float[Array, "C D"],
     cov: Float[Array, "C D D"],
@@ -710,30 +713,30 @@ def merge(
     threshold: Float[Array, ""],
     capacity: int,
     centre_ok: Bool[Array, " C"] | None = None,
-) -> tuple[Int[Array, " K"], Float[Array, " K"], Float[Array, "K C"], Float[Array, "K D"], Float[Array, "K D D"]]:
-    """Reduce ``C`` weighted Gaussians to ``K`` without dropping mass.
+) -> tuple[Int[Array, " K"], Float[Array, " K"], Float[Array, "K C"]]:
+    """Group ``C`` weighted Gaussians into ``K`` clusters without dropping mass (the merge's first half).
 
     ``K`` rounds: the heaviest unclaimed child among ``centre_ok`` (default: every live child)
     becomes a centre and claims every unclaimed child with the same number of created objects within
     squared Mahalanobis distance ``threshold`` (centre's metric). Leftovers join the nearest centre:
     moment-matched when their object slots are comparable (same number created), by weight only
-    otherwise. Returns the centres, merged log weights (``-inf`` for unused slots), moment weights
-    ``(K, C)``, and merged means and covariances.
+    otherwise. Returns the centres (the used ones first), merged log weights (``-inf`` for unused
+    slots) and the normalized moment weights ``(K, C)`` (zero for a member joined by weight only).
     """
     live = log_w > -jnp.inf
     centre_ok = live if centre_ok is None else centre_ok & live
-    chol = _chunked(jnp.linalg.cholesky, cov)
     pose_chol = jax.vmap(jnp.linalg.cholesky)(cov[:, :3, :3])
 
     def round_(owner, r):
         free = (owner < 0) & live
         c = jnp.argmax(jnp.where(free & centre_ok, log_w, -jnp.inf))
-        close = free & (num_created == num_created[c]) & (_mahalanobis2(chol[c], mean[c], mean) <= threshold)
+        # Only the centres' factors are needed: K of them, not C.
+        d2 = _mahalanobis2(jnp.linalg.cholesky(cov[c]), mean[c], mean)
+        close = free & (num_created == num_created[c]) & (d2 <= threshold)
         close = close | (jnp.arange(owner.shape[0]) == c)
-        return jnp.where(close & jnp.any(free & centre_ok), r, owner), (c, jnp.any(free & centre_ok))
+        return jnp.where(close & jnp.any(free & centre_ok), r, owner), (c, jnp.any(free & centre_ok), d2)
 
-    owner, (centres, used) = jax.lax.scan(round_, jnp.full(log_w.shape, -1), jnp.arange(capacity))
-    full_d2 = _chunked(lambda ch, m: _mahalanobis2(ch, m, mean), chol[centres], mean[centres])  # (K, C)
+    owner, (centres, used, full_d2) = jax.lax.scan(round_, jnp.full(log_w.shape, -1), jnp.arange(capacity))
     pose_d2 = jax.vmap(_mahalanobis2, (0, 0, None))(pose_chol[centres], mean[centres, :3], mean[:, :3])
     comparable = used[:, None] & (num_created[centres][:, None] == num_created[None, :])
     has_full = jnp.any(comparable, axis=0)
@@ -747,12 +750,21 @@ def merge(
     centre_hot = jnp.arange(log_w.shape[0])[None, :] == centres[:, None]
     wn = jax.nn.softmax(jnp.where(moment, log_w[None, :], -jnp.inf), axis=1)
     wn = jnp.where(jnp.any(moment, axis=1, keepdims=True), wn, centre_hot.astype(wn.dtype))
-    delta = jax.vmap(jax.vmap(wrap_angles))(mean[None, :, :] - mean[centres][:, None, :])  # (K, C, D)
+    return centres, log_weights, wn
+
+
+def spread(
+    wn: Float[Array, "K C"], anchor: Float[Array, "K D"], mean: Float[Array, "C D"],
+) -> tuple[Float[Array, "K D"], Float[Array, "K D D"]]:
+    """The members' weighted mean offset from each cluster's ``anchor`` and their scatter about it.
+
+    The moment-matched cluster is ``anchor + shift`` with covariance ``Σ_c wn_c P_c + scatter``
+    (angles wrapped: the offsets are taken on the circle).
+    """
+    delta = jax.vmap(jax.vmap(wrap_angles))(mean[None, :, :] - anchor[:, None, :])  # (K, C, D)
     shift = jnp.einsum("kc,kcd->kd", wn, delta)
     dev = delta - shift[:, None, :]
-    new_cov = jnp.einsum("kc,cde->kde", wn, cov) + jnp.einsum("kc,kcd,kce->kde", wn, dev, dev)
-    new_mean = jax.vmap(wrap_angles)(mean[centres] + shift)
-    return centres, log_weights, wn, new_mean, 0.5 * (new_cov + jnp.swapaxes(new_cov, 1, 2))
+    return shift, jnp.einsum("kc,kcd,kce->kde", wn, dev, dev)
 
 
 # --------------------------------------------------------------------------- #
@@ -913,13 +925,19 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
         state.num_created[ch.parent], ch.objects, ch.new, detections, theta)
     c_hist = state.history[ch.parent].at[:, state.k].set(jnp.where(detections.mask[None, :], ch.objects, -1))
     # A child more than RELEVANT_NATS below the best (relative weight < 1e-13) becomes no centre of
-    # the merge: its mass joins the nearest centre, and with a smoother it is not smoothed.
+    # the merge: its mass joins the nearest centre.
     centre_ok = relevant_children(ch.log_weight)
-    poses, log, c_poses, smooth_failed = state.poses, state.log, None, jnp.zeros((), jnp.int32)
-    window, c_window = state.window, None
+    centres, log_w, wn = cluster(ch.log_weight, c_mean, c_cov, c_created, state.params.merge_threshold, cfg.capacity,
+                                 centre_ok)
+    shift, scatter = spread(wn, c_mean[centres], c_mean)
+    # Filter: each cluster moment-matched (members' own means and covariances).
+    m_mean = jax.vmap(wrap_angles)(c_mean[centres] + shift)
+    m_cov = jnp.einsum("kc,cde->kde", wn, c_cov) + scatter
+    poses, log, smooth_failed = state.poses, state.log, jnp.zeros((), jnp.int32)
+    window = state.window
     if not isinstance(smoother, Filter):
-        # Each child's whole trajectory and map relinearized with every factor of its history
-        # (smoothing.py) before the children are merged; a merged component keeps its centre's.
+        # Each merged component's centre has its whole trajectory and map relinearized with every
+        # factor of its history (smoothing.py): K smoothings per step rather than one per child.
         assert state.log is not None and state.poses is not None  # Full keeps them
         log = state.log.record(state.k, odometry, detections)
 
@@ -927,26 +945,21 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
             return smooth_step(smoother, log, history_factors(history_i), state.k + 1, created_i, state.model.sensor,
                                state.model.motion_cov, False, "sum", poses_i, mean_i, cov_i, window_i)
 
-        # Only the children that may become centres are smoothed: sorted by weight, they form a
-        # prefix, and map_live skips the chunks after it.
-        order = jnp.argsort(-ch.log_weight)
-        parent_window = None if state.window is None else jax.tree.map(lambda a: a[ch.parent], state.window)
-        args = jax.tree.map(lambda a: a[order], (state.poses[ch.parent], c_mean, c_cov, c_hist, c_created, parent_window))
-        out = map_live(smoothed, centre_ok[order], *args)
-        # Back in the children's order; a child not smoothed gets the best child's values, so that
-        # later batched math on it stays finite (its mean and covariance are its own, below).
-        inv = jnp.argsort(order)
-        out = jax.tree.map(lambda a: jnp.where(centre_ok.reshape((-1,) + (1,) * (a.ndim - 1)), a[inv], a[:1]), out)
-        c_mean = jnp.where(centre_ok[:, None], out.mean, c_mean)
-        c_cov = jnp.where(centre_ok[:, None, None], out.cov, c_cov)
-        c_poses, c_window = out.poses, out.window
-        smooth_failed = jnp.sum(centre_ok & (out.result != optx.RESULTS.successful), dtype=jnp.int32)
-    centres, log_w, wn, m_mean, m_cov = merge(ch.log_weight, c_mean, c_cov, c_created, state.params.merge_threshold,
-                                              cfg.capacity, centre_ok)
-    if c_poses is not None:
-        poses = c_poses[centres]
-    if c_window is not None:
-        window = jax.tree.map(lambda a: a[centres], c_window)
+        # The used centres form a prefix (cluster picks them by weight), so map_live skips the
+        # chunks after it; an unused slot gets slot 0's values so that later math on it stays finite.
+        used = log_w > -jnp.inf
+        parent = ch.parent[centres]
+        parent_window = None if state.window is None else jax.tree.map(lambda a: a[parent], state.window)
+        out = map_live(smoothed, used, state.poses[parent], c_mean[centres], c_cov[centres], c_hist[centres],
+                       c_created[centres], parent_window)
+        out = jax.tree.map(lambda a: jnp.where(used.reshape((-1,) + (1,) * (a.ndim - 1)), a, a[:1]), out)
+        # Members keep their (filter) offsets from the centre and take its smoothed covariance: the
+        # cluster moment-matched about the centre's smoothed estimate.
+        m_mean = jax.vmap(wrap_angles)(out.mean + shift)
+        m_cov = out.cov + scatter
+        poses, window = out.poses, out.window
+        smooth_failed = jnp.sum(used & (out.result != optx.RESULTS.successful), dtype=jnp.int32)
+    m_cov = 0.5 * (m_cov + jnp.swapaxes(m_cov, 1, 2))
     # Warnings concern hypotheses within RELEVANT_NATS of the best; the rest carry no visible mass.
     relevant = relevant_children(state.log_weights)
     no_room = cfg.discovery & jnp.any(detections.mask) & jnp.any(relevant & (state.num_created >= cfg.max_objects))
