@@ -115,6 +115,18 @@ def compiled(fn: Callable, *args) -> tuple[Callable, float]:
     return executable, seconds
 
 
+def clear_compiled() -> None:
+    """Forget every executable :func:`compiled` kept, and JAX's own caches.
+
+    Each executable holds its machine code in memory maps; a process that compiles many programs
+    (a benchmark over every estimator, smoother and workload: about 40) reaches the kernel's map
+    limit (``vm.max_map_count``, 65530 by default) and XLA then fails with "LLVM compilation error:
+    Cannot allocate memory". Call this between programs that will not run again.
+    """
+    _COMPILED.clear()
+    jax.clear_caches()
+
+
 # --------------------------------------------------------------------------- #
 # Records of the result file
 # --------------------------------------------------------------------------- #

@@ -32,6 +32,7 @@ import numpy as np
 
 import hybridslam as hs
 from hybridslam.analysis.trajectory import error_summary
+from hybridslam.driver import clear_compiled
 from hybridslam.estimators.smoothing import Filter, Full
 from hybridslam.sim import hallway
 from hybridslam.studies import study
@@ -54,6 +55,7 @@ def _row(workload, name, smoother, scenario, options, repeats):
         r = hs.run(est, scenario)
         compile_s = max(compile_s, r.result.timing["compile_s"])
         steps += r.result.timing["step_s"]
+    clear_compiled()  # each row compiles its own program; 40 of them kept exhaust the process's memory maps
     ms = 1e3 * np.asarray(steps)
     # A fixed-lag window (lag:L) has the full smoother's goal: the issues' goals predate the choice.
     goal = GOALS_MS.get((workload, name, "full" if smoother.startswith("lag:") else smoother))
@@ -121,6 +123,7 @@ def main() -> None:
                 calls = []
                 study.run_file_study(spec, os.path.join(tmp, f"out-{label}"), on_cell=lambda *c: calls.append(c))
                 wall = time.perf_counter() - t0
+                clear_compiled()
                 record = [c[1] for c in calls if c[1] is not None][0]
                 print(f"files    hybrid       {label:<7} {record['compile_s']:>9.1f} "
                       f"{'':>10} {'':>9} {'':>8} batched work {record['run_s']:.2f} s for 16 x 10 steps "

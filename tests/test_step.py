@@ -161,3 +161,24 @@ def test_viewpoint_dependent_model_lowers_entropy(weights):
             finals.append(run.result.steps[-1].metrics["entropy"])
         mean_entropy[clf] = np.mean(finals)
     assert mean_entropy["mirror"] < mean_entropy["none"] - 0.1, mean_entropy
+
+
+def test_clear_compiled_forgets_the_kept_executables(monkeypatch):
+    """``driver.compiled`` keeps one executable per program (a second equal call compiles nothing);
+    after ``clear_compiled`` the same call compiles again, and JAX's caches were cleared. (On a
+    private cache and a stand-in for ``jax.clear_caches``: the rest of the suite keeps its programs.)"""
+    from hybridslam import driver
+
+    monkeypatch.setattr(driver, "_COMPILED", {})
+    cleared = []
+    monkeypatch.setattr(jax, "clear_caches", lambda: cleared.append(True))
+
+    def double(x):
+        return 2.0 * x
+
+    x = jnp.arange(3.0)
+    _, first = driver.compiled(double, x)
+    assert first > 0.0 and driver.compiled(double, x)[1] == 0.0
+    driver.clear_compiled()
+    again, seconds = driver.compiled(double, x)
+    assert cleared == [True] and seconds > 0.0 and np.allclose(again(x), 2.0 * x)
