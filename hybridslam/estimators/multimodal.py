@@ -604,8 +604,10 @@ def hypotheses(
     sel_w, sel = jax.lax.top_k(screen_w, cfg.children)
     parent, a = sel // num_assign, sel % num_assign
     objects, new = objects[parent, a], new[parent, a]
+    # One child at a time: a batch's fixed-point loop runs until its slowest member has converged
+    # (hallway: 112 against 117 ms per step with batches of 16; MRCLAM: the same).
     post_mean, post_cov, result = _chunked(lambda m, c, o, n: gauss_newton_child(state, m, c, o, n, detections),
-                                           mean[parent], cov[parent], objects, new)
+                                           mean[parent], cov[parent], objects, new, batch_size=1)
 
     eps, theta = draws(key, cfg, params)
 
