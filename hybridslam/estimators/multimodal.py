@@ -932,12 +932,12 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
     centres, log_w, wn = cluster(ch.log_weight, c_mean, c_cov, c_created, state.params.merge_threshold, cfg.capacity,
                                  centre_ok)
     shift, scatter = spread(wn, c_mean[centres], c_mean)
-    # Filter: each cluster moment-matched (members' own means and covariances).
-    m_mean = jax.vmap(wrap_angles)(c_mean[centres] + shift)
-    m_cov = jnp.einsum("kc,cde->kde", wn, c_cov) + scatter
     poses, log, smooth_failed = state.poses, state.log, jnp.zeros((), jnp.int32)
     window = state.window
-    if not isinstance(smoother, Filter):
+    if isinstance(smoother, Filter):  # each cluster moment-matched from its members' own Gaussians
+        m_mean = jax.vmap(wrap_angles)(c_mean[centres] + shift)
+        m_cov = jnp.einsum("kc,cde->kde", wn, c_cov) + scatter
+    else:
         # Each merged component's centre has its whole trajectory and map relinearized with every
         # factor of its history (smoothing.py): K smoothings per step rather than one per child.
         assert state.log is not None and state.poses is not None  # Full keeps them
