@@ -412,8 +412,12 @@ def main(dataset: str, output: str = os.path.join("runs", "mrclam"), robots=(1, 
                 print(f"robot {robot}, {start:g} s, {map_} map: {e}", flush=True)
         t0 = time.perf_counter()
         progress = tqdm(todo, desc="mrclam cells", unit="cell")
+        program = None
         for robot, start, map_, name, smoother in progress:
             progress.set_postfix_str(f"{name} {smoother} robot {robot} {map_}")
+            if (map_, name, smoother) != program:  # the cells of one program are consecutive
+                driver.clear_compiled()  # 30 kept programs would exhaust the memory maps (see its docstring)
+                program = (map_, name, smoother)
             records.append(run_cell(output, dataset, robot, start, duration, map_, name, smoother, max_detections))
         keys = {json.dumps(cell_key(dataset, c[0], c[1], duration, c[2], c[3], c[4]), sort_keys=True)
                 for c in cells}
