@@ -12,7 +12,7 @@ import pytest
 import hybridslam as hs
 from hybridslam.estimators.hybrid.hypotheses import NEW, children, hypothesis_table
 from hybridslam.estimators.hybrid.weights import linearized_log_likelihood, sampled_log_likelihood
-from hybridslam.inference.discovery import back_project, create_object
+from hybridslam.inference.discovery import back_project, create_object, create_objects
 from hybridslam.inference.gating import gate
 from hybridslam.io.scenario import Classifier, Discovery, Step
 from hybridslam.models.registry import make_classifier
@@ -244,3 +244,26 @@ def test_create_object_with_apply_false_changes_nothing():
     np.testing.assert_array_equal(np.asarray(batched[1][0]), np.asarray(full[1]))
     np.testing.assert_array_equal(np.asarray(batched[1][1]), np.asarray(cov))
     assert not np.allclose(np.asarray(full[1]), np.asarray(cov))
+
+
+def test_create_objects_creates_in_detection_order_and_skips_the_rest():
+    """``create_objects`` equals ``create_object`` applied detection by detection to the creating
+    slots only (the second new object correlated with the first through the pose), and the
+    non-creating entries (slot -1 included) change nothing."""
+    rng = np.random.default_rng(5)
+    dim = 3 + 3 * 4
+    root = rng.normal(size=(dim, dim))
+    cov = jnp.asarray(root @ root.T / dim + 0.05 * np.eye(dim))
+    mean = jnp.asarray(rng.normal(size=dim))
+    slots, creates = jnp.asarray([3, -1, 1, 2]), jnp.asarray([True, False, True, False])
+    geo = jnp.asarray([[2.0, 0.3], [1.0, -0.2], [3.0, 1.1], [2.5, 0.0]])
+    gcov, var = jnp.eye(2) * 0.01, jnp.asarray(4.0)
+    got = create_objects(mean, cov, slots, creates, geo, gcov, var)
+    want = create_object(mean, cov, jnp.asarray(3), geo[0], gcov, var)
+    want = create_object(*want, jnp.asarray(1), geo[2], gcov, var)
+    for g, w in zip(got, want):
+        np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=1e-14, atol=1e-14)
+    assert abs(float(got[1][3 + 3 * 3, 3 + 3 * 1])) > 0  # the two new objects are correlated
+    skipped = slice(3 + 3 * 2, 6 + 3 * 2)  # slot 2: named by a detection that creates nothing
+    np.testing.assert_array_equal(np.asarray(got[0][skipped]), np.asarray(mean[skipped]))
+    np.testing.assert_array_equal(np.asarray(got[1][skipped, skipped]), np.asarray(cov[skipped, skipped]))

@@ -398,19 +398,9 @@ def fits(state: GaussianState, new: Bool[Array, " Dmax"]) -> Bool[Array, " Dmax"
 
 
 def create_objects(state: GaussianState, mean, cov, slots: Int[Array, " Dmax"], detections: Detections):
-    """Initialize every slot ``slots[j] >= 0`` from detection ``j`` (:func:`hybridslam.discovery.create_object`).
-
-    Sequential (a scan over the detection slots): each new object correlates with the ones before.
-    """
-
-    def one(carry, item):
-        m, c = carry
-        slot, geo = item
-        return discovery.create_object(m, c, jnp.maximum(slot, 0), geo, state.model.sensor.geometric_cov,
-                                       state.params.new_object_orientation_var, slot >= 0), None
-
-    (mean, cov), _ = jax.lax.scan(one, (mean, cov), (slots, detections.geo))
-    return mean, cov
+    """Initialize every slot ``slots[j] >= 0`` from detection ``j`` (:func:`hybridslam.discovery.create_objects`)."""
+    return discovery.create_objects(mean, cov, slots, slots >= 0, detections.geo, state.model.sensor.geometric_cov,
+                                    state.params.new_object_orientation_var)
 
 
 def create_likeliest_new(state: GaussianState, mean, cov, assoc: Association, detections: Detections):

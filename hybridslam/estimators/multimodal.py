@@ -640,19 +640,6 @@ def association_log_probabilities(state: State, detections: Detections, key: jax
 # --------------------------------------------------------------------------- #
 
 
-def _create_objects(mean, cov, objects, new, geo, sensor, params):
-    """Initialize every new object from its detection (:func:`hybridslam.discovery.create_object`)."""
-
-    def one(carry, slot):
-        m, c = carry
-        obj, is_new, z = slot
-        return discovery.create_object(m, c, jnp.maximum(obj, 0), z, sensor.geometric_cov, params.orientation_var,
-                                       is_new), None
-
-    (mean, cov), _ = jax.lax.scan(one, (mean, cov), (objects, new, geo))
-    return mean, cov
-
-
 def _class_update(sensor, mean, class_log_probs, observed, objects, new, detections, theta):
     """Bayes' rule on each associated object's class (the semantic term of Eq. 5.10; thesis Eq. 4.17).
 
@@ -685,7 +672,8 @@ def finish_child(
 ):
     """Write the child's new objects into their slots and update its class posteriors."""
     sensor = state.model.sensor
-    mean, cov = _create_objects(mean, cov, objects, new, detections.geo, sensor, state.params)
+    mean, cov = discovery.create_objects(mean, cov, objects, new, detections.geo, sensor.geometric_cov,
+                                         state.params.orientation_var)
     class_log_probs, observed = _class_update(sensor, mean, class_log_probs, observed, objects, new, detections, theta)
     return mean, cov, class_log_probs, observed, (num_created + jnp.sum(new)).astype(num_created.dtype)
 

@@ -64,3 +64,28 @@ def create_object(
     value = jnp.concatenate([back_project(x, geo), jnp.zeros(1, mean.dtype)])
     value = jnp.where(apply, value, jax.lax.dynamic_slice(mean, (start,), (3,)))
     return jax.lax.dynamic_update_slice(mean, value, (start,)), new_cov
+
+
+def create_objects(
+    mean: Float[Array, " D"],
+    cov: Float[Array, "D D"],
+    slots: Int[Array, " Dmax"],
+    creates: Bool[Array, " Dmax"],
+    geo: Float[Array, "Dmax 2"],
+    geometric_cov: Float[Array, "2 2"],
+    orientation_var: Float[Array, ""],
+) -> tuple[Float[Array, " D"], Float[Array, "D D"]]:
+    """:func:`create_object` for every detection ``j`` with ``creates[j]``, into slot ``slots[j]``.
+
+    In detection order (a scan over the slots): each new object is correlated with the ones created
+    before it, through the pose. Entries with ``creates[j]`` False change nothing (their slot may be
+    anything, e.g. -1).
+    """
+
+    def one(carry, item):
+        slot, apply, z = item
+        return create_object(*carry, jnp.maximum(slot, 0), z, geometric_cov, orientation_var, apply), None
+
+    (mean, cov), _ = jax.lax.scan(one, (mean, cov), (slots, creates, geo))
+    return mean, cov
+

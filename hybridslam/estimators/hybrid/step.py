@@ -28,7 +28,7 @@ from jax.scipy.special import logsumexp
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from ...inference.batching import map_distinct, map_live
-from ...inference.discovery import create_object
+from ...inference.discovery import create_objects
 from ...inference.gating import gate
 from ...inference.update import gauss_newton_update
 from ...models.measurement import Detections
@@ -81,17 +81,11 @@ def _realize(classes: Int[Array, " N"], assign: Int[Array, " Dmax"], slot_class:
     return classes.at[target].set(slot_class, mode="drop")
 
 
-def _create(sensor, discovery, mean, cov, assign, creates, detections: Detections):
-    """Write the objects a child creates into its Gaussian (:func:`~hybridslam.discovery.create_object`)."""
-    for j in range(assign.shape[0]):  # detection slots (static, a few)
-        mean, cov = create_object(mean, cov, jnp.maximum(assign[j], 0), detections.geo[j], sensor.geometric_cov,
-                                  discovery.orientation_var, creates[j])
-    return mean, cov
-
-
 def _create_and_update(sensor, discovery, mean, cov, assign, creates, slot_class, detections: Detections, max_steps):
-    """:func:`_create`, then the update with the detections of the child's other slots (Eq. 9-10)."""
-    mean, cov = _create(sensor, discovery, mean, cov, assign, creates, detections)
+    """:func:`~hybridslam.inference.discovery.create_objects`, then the update with the detections of
+    the child's other slots (Eq. 9-10)."""
+    mean, cov = create_objects(mean, cov, assign, creates, detections.geo, sensor.geometric_cov,
+                               discovery.orientation_var)
     return gauss_newton_update(sensor, mean, cov, jnp.where(creates, -1, assign), slot_class, detections, max_steps)
 
 
@@ -244,8 +238,10 @@ def hybrid_step(
         # (same solution, measured on the hallway; a fifth less compiling) and objects it creates.
         new_mean, new_cov = mean[parent], cov[parent]
         if discovery:
-            new_mean, new_cov = jax.vmap(partial(_create, model.sensor, model.discovery, detections=detections))(
-                new_mean, new_cov, assign, creates)  # the solver's result comes from the smoother below
+            create = partial(create_objects, geo=detections.geo, geometric_cov=model.sensor.geometric_cov,
+                             orientation_var=model.discovery.orientation_var)
+            # The solver's result comes from the smoother below.
+            new_mean, new_cov = jax.vmap(create)(new_mean, new_cov, assign, creates)
     elif discovery:
         update = partial(_create_and_update, model.sensor, model.discovery, detections=detections,
                          max_steps=settings.gn_max_steps)
