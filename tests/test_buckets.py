@@ -1,0 +1,93 @@
+"""Static-size buckets (hybridslam.inference.buckets) and the smoother's solves on the live prefix.
+
+The bucketed solve and marginal must equal the whole-graph ones whatever bucket the live poses and
+objects fall in, also under ``jax.vmap`` with a different live count per member (the switch index
+is then the batch's largest, unbatched).
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import hybridslam  # noqa: F401  (float64)
+from hybridslam.inference import buckets
+from hybridslam.inference import smoother as sm
+from tests.test_smoother import N, P, _graph
+
+
+def test_bucket_sizes_cover_each_long_axis_in_quarters_and_keep_short_ones_whole():
+    assert buckets.bucket_sizes(11, 6) == ((11, 6),)  # the paper setup: one compile
+    assert buckets.bucket_sizes(61, 70) == ((16, 18), (31, 35), (46, 53), (61, 70))  # the hallway
+    assert buckets.bucket_sizes(201, 15) == ((51, 15), (101, 15), (151, 15), (201, 15))  # MRCLAM, known map
+    assert buckets.bucket_sizes(61, 70, count=1) == ((61, 70),)
+
+
+def test_batch_max_is_the_batch_maximum_unbatched_under_vmap():
+    x = jnp.array([[3, 1], [2, 7]])
+    assert int(buckets.batch_max(jnp.asarray(4))) == 4
+    # out_axes=None: vmap fails unless the output is unbatched.
+    assert int(jax.vmap(buckets.batch_max, out_axes=None)(x[0])) == 3
+    assert int(jax.vmap(jax.vmap(buckets.batch_max, out_axes=None), out_axes=None)(x)) == 7  # nested: over both
+
+
+@pytest.mark.parametrize("live", [0, 1, 3, 4, 5, 9])
+def test_by_bucket_runs_the_first_bucket_that_holds_the_live_count(live):
+    sizes = ((2, 1), (4, 1), (6, 1))
+    got = buckets.by_bucket(sizes, (live, 0), lambda size, x: x + size[0], jnp.asarray(0))
+    assert int(got) == {0: 2, 1: 2, 3: 4, 4: 4, 5: 6, 9: 6}[live]
+
+
+@pytest.fixture
+def small_buckets(monkeypatch):
+    monkeypatch.setattr(buckets, "MIN_BUCKETED", 2)  # P = 5, N = 3 in quarters: (2, 1) (3, 2) (4, 3) (5, 3)
+
+
+def _prefix_graph(seed: int, poses: int, objects: int) -> sm.FactorGraph:
+    """A random graph of P poses and N objects of which the first ``poses`` / ``objects`` are active."""
+    graph = _graph(np.random.default_rng(seed), independent=True)
+    pose_active = jnp.arange(P) < poses
+    object_active = jnp.arange(N) < objects
+    live = pose_active[graph.meas_pose][:, None] & object_active[graph.meas_objects]
+    return dataclasses.replace(
+        graph, pose_active=pose_active, object_active=object_active,
+        odometry_active=pose_active[1:], meas_log_weight=jnp.where(live, graph.meas_log_weight, -jnp.inf))
+
+
+def _whole(lin: sm.Linearization) -> sm.Linearization:
+    return dataclasses.replace(lin, live_poses=None, live_objects=None)
+
+
+@pytest.mark.parametrize(("poses", "objects"), [(1, 0), (2, 1), (3, 3), (5, 1), (5, 3)])
+def test_bucketed_solve_and_marginal_equal_the_whole_graphs(small_buckets, poses, objects):
+    graph = _prefix_graph(poses * 10 + objects, poses, objects)
+    start = jnp.asarray(np.random.default_rng(0).normal(size=(P, 3)) * 0.1)
+    lin = sm.linearize(graph, start, jnp.zeros((N, 3)))
+    assert (int(lin.live_poses), int(lin.live_objects)) == (poses, objects)
+    h, g = lin.dense()
+    ref = -np.linalg.solve(np.asarray(h), np.asarray(g))
+    for method in ("poses-first", "objects-first"):
+        d_p, d_o = sm.solve_normal(lin, method)
+        got = np.concatenate([np.asarray(d_p).reshape(-1), np.asarray(d_o).reshape(-1)])
+        np.testing.assert_allclose(got, ref, atol=1e-10, err_msg=method)
+    sol = sm.solve(graph, start, jnp.zeros((N, 3)), max_steps=5)
+    k = poses - 1
+    mean, cov = sm.marginal(sol, k)
+    whole = dataclasses.replace(sol, linearization=_whole(sol.linearization))
+    mean_w, cov_w = sm.marginal(whole, k)
+    np.testing.assert_allclose(np.asarray(cov), np.asarray(cov_w), rtol=1e-9, atol=1e-12)
+    np.testing.assert_array_equal(np.asarray(mean), np.asarray(mean_w))
+
+
+def test_bucketed_solve_under_vmap_with_a_live_count_per_member(small_buckets):
+    graphs = [_prefix_graph(seed, poses, objects) for seed, (poses, objects) in enumerate([(2, 1), (5, 2), (3, 3)])]
+    start = jnp.asarray(np.random.default_rng(1).normal(size=(P, 3)) * 0.1)
+    lins = [sm.linearize(g, start, jnp.zeros((N, 3))) for g in graphs]
+    batch = jax.tree.map(lambda *a: jnp.stack(a), *lins)
+    d_p, d_o = jax.jit(jax.vmap(sm.solve_normal))(batch)
+    for i, lin in enumerate(lins):
+        ref_p, ref_o = sm.solve_normal(_whole(lin))
+        np.testing.assert_allclose(np.asarray(d_p[i]), np.asarray(ref_p), atol=1e-10)
+        np.testing.assert_allclose(np.asarray(d_o[i]), np.asarray(ref_o), atol=1e-10)
