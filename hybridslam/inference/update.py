@@ -97,6 +97,17 @@ def prior_gauss_newton(
     measurement: Callable, mean: Float[Array, " D"], cov: Float[Array, "D D"], args, max_steps: int,
     support: Int[Array, " P"] | None = None,
 ) -> tuple[Float[Array, " D"], Float[Array, "D D"], optx.RESULTS]:
+    """The mode and covariance of :func:`prior_gauss_newton_gain`'s Gauss-Newton:
+    ``Σ⁺ = Σ − K (JΣ)``, symmetrized."""
+    value, k, js, result = prior_gauss_newton_gain(measurement, mean, cov, args, max_steps, support)
+    new_cov = cov - k @ js
+    return value, 0.5 * (new_cov + new_cov.T), result
+
+
+def prior_gauss_newton_gain(
+    measurement: Callable, mean: Float[Array, " D"], cov: Float[Array, "D D"], args, max_steps: int,
+    support: Int[Array, " P"] | None = None,
+) -> tuple[Float[Array, " D"], Float[Array, "D m"], Float[Array, "m D"], optx.RESULTS]:
     """Gauss-Newton on ``½‖y ⊖ μ‖²_Σ + ½‖measurement(y, args)‖²``, in Kalman form (an iterated EKF).
 
     The same iterates as :func:`gauss_newton` with the prior as a factor (Bell & Cathey 1993: the
@@ -106,6 +117,9 @@ def prior_gauss_newton(
     Linearized at the iterate ``y``, with ``J = ∂r/∂y`` and ``δ = μ ⊖ y``, the next iterate is
     ``μ + K ν`` with ``K = Σ Jᵀ (J Σ Jᵀ + I)⁻¹``, ``ν = −(r(y) + J δ)``; the covariance at the
     solution is ``(I − K J) Σ = (Σ⁻¹ + JᵀJ)⁻¹`` (the Gauss-Newton Hessian, as in :func:`gauss_newton`).
+    Returns the mode (headings wrapped), ``K`` and ``JΣ`` at the mode: the covariance is the rank-``m``
+    downdate ``Σ − K (JΣ)`` (:func:`prior_gauss_newton` forms it), so a batch of updates of a few
+    priors need not carry a ``D × D`` matrix each.
     Stops when no entry moves by more than ``GN_TOLERANCE``, or after ``max_steps``.
 
     ``support``: the state indices the measurement depends on (e.g. :func:`support_of` the robot
@@ -145,5 +159,4 @@ def prior_gauss_newton(
     solver = optx.FixedPointIteration(rtol=0.0, atol=GN_TOLERANCE)
     sol = optx.fixed_point(iterate, solver, mean, (mean, cov, args), max_steps=max_steps, throw=False)
     _, _, _, js, k = gain(sol.value, cov, args)
-    new_cov = cov - k @ js
-    return wrap_angles(sol.value), 0.5 * (new_cov + new_cov.T), sol.result
+    return wrap_angles(sol.value), k, js, sol.result
