@@ -95,6 +95,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from functools import partial
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 import equinox as eqx
@@ -325,9 +326,23 @@ def sub_gaussian(
 ) -> tuple[Float[Array, " P"], Float[Array, "P P"]]:
     """The marginal over ``[x_k, associated objects]``; placeholder entries are ``N(0, 1)`` and
     uncorrelated, so they cancel between any two such Gaussians."""
-    m = jnp.where(dummy, 0.0, mean[idx])
-    c = jnp.where(dummy[:, None] | dummy[None, :], 0.0, cov[idx][:, idx])
+    return _placeholders(mean[idx], cov[idx][:, idx], dummy)
+
+
+def _placeholders(mean: Float[Array, " P"], cov: Float[Array, "P P"], dummy: Bool[Array, " P"]):
+    m = jnp.where(dummy, 0.0, mean)
+    c = jnp.where(dummy[:, None] | dummy[None, :], 0.0, cov)
     return m, c + jnp.diag(dummy.astype(c.dtype))
+
+
+def child_cov(parent_cov: Float[Array, "D D"], gain: Float[Array, "D m"], gain_js: Float[Array, "m D"],
+              idx: Int[Array, " P"] | None = None) -> Float[Array, "P P"]:
+    """A child's Gauss-Newton covariance ``Σ − K (JΣ)`` (:func:`gauss_newton_child`), symmetrized;
+    with ``idx``, only its ``[idx, idx]`` block (``O(P² m)``, not ``O(D² m)``)."""
+    if idx is not None:
+        parent_cov, gain, gain_js = parent_cov[idx][:, idx], gain[idx], gain_js[:, idx]
+    c = parent_cov - gain @ gain_js
+    return 0.5 * (c + c.T)
 
 
 def screen_log_likelihood(
@@ -520,7 +535,8 @@ class Children(eqx.Module):
     objects: Int[Array, "C Dmax"]  # object of each detection, -1 for an empty slot
     new: Bool[Array, "C Dmax"]  # which detections create their object
     mean: Float[Array, "C D"]  # Gauss-Newton posterior (before new objects are written)
-    cov: Float[Array, "C D D"]
+    gain: Float[Array, "C D m"]  # its covariance is the parent's downdated: child_cov (not carried: C × D × D)
+    gain_js: Float[Array, "C m D"]
     result: optx.RESULTS
     log_lik: Float[Array, " C"]  # Monte Carlo log L_ij (Eq. 5.10)
     log_prob: Float[Array, " C"]  # log p_j (Eq. 5.9)
@@ -606,31 +622,29 @@ def hypotheses(
     objects, new = objects[parent, a], new[parent, a]
     # One child at a time: a batch's fixed-point loop runs until its slowest member has converged
     # (hallway: 112 against 117 ms per step with batches of 16; MRCLAM: the same). Each child reads
-    # its parent's covariance in place: a gathered copy of C parents' D×D matrices costs more.
-    def child(i, o, n):
-        value, gain, gain_js, result = gauss_newton_child(state, mean[i], cov[i], o, n, detections)
-        post = cov[i] - gain @ gain_js
-        return value, 0.5 * (post + post.T), result
-
-    post_mean, post_cov, result = _chunked(child, parent, objects, new, batch_size=1)
+    # its parent's covariance in place and gives back the rank-m downdate of it (child_cov): C
+    # gathered copies of D×D matrices in and out of the loop cost more than the updates.
+    post_mean, gain, gain_js, result = _chunked(
+        lambda i, o, n: gauss_newton_child(state, mean[i], cov[i], o, n, detections), parent, objects, new,
+        batch_size=1)
 
     eps, theta = draws(key, cfg, params)
 
-    def weigh(pm, pc, qm, qc, class_lp, obj, nw):
+    def weigh(i, qm, k, js, class_lp, obj, nw):
         idx, dummy = _sub_indices(obj, (obj >= 0) & ~nw)
-        prior = sub_gaussian(pm, pc, idx, dummy)
-        proposal = sub_gaussian(qm, qc, idx, dummy) if cfg.proposal == "posterior" else prior
+        prior = sub_gaussian(mean[i], cov[i], idx, dummy)
+        proposal = (_placeholders(qm[idx], child_cov(cov[i], k, js, idx), dummy) if cfg.proposal == "posterior"
+                    else prior)
         return sampled_log_likelihood(sensor, params, prior, proposal, class_lp[jnp.maximum(obj, 0)], obj, nw,
                                       detections, eps, theta)
 
-    log_lik = _chunked(weigh, mean[parent], cov[parent], post_mean, post_cov, state.class_log_probs[parent],
-                       objects, new)
+    log_lik = _chunked(weigh, parent, post_mean, gain, gain_js, state.class_log_probs[parent], objects, new)
     log_lik = jnp.where(sel_w > -jnp.inf, log_lik, -jnp.inf)
     log_mass = state.log_weights[parent] + log_lik
     log_prob = tuple_log_probs(objects, log_mass, cfg.max_objects)
     log_weight = log_mass + log_prob if cfg.association_prior == "mc" else log_mass
     dropped = jnp.maximum(-jnp.expm1(jax.nn.logsumexp(sel_w) - jax.nn.logsumexp(screen_w)), 0.0)
-    return Children(parent, objects, new, post_mean, post_cov, result, log_lik, log_prob, log_weight, dropped,
+    return Children(parent, objects, new, post_mean, gain, gain_js, result, log_lik, log_prob, log_weight, dropped,
                     jnp.sum(jnp.where(alive, beam_dropped, 0), dtype=jnp.int32))
 
 
@@ -709,6 +723,22 @@ def cluster(
     capacity: int,
     centre_ok: Bool[Array, " C"] | None = None,
 ) -> tuple[Int[Array, " K"], Float[Array, " K"], Float[Array, "K C"]]:
+    """:func:`clustered` with every child's covariance given."""
+    centres, log_weights, wn, _ = clustered(log_w, mean, lambda c: cov[c], cov[:, :3, :3], num_created, threshold,
+                                            capacity, centre_ok)
+    return centres, log_weights, wn
+
+
+def clustered(
+    log_w: Float[Array, " C"],
+    mean: Float[Array, "C D"],
+    cov_of: Callable[[Int[Array, ""]], Float[Array, "D D"]],
+    pose_cov: Float[Array, "C 3 3"],
+    num_created: Int[Array, " C"],
+    threshold: Float[Array, ""],
+    capacity: int,
+    centre_ok: Bool[Array, " C"] | None = None,
+) -> tuple[Int[Array, " K"], Float[Array, " K"], Float[Array, "K C"], Float[Array, "K D D"]]:
     """Group ``C`` weighted Gaussians into ``K`` clusters without dropping mass (the merge's first half).
 
     ``K`` rounds: the heaviest unclaimed child among ``centre_ok`` (default: every live child)
@@ -716,22 +746,27 @@ def cluster(
     squared Mahalanobis distance ``threshold`` (centre's metric). Leftovers join the nearest centre:
     moment-matched when their object slots are comparable (same number created), by weight only
     otherwise. Returns the centres (the used ones first), merged log weights (``-inf`` for unused
-    slots) and the normalized moment weights ``(K, C)`` (zero for a member joined by weight only).
+    slots), the normalized moment weights ``(K, C)`` (zero for a member joined by weight only) and
+    the centres' covariances. ``cov_of(c)``: child ``c``'s covariance (only the ``K`` centres' are
+    asked for: the children's need not exist as a ``C × D × D`` array); ``pose_cov``: every child's
+    pose block.
     """
     live = log_w > -jnp.inf
     centre_ok = live if centre_ok is None else centre_ok & live
-    pose_chol = jax.vmap(jnp.linalg.cholesky)(cov[:, :3, :3])
+    pose_chol = jax.vmap(jnp.linalg.cholesky)(pose_cov)
 
     def round_(owner, r):
         free = (owner < 0) & live
         c = jnp.argmax(jnp.where(free & centre_ok, log_w, -jnp.inf))
         # Only the centres' factors are needed: K of them, not C.
-        d2 = _mahalanobis2(jnp.linalg.cholesky(cov[c]), mean[c], mean)
+        cov_c = cov_of(c)
+        d2 = _mahalanobis2(jnp.linalg.cholesky(cov_c), mean[c], mean)
         close = free & (num_created == num_created[c]) & (d2 <= threshold)
         close = close | (jnp.arange(owner.shape[0]) == c)
-        return jnp.where(close & jnp.any(free & centre_ok), r, owner), (c, jnp.any(free & centre_ok), d2)
+        return jnp.where(close & jnp.any(free & centre_ok), r, owner), (c, jnp.any(free & centre_ok), d2, cov_c)
 
-    owner, (centres, used, full_d2) = jax.lax.scan(round_, jnp.full(log_w.shape, -1), jnp.arange(capacity))
+    owner, (centres, used, full_d2, centre_cov) = jax.lax.scan(round_, jnp.full(log_w.shape, -1),
+                                                               jnp.arange(capacity))
     pose_d2 = jax.vmap(_mahalanobis2, (0, 0, None))(pose_chol[centres], mean[centres, :3], mean[:, :3])
     comparable = used[:, None] & (num_created[centres][:, None] == num_created[None, :])
     has_full = jnp.any(comparable, axis=0)
@@ -745,7 +780,7 @@ def cluster(
     centre_hot = jnp.arange(log_w.shape[0])[None, :] == centres[:, None]
     wn = jax.nn.softmax(jnp.where(moment, log_w[None, :], -jnp.inf), axis=1)
     wn = jnp.where(jnp.any(moment, axis=1, keepdims=True), wn, centre_hot.astype(wn.dtype))
-    return centres, log_weights, wn
+    return centres, log_weights, wn, centre_cov
 
 
 def spread(
@@ -914,16 +949,33 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
     mean, cov = jax.vmap(motion.propagate, (0, 0, None, None))(state.mean, state.cov, odometry, state.model.motion_cov)
     ch = hypotheses(state, mean, cov, detections, key)
     _, theta = draws(key, cfg, state.params)
-    finish = jax.vmap(finish_child, (None, 0, 0, 0, 0, 0, 0, 0, None, None))
+
+    def child_full_cov(c):  # child c's covariance, its new objects written
+        return discovery.create_objects(ch.mean[c], child_cov(cov[ch.parent[c]], ch.gain[c], ch.gain_js[c]),
+                                        ch.objects[c], ch.new[c], detections.geo, state.model.sensor.geometric_cov,
+                                        state.params.orientation_var)[1]
+
+    # Every child's covariance only where the filter moment-matches whole clusters; with a smoother
+    # only the K centres' are formed (child_full_cov, in the clustering), not C × D × D: the
+    # covariances finish_child makes of zeros are then unused, and XLA drops that work.
+    filtering = isinstance(smoother, Filter)
+    # (One at a time: XLA's batched product with the short inner axis m is slower on CPU: 59 against
+    # 46 ms per hallway step.)
+    pre_cov = (_chunked(lambda i, k, js: child_cov(cov[i], k, js), ch.parent, ch.gain, ch.gain_js, batch_size=1)
+               if filtering else jnp.zeros((cfg.children,) + cov.shape[1:], cov.dtype))
+    finish = jax.vmap(lambda m, c, class_lp, obs, created, objs, new: finish_child(
+        state, m, c, class_lp, obs, created, objs, new, detections, theta))
     c_mean, c_cov, c_class, c_obs, c_created = finish(
-        state, ch.mean, ch.cov, state.class_log_probs[ch.parent], state.observed[ch.parent],
-        state.num_created[ch.parent], ch.objects, ch.new, detections, theta)
+        ch.mean, pre_cov, state.class_log_probs[ch.parent], state.observed[ch.parent], state.num_created[ch.parent],
+        ch.objects, ch.new)
     c_hist = state.history[ch.parent].at[:, state.k].set(jnp.where(detections.mask[None, :], ch.objects, -1))
     # A child more than RELEVANT_NATS below the best (relative weight < 1e-13) becomes no centre of
     # the merge: its mass joins the nearest centre.
     centre_ok = relevant_children(ch.log_weight)
-    centres, log_w, wn = cluster(ch.log_weight, c_mean, c_cov, c_created, state.params.merge_threshold, cfg.capacity,
-                                 centre_ok)
+    pose_cov = jax.vmap(lambda i, k, js: child_cov(cov[i], k, js, jnp.arange(3)))(ch.parent, ch.gain, ch.gain_js)
+    centres, log_w, wn, centre_cov = clustered(
+        ch.log_weight, c_mean, (lambda c: c_cov[c]) if filtering else child_full_cov, pose_cov, c_created,
+        state.params.merge_threshold, cfg.capacity, centre_ok)
     shift, scatter = spread(wn, c_mean[centres], c_mean)
     poses, log, smooth_failed = state.poses, state.log, jnp.zeros((), jnp.int32)
     window = state.window
@@ -945,7 +997,7 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
         used = log_w > -jnp.inf
         parent = ch.parent[centres]
         parent_window = None if state.window is None else jax.tree.map(lambda a: a[parent], state.window)
-        out = map_live(smoothed, used, state.poses[parent], c_mean[centres], c_cov[centres], c_hist[centres],
+        out = map_live(smoothed, used, state.poses[parent], c_mean[centres], centre_cov, c_hist[centres],
                        c_created[centres], parent_window)
         out = jax.tree.map(lambda a: jnp.where(used.reshape((-1,) + (1,) * (a.ndim - 1)), a, a[:1]), out)
         # Members keep their (filter) offsets from the centre and take its smoothed covariance: the
