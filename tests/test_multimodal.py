@@ -409,6 +409,8 @@ def test_spread_is_the_moment_match_about_the_anchor(seed, heading):
 def test_child_covariance_block_is_the_block_of_the_whole_downdate():
     """``child_cov`` with ``idx`` (the weights' proposal, the clustering's pose blocks) is the
     ``[idx, idx]`` block of the child's whole covariance ``Σ − K (JΣ)``, symmetric."""
+    import jax.numpy as jnp
+
     from hybridslam.estimators.multimodal import child_cov
 
     rng = np.random.default_rng(0)
