@@ -94,8 +94,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from functools import partial
 from collections.abc import Callable
+from functools import partial
 from typing import Any, ClassVar
 
 import equinox as eqx
