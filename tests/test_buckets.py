@@ -91,3 +91,14 @@ def test_bucketed_solve_under_vmap_with_a_live_count_per_member(small_buckets):
         ref_p, ref_o = sm.solve_normal(_whole(lin))
         np.testing.assert_allclose(np.asarray(d_p[i]), np.asarray(ref_p), atol=1e-10)
         np.testing.assert_allclose(np.asarray(d_o[i]), np.asarray(ref_o), atol=1e-10)
+
+
+def test_the_environment_sets_the_number_of_buckets_and_rejects_nonsense(monkeypatch):
+    monkeypatch.setenv("HYBRIDSLAM_BUCKETS", "1")
+    assert buckets._buckets_from_environment() == 1
+    for bad in ("0", "-2", "four"):
+        monkeypatch.setenv("HYBRIDSLAM_BUCKETS", bad)
+        with pytest.raises(ValueError, match="HYBRIDSLAM_BUCKETS"):
+            buckets._buckets_from_environment()
+    monkeypatch.setattr(buckets, "BUCKETS", 1)
+    assert buckets.bucket_sizes(61, 70) == ((61, 70),)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 from collections.abc import Callable
 from typing import Any
 
@@ -25,7 +26,16 @@ import jax.numpy as jnp
 from jax.custom_batching import custom_vmap
 from jaxtyping import Array, Int
 
-BUCKETS = 4  # sizes compiled per bucketed axis: each one more costs a compile of the work
+def _buckets_from_environment() -> int:
+    text = os.environ.get("HYBRIDSLAM_BUCKETS", "4")
+    if not text.strip().isdigit() or int(text) < 1:
+        raise ValueError(f"HYBRIDSLAM_BUCKETS: expected a positive integer (1: no buckets), got {text!r}")
+    return int(text)
+
+
+# Sizes compiled per bucketed axis; each one more compiles the solves again (about 1-1.5 s on the
+# MRCLAM and hallway programs). HYBRIDSLAM_BUCKETS=1 compiles them once, for short runs from a cold cache.
+BUCKETS = _buckets_from_environment()
 MIN_BUCKETED = 32  # an axis shorter than this is not bucketed (the paper setup's 11 poses: one compile)
 
 
