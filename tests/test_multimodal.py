@@ -406,18 +406,18 @@ def test_spread_is_the_moment_match_about_the_anchor(seed, heading):
         np.testing.assert_allclose(np.asarray(scatter[k]), (wn[k][:, None] * dev).T @ dev, atol=1e-12)
 
 
-def test_child_covariance_block_is_the_block_of_the_whole_downdate():
-    """``child_cov`` with ``idx`` (the weights' proposal, the clustering's pose blocks) is the
+def test_downdate_block_is_the_block_of_the_whole_downdate():
+    """``update.downdate`` with ``idx`` (the weights' proposal, the clustering's pose blocks) is the
     ``[idx, idx]`` block of the child's whole covariance ``Σ − K (JΣ)``, symmetric."""
     import jax.numpy as jnp
 
-    from hybridslam.estimators.multimodal import child_cov
+    from hybridslam.inference.update import downdate
 
     rng = np.random.default_rng(0)
     a = rng.normal(size=(9, 9))
     parent = jnp.asarray(a @ a.T + 9 * np.eye(9))
     k, js = jnp.asarray(rng.normal(size=(9, 4)) * 0.1), jnp.asarray(rng.normal(size=(4, 9)) * 0.1)
-    whole = np.asarray(child_cov(parent, k, js))
+    whole = np.asarray(downdate(parent, k, js))
     np.testing.assert_allclose(whole, 0.5 * ((parent - k @ js) + (parent - k @ js).T), atol=1e-12)
     idx = jnp.asarray([0, 1, 2, 6, 7, 8])
-    np.testing.assert_allclose(np.asarray(child_cov(parent, k, js, idx)), whole[np.ix_(idx, idx)], atol=1e-12)
+    np.testing.assert_allclose(np.asarray(downdate(parent, k, js, idx)), whole[np.ix_(idx, idx)], atol=1e-12)

@@ -108,7 +108,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ..inference import discovery, gating, sequential
 from ..inference.beam import beam_search
-from ..inference.update import prior_gauss_newton_gain, support_of, wrap_angles
+from ..inference.update import downdate, prior_gauss_newton_gain, support_of, wrap_angles
 from ..io.scenario import Scenario
 from ..models import geometry, motion
 from ..models.classifier import ClassifierModel
@@ -335,16 +335,6 @@ def _placeholders(mean: Float[Array, " P"], cov: Float[Array, "P P"], dummy: Boo
     return m, c + jnp.diag(dummy.astype(c.dtype))
 
 
-def child_cov(parent_cov: Float[Array, "D D"], gain: Float[Array, "D m"], gain_js: Float[Array, "m D"],
-              idx: Int[Array, " P"] | None = None) -> Float[Array, "P P"]:
-    """A child's Gauss-Newton covariance ``Σ − K (JΣ)`` (:func:`gauss_newton_child`), symmetrized;
-    with ``idx``, only its ``[idx, idx]`` block (``O(P² m)``, not ``O(D² m)``)."""
-    if idx is not None:
-        parent_cov, gain, gain_js = parent_cov[idx][:, idx], gain[idx], gain_js[:, idx]
-    c = parent_cov - gain @ gain_js
-    return 0.5 * (c + c.T)
-
-
 def screen_log_likelihood(
     sensor: SensorModel,
     params: Params,
@@ -535,7 +525,7 @@ class Children(eqx.Module):
     objects: Int[Array, "C Dmax"]  # object of each detection, -1 for an empty slot
     new: Bool[Array, "C Dmax"]  # which detections create their object
     mean: Float[Array, "C D"]  # Gauss-Newton posterior (before new objects are written)
-    gain: Float[Array, "C D m"]  # its covariance is the parent's downdated: child_cov (not carried: C × D × D)
+    gain: Float[Array, "C D m"]  # its covariance is the parent's, downdated (update.downdate; not carried: C × D × D)
     gain_js: Float[Array, "C m D"]
     result: optx.RESULTS
     log_lik: Float[Array, " C"]  # Monte Carlo log L_ij (Eq. 5.10)
@@ -622,7 +612,7 @@ def hypotheses(
     objects, new = objects[parent, a], new[parent, a]
     # One child at a time: a batch's fixed-point loop runs until its slowest member has converged
     # (hallway: 112 against 117 ms per step with batches of 16; MRCLAM: the same). Each child reads
-    # its parent's covariance in place and gives back the rank-m downdate of it (child_cov): C
+    # its parent's covariance in place and gives back the rank-m downdate of it (update.downdate): C
     # gathered copies of D×D matrices in and out of the loop cost more than the updates.
     post_mean, gain, gain_js, result = _chunked(
         lambda i, o, n: gauss_newton_child(state, mean[i], cov[i], o, n, detections), parent, objects, new,
@@ -633,7 +623,7 @@ def hypotheses(
     def weigh(i, qm, k, js, class_lp, obj, nw):
         idx, dummy = _sub_indices(obj, (obj >= 0) & ~nw)
         prior = sub_gaussian(mean[i], cov[i], idx, dummy)
-        proposal = (_placeholders(qm[idx], child_cov(cov[i], k, js, idx), dummy) if cfg.proposal == "posterior"
+        proposal = (_placeholders(qm[idx], downdate(cov[i], k, js, idx), dummy) if cfg.proposal == "posterior"
                     else prior)
         return sampled_log_likelihood(sensor, params, prior, proposal, class_lp[jnp.maximum(obj, 0)], obj, nw,
                                       detections, eps, theta)
@@ -951,7 +941,7 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
     _, theta = draws(key, cfg, state.params)
 
     def child_full_cov(c):  # child c's covariance, its new objects written
-        return discovery.create_objects(ch.mean[c], child_cov(cov[ch.parent[c]], ch.gain[c], ch.gain_js[c]),
+        return discovery.create_objects(ch.mean[c], downdate(cov[ch.parent[c]], ch.gain[c], ch.gain_js[c]),
                                         ch.objects[c], ch.new[c], detections.geo, state.model.sensor.geometric_cov,
                                         state.params.orientation_var)[1]
 
@@ -961,7 +951,7 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
     filtering = isinstance(smoother, Filter)
     # (One at a time: XLA's batched product with the short inner axis m is slower on CPU: 59 against
     # 46 ms per hallway step.)
-    pre_cov = (_chunked(lambda i, k, js: child_cov(cov[i], k, js), ch.parent, ch.gain, ch.gain_js, batch_size=1)
+    pre_cov = (_chunked(lambda i, k, js: downdate(cov[i], k, js), ch.parent, ch.gain, ch.gain_js, batch_size=1)
                if filtering else jnp.zeros((cfg.children,) + cov.shape[1:], cov.dtype))
     finish = jax.vmap(lambda m, c, class_lp, obs, created, objs, new: finish_child(
         state, m, c, class_lp, obs, created, objs, new, detections, theta))
@@ -972,7 +962,7 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
     # A child more than RELEVANT_NATS below the best (relative weight < 1e-13) becomes no centre of
     # the merge: its mass joins the nearest centre.
     centre_ok = relevant_children(ch.log_weight)
-    pose_cov = jax.vmap(lambda i, k, js: child_cov(cov[i], k, js, jnp.arange(3)))(ch.parent, ch.gain, ch.gain_js)
+    pose_cov = jax.vmap(lambda i, k, js: downdate(cov[i], k, js, jnp.arange(3)))(ch.parent, ch.gain, ch.gain_js)
     centres, log_w, wn, centre_cov = clustered(
         ch.log_weight, c_mean, (lambda c: c_cov[c]) if filtering else child_full_cov, pose_cov, c_created,
         state.params.merge_threshold, cfg.capacity, centre_ok)

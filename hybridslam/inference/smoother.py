@@ -53,7 +53,8 @@ are uncoupled identity rows. :func:`linearize` records those prefixes (``Lineari
 ``live_objects``), and :func:`solve_normal` and :func:`marginal` eliminate only the smallest of four
 compiled sizes that holds them (:mod:`.buckets`: a quarter, half, three quarters or all of each axis
 of 32 slots or more), with the same result: the hallway's solves early in a run work on 16 of its 61
-poses and 18 of its 70 objects. Four sizes cost about 2 s more compilation on the hallway and MRCLAM.
+poses and 18 of its 70 objects. Four sizes cost 2-6 s more compilation on the hallway and MRCLAM
+(``HYBRIDSLAM_BUCKETS=1``: one size, the whole graph).
 
 **Damping.** Levenberg-Marquardt with Marquardt's scaling ``D = diag(H)`` (clipped to
 ``[1e-6, 1e32]`` like Ceres, so an unobserved direction is still damped) and Nielsen's update of

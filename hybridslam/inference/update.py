@@ -100,8 +100,17 @@ def prior_gauss_newton(
     """The mode and covariance of :func:`prior_gauss_newton_gain`'s Gauss-Newton:
     ``Σ⁺ = Σ − K (JΣ)``, symmetrized."""
     value, k, js, result = prior_gauss_newton_gain(measurement, mean, cov, args, max_steps, support)
-    new_cov = cov - k @ js
-    return value, 0.5 * (new_cov + new_cov.T), result
+    return value, downdate(cov, k, js), result
+
+
+def downdate(cov: Float[Array, "D D"], gain: Float[Array, "D m"], gain_js: Float[Array, "m D"],
+             idx: Int[Array, " P"] | None = None) -> Float[Array, "P P"]:
+    """The Gauss-Newton covariance ``Σ − K (JΣ)`` of :func:`prior_gauss_newton_gain`, symmetrized;
+    with ``idx``, only its ``[idx, idx]`` block (``O(P² m)``, not ``O(D² m)``)."""
+    if idx is not None:
+        cov, gain, gain_js = cov[idx][:, idx], gain[idx], gain_js[:, idx]
+    c = cov - gain @ gain_js
+    return 0.5 * (c + c.T)
 
 
 def prior_gauss_newton_gain(
@@ -118,7 +127,7 @@ def prior_gauss_newton_gain(
     ``μ + K ν`` with ``K = Σ Jᵀ (J Σ Jᵀ + I)⁻¹``, ``ν = −(r(y) + J δ)``; the covariance at the
     solution is ``(I − K J) Σ = (Σ⁻¹ + JᵀJ)⁻¹`` (the Gauss-Newton Hessian, as in :func:`gauss_newton`).
     Returns the mode (headings wrapped), ``K`` and ``JΣ`` at the mode: the covariance is the rank-``m``
-    downdate ``Σ − K (JΣ)`` (:func:`prior_gauss_newton` forms it), so a batch of updates of a few
+    downdate ``Σ − K (JΣ)`` (:func:`downdate`), so a batch of updates of a few
     priors need not carry a ``D × D`` matrix each.
     Stops when no entry moves by more than ``GN_TOLERANCE``, or after ``max_steps``.
 
