@@ -46,3 +46,25 @@ def test_with_every_slot_distinct_it_is_map_live():
         np.testing.assert_array_equal(np.asarray(out[name])[np.asarray(live)],
                                       np.asarray(reference[name])[np.asarray(live)])
     assert int(count) == 4
+
+
+def test_live_slots_equal_vmap_for_every_chunk_size_and_under_an_outer_vmap():
+    """chunk=1 calls fn unbatched (no size-1 vmap); every chunk size must give vmap's values on live slots."""
+    live = jnp.array([True, False, True, True, False, False, False])
+    x, y = jnp.linspace(-1.0, 1.0, K), jnp.arange(2.0 * K).reshape(K, 2)
+    reference = jax.vmap(_fn)(x, y)
+    for chunk in (1, 3, 4, K):
+        out = jax.jit(lambda lv, a, b, c=chunk: map_live(_fn, lv, a, b, chunk=c))(live, x, y)
+        for name in ("sum", "prod"):
+            np.testing.assert_array_equal(np.asarray(out[name])[np.asarray(live)],
+                                          np.asarray(reference[name])[np.asarray(live)])
+    # Two tracks under an outer vmap with its axis name: a slot live in either track is computed.
+    lives = jnp.stack([live, jnp.zeros(K, bool).at[6].set(True)])
+    xs, ys = jnp.stack([x, -x]), jnp.stack([y, 2 * y])
+    for chunk in (1, 4):
+        out = jax.vmap(lambda lv, a, b, c=chunk: map_live(_fn, lv, a, b, chunk=c, axis_name="t"), axis_name="t")(
+            lives, xs, ys)
+        for t in range(2):
+            ref = jax.vmap(_fn)(xs[t], ys[t])
+            mask = np.asarray(lives[t])
+            np.testing.assert_array_equal(np.asarray(out["prod"][t])[mask], np.asarray(ref["prod"])[mask])

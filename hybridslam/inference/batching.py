@@ -36,7 +36,13 @@ def map_live(fn: Callable, live: Bool[Array, " K"], *args, chunk: int = 4, axis_
     args = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[:1], pad, axis=0)]), args)
     # Jitted so that the trace eval_shape makes is cached and reused by the call in the cond below:
     # tracing fn once instead of twice halves the tracing time of a step (seconds for the hybrid belief).
-    batched = jax.jit(jax.vmap(fn))
+    # Chunks of one slot call fn unbatched: a size-1 vmap batches every while loop inside fn (the
+    # smoother's Levenberg-Marquardt iterates), which cost the paper setup's `run` ~2 s of its
+    # 14-16 s compile (tracing and XLA) and bought nothing.
+    if size == 1:
+        batched = jax.jit(lambda *a: jax.tree.map(lambda y: y[None], fn(*jax.tree.map(lambda x: x[0], a))))
+    else:
+        batched = jax.jit(jax.vmap(fn))
     out_shape = jax.eval_shape(batched, *jax.tree.map(lambda x: x[:size], args))
     zeros = lambda: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), out_shape)  # noqa: E731
     split = lambda x: x.reshape((x.shape[0] // size, size) + x.shape[1:])  # noqa: E731
