@@ -215,9 +215,13 @@ def test_marginalizing_keeps_an_uninformed_object_uninformed(solve):
     graph = eqx.tree_at(lambda g: (g.prior_sqrt_info, g.meas_objects, g.meas_pose, g.meas_log_weight), graph,
                         (jnp.asarray(sqrt_info), jnp.asarray(objects), jnp.asarray(poses), jnp.asarray(log_w)))
     sol = solve(graph, jnp.zeros((P, 3)), jnp.zeros((N, 3)))
-    mean, r = sm.marginalize_first(graph, sol.poses, sol.objects)
+    mean, r, info = sm.marginalize_first_information(graph, sol.poses, sol.objects)
     assert np.all(np.isfinite(mean)) and np.all(np.isfinite(r))
     np.testing.assert_array_equal(np.asarray(r)[xy + 0], 0.0)  # prior over [x_1, O]: same object offsets
+    # The information handed on is RᵀR, the uninformed rows included (zero rows and columns).
+    np.testing.assert_allclose(np.asarray(info), np.asarray(r).T @ np.asarray(r), rtol=1e-10,
+                               atol=1e-10 * np.abs(np.asarray(info)).max())
+    np.testing.assert_array_equal(np.asarray(info)[xy], 0.0)
     keep = graph.meas_pose > 0
     reduced = eqx.tree_at(
         lambda g: (g.prior_mean, g.prior_sqrt_info, g.odometry, g.odometry_active, g.meas_pose, g.meas_log_weight,
@@ -228,6 +232,10 @@ def test_marginalizing_keeps_an_uninformed_object_uninformed(solve):
     out = sm.solve(reduced, jnp.zeros((P - 1, 3)), jnp.zeros((N, 3)), max_steps=20)
     np.testing.assert_allclose(np.asarray(out.poses), np.asarray(sol.poses[1:]), atol=1e-9)
     np.testing.assert_allclose(np.asarray(out.objects), np.asarray(sol.objects), atol=1e-9)
+    # The same solve given the information instead of forming RᵀR (what a fixed-lag window does).
+    out = sm.solve(eqx.tree_at(lambda g: g.prior_info, reduced, info, is_leaf=lambda x: x is None),
+                   jnp.zeros((P - 1, 3)), jnp.zeros((N, 3)), max_steps=20)
+    np.testing.assert_allclose(np.asarray(out.poses), np.asarray(sol.poses[1:]), atol=1e-9)
 
 
 def test_max_mixture_picks_the_component_that_explains_the_data():

@@ -994,6 +994,15 @@ def first_pose_factors(graph: FactorGraph) -> FactorGraph:
 def marginalize_first(
     graph: FactorGraph, poses: Float[Array, "P 3"], objects: Float[Array, "N 3"]
 ) -> tuple[Float[Array, " D0"], Float[Array, "D0 D0"]]:
+    """Fixed-lag marginalization of ``x_0``: the prior ``(mean, R)`` of
+    :func:`marginalize_first_information`, without its information matrix."""
+    mean, sqrt_info, _ = marginalize_first_information(graph, poses, objects)
+    return mean, sqrt_info
+
+
+def marginalize_first_information(
+    graph: FactorGraph, poses: Float[Array, "P 3"], objects: Float[Array, "N 3"]
+) -> tuple[Float[Array, " D0"], Float[Array, "D0 D0"], Float[Array, "D0 D0"]]:
     """Fixed-lag marginalization of ``x_0``: the Gaussian prior ``(mean, R)`` over ``[x_1, objects]``.
 
     The factors touching ``x_0`` (:func:`first_pose_factors`) are linearized at ``(poses, objects)``
@@ -1003,8 +1012,12 @@ def marginalize_first(
     ``½‖R (y ⊖ μ)‖²`` with ``RᵀR = H'`` (``R`` upper triangular) and ``μ = ŷ ⊕ (−H'⁻¹g')``. Exact
     for linear-Gaussian factors; the standard fixed-lag approximation otherwise (the factors stay
     linearized at this solution). The next window's graph takes it as ``prior_mean`` /
-    ``prior_sqrt_info``. Inactive objects keep their value and an identity block; coordinates that
-    nothing informs keep their value and get a zero row of ``R`` (no information).
+    ``prior_sqrt_info`` / ``prior_info``. Inactive objects keep their value and an identity block;
+    coordinates that nothing informs keep their value and get a zero row of ``R`` (no information).
+
+    Returns ``(mean, R, H')``. ``RᵀR = H'`` exactly: an uninformed coordinate ``u`` has a zero row
+    and column in ``H'``, so the Cholesky factor of ``H' + e_u e_uᵀ`` has column ``e_u``, the row of
+    ``R`` that is zeroed. Handing ``H'`` on saves the next solve its ``O(D₀³)`` product ``RᵀR``.
     """
     lin = linearize(first_pose_factors(graph), poses, objects)
     h_0r = jnp.concatenate([lin.pose_off[0], lin.pose_object[0]], axis=-1)  # (3, 3 + 3N)
@@ -1022,4 +1035,4 @@ def marginalize_first(
     chol = jnp.linalg.cholesky(h + jnp.diag(uninformed.astype(h.dtype)))
     y = jnp.concatenate([poses[1], objects.reshape(-1)])
     mean = wrap_angles(y - jsl.cho_solve((chol, True), jnp.where(uninformed, 0.0, g)))
-    return mean, jnp.where(uninformed[:, None], 0.0, chol.T)
+    return mean, jnp.where(uninformed[:, None], 0.0, chol.T), h
