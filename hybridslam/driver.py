@@ -15,6 +15,9 @@ same numbers alone, in a batch, under ``jax.grad`` or inside a planner.
 from __future__ import annotations
 
 import dataclasses
+import os
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 from typing import Any
@@ -93,6 +96,62 @@ def scan(estimator: AbstractEstimator, state: Any, inputs: Inputs, key: PRNGKeyA
 
 _COMPILED: dict = {}  # one executable per (estimator settings, state structure, shapes): equal runs share it
 
+# XLA's CPU fusion emitters (MLIR-based, the default in jaxlib 0.10) compile this project's programs
+# 25-35% slower than XLA's elemental emitters, and the programs run no faster (2026-11-26, 2-core
+# CPU, jaxlib 0.10.2: `hybridslam run` on a paper-setup file 12.5 -> 8.6 s, the hallway hybrid
+# belief's program 11.2-11.7 -> 7.8-8.7 s, `multimodal`'s 15.9-16.7 -> 11.3-12.0 s, every step as
+# fast or faster). A jaxlib that does not know an option compiles with its defaults.
+CPU_COMPILER_OPTIONS: dict[str, str | bool] = {"xla_cpu_use_fusion_emitters": False}
+XLA_DEFAULTS_ENV = "HYBRIDSLAM_XLA_DEFAULTS"  # "1": compile with XLA's own default options
+
+
+def compiler_options() -> dict[str, str | bool]:
+    """The XLA options :func:`compiled` passes: :data:`CPU_COMPILER_OPTIONS` on the CPU backend,
+    none on others or when ``$HYBRIDSLAM_XLA_DEFAULTS`` is ``1``."""
+    value = os.environ.get(XLA_DEFAULTS_ENV, "").strip()
+    if value not in ("", "0", "1"):
+        raise ValueError(f"{XLA_DEFAULTS_ENV}={value!r}: expected 0 or 1")
+    if value == "1" or jax.default_backend() != "cpu":
+        return {}
+    return dict(CPU_COMPILER_OPTIONS)
+
+
+ELEMENTAL_EMITTERS_FLAG = "--xla_cpu_use_fusion_emitters=false"
+
+
+def use_elemental_emitters_everywhere() -> bool:
+    """Add :data:`ELEMENTAL_EMITTERS_FLAG` to ``XLA_FLAGS``: then every compile of this process (not
+    only :func:`compiled`'s) and of the processes it starts uses them. Call it before JAX starts its
+    backend (XLA reads the flags then); the test suite and ``scripts/make_golden.py`` do. Only if this
+    jaxlib knows the flag (XLA aborts on an unknown one: a probe in a subprocess, about a second) and
+    ``$HYBRIDSLAM_XLA_DEFAULTS`` is not ``1``. Returns whether the flag is set."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if ELEMENTAL_EMITTERS_FLAG in flags:
+        return True
+    if os.environ.get(XLA_DEFAULTS_ENV, "").strip() == "1":
+        return False
+    env = dict(os.environ, XLA_FLAGS=f"{flags} {ELEMENTAL_EMITTERS_FLAG}".strip())
+    probe = subprocess.run([sys.executable, "-c", "import jax.numpy as jnp; jnp.zeros(1).block_until_ready()"],
+                           env=env, capture_output=True, timeout=300, check=False)
+    if probe.returncode == 0:
+        os.environ["XLA_FLAGS"] = env["XLA_FLAGS"]
+    return probe.returncode == 0
+
+
+def compile_lowered(lowered: Any) -> Any:
+    """``lowered.compile()`` (a ``jax`` or ``equinox`` lowered program) with :func:`compiler_options`;
+    if this jaxlib rejects an option, with XLA's defaults."""
+    options = compiler_options()
+    if options:
+        try:
+            return lowered.compile(compiler_options=options)
+        except TypeError:  # a jax whose compile() takes no options
+            pass
+        except RuntimeError as error:  # XLA's runtime error: only an unknown option falls back
+            if "No such compile option" not in str(error):
+                raise
+    return lowered.compile()
+
 
 def compiled(fn: Callable, *args) -> tuple[Callable, float]:
     """``eqx.filter_jit(fn)`` compiled ahead of time for these arguments' structure and shapes, and
@@ -108,7 +167,7 @@ def compiled(fn: Callable, *args) -> tuple[Callable, float]:
     if key is not None and key in _COMPILED:
         return _COMPILED[key], 0.0
     t0 = time.perf_counter()
-    executable = eqx.filter_jit(fn).lower(*args).compile()  # type: ignore[attr-defined]
+    executable = compile_lowered(eqx.filter_jit(fn).lower(*args))  # type: ignore[attr-defined]
     seconds = time.perf_counter() - t0
     if key is not None:
         _COMPILED[key] = executable

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 
 import hybridslam as hs
+from hybridslam.driver import compile_lowered
 from hybridslam.estimators.hybrid.weighers import make_weigher
 
 
@@ -54,7 +55,7 @@ def bench(capacity: int, samples: int, weights: str, repeats: int) -> tuple[floa
     odometry, det = two_detection_step(scenario)
     key = jax.random.PRNGKey(0)
     t0 = time.perf_counter()
-    compiled = eqx.filter_jit(est.step).lower(belief, odometry, det, key).compile()
+    compiled = compile_lowered(eqx.filter_jit(est.step).lower(belief, odometry, det, key))
     compile_s = time.perf_counter() - t0
     jax.block_until_ready(compiled(belief, odometry, det, key))  # warm-up
     times = []

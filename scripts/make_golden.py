@@ -4,8 +4,8 @@ Each case of ``tests/data/golden/cases.json`` names a scenario file of that fold
 ``.json``), an estimator and the options of :func:`hybridslam.run_estimator`; the case ``NAME`` is
 run with seed 0 exactly as ``tests/test_golden.py`` runs it, and its result file (``timing``
 removed) is written to ``NAME.result.json`` as ``indent=1`` JSON. XLA runs with the test suite's
-settings (``jax_disable_most_optimizations``, ``tests/conftest.py``): optimizations change the last
-bits of the numbers.
+settings (``jax_disable_most_optimizations`` and XLA's elemental emitters, ``tests/conftest.py``):
+optimizations and code generators change the last bits of the numbers.
 
 Run it only for a change that is *meant* to change numbers, and say why in the commit message
 (``tests/data/golden/README.md``). ``--check`` writes nothing: it compares every case with its
@@ -25,9 +25,11 @@ import sys
 import jax
 
 import hybridslam as hs
+from hybridslam.driver import use_elemental_emitters_everywhere
 from hybridslam.io.result import result_to_json
 
 jax.config.update("jax_disable_most_optimizations", True)  # the test suite's setting, before anything compiles
+use_elemental_emitters_everywhere()  # the test suite's XLA_FLAGS too (tests/conftest.py)
 
 GOLDEN = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests", "data", "golden")
 

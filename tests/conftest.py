@@ -6,6 +6,11 @@ Two settings make the compiles cheaper, for this process and for the CLI subproc
 
 * XLA's optimizations are off (``jax_disable_most_optimizations``): the programs under test are
   tiny, so compiling them costs far more than running them; the suite's CPU time drops by ~20%.
+* XLA's elemental emitters on the CPU (``--xla_cpu_use_fusion_emitters=false`` in ``XLA_FLAGS``):
+  the library passes the same option to its own compiles (``hybridslam.driver.compile_lowered``);
+  in the flags it also reaches the tests' own ``jax.jit`` compiles and the CLI subprocesses, and
+  the quick suite takes about half the time (``driver.use_elemental_emitters_everywhere``: only
+  if this jaxlib knows the flag, and not with ``HYBRIDSLAM_XLA_DEFAULTS=1``).
 * One persistent compilation cache per test run, shared by the xdist workers and the
   subprocesses: a program that several of them compile (the CLI's step, the sweep's batched scan)
   is compiled once. It lives under the run's base temporary folder, so every run starts cold and
@@ -22,7 +27,9 @@ import pytest
 from jax.experimental.compilation_cache import compilation_cache
 
 import hybridslam as hs
+from hybridslam.driver import use_elemental_emitters_everywhere
 
+use_elemental_emitters_everywhere()  # before any JAX backend starts (module docstring)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1"
 jax.config.update("jax_disable_most_optimizations", True)

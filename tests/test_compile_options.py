@@ -1,0 +1,44 @@
+"""The XLA options of the driver's compiles (``driver.compiler_options``, ``driver.compile_lowered``)."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from hybridslam import driver
+
+
+def _f(x):
+    return jnp.sin(x) * jnp.exp(-x) + jnp.cumsum(x)
+
+
+def test_the_cpu_gets_the_elemental_emitters_unless_the_environment_asks_for_xla_defaults(monkeypatch):
+    monkeypatch.delenv(driver.XLA_DEFAULTS_ENV, raising=False)
+    assert jax.default_backend() == "cpu"
+    assert driver.compiler_options() == {"xla_cpu_use_fusion_emitters": False}
+    monkeypatch.setenv(driver.XLA_DEFAULTS_ENV, "1")
+    assert driver.compiler_options() == {}
+    monkeypatch.setenv(driver.XLA_DEFAULTS_ENV, "0")
+    assert driver.compiler_options() == driver.CPU_COMPILER_OPTIONS
+    monkeypatch.setenv(driver.XLA_DEFAULTS_ENV, "yes")
+    with pytest.raises(ValueError, match=driver.XLA_DEFAULTS_ENV):
+        driver.compiler_options()
+
+
+def test_compiled_programs_compute_the_same_with_and_without_the_options(monkeypatch):
+    monkeypatch.delenv(driver.XLA_DEFAULTS_ENV, raising=False)
+    x = jnp.linspace(0.0, 3.0, 17)
+    ours = driver.compile_lowered(eqx.filter_jit(_f).lower(x))
+    default = jax.jit(_f).lower(x).compile()
+    np.testing.assert_allclose(np.asarray(ours(x)), np.asarray(default(x)), rtol=1e-14)
+
+
+def test_an_option_this_jaxlib_does_not_know_falls_back_to_the_defaults(monkeypatch):
+    monkeypatch.delenv(driver.XLA_DEFAULTS_ENV, raising=False)
+    monkeypatch.setattr(driver, "CPU_COMPILER_OPTIONS", {"xla_cpu_no_such_option_anywhere": False})
+    x = jnp.arange(5.0)
+    out = driver.compile_lowered(jax.jit(_f).lower(x))(x)
+    np.testing.assert_allclose(np.asarray(out), np.asarray(_f(x)), rtol=1e-14)
