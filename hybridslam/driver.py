@@ -98,7 +98,7 @@ _COMPILED: dict = {}  # one executable per (estimator settings, state structure,
 
 # XLA's CPU fusion emitters (MLIR-based, the default in jaxlib 0.10) compile this project's programs
 # 25-35% slower than XLA's elemental emitters, and the programs run no faster (2026-11-26, 2-core
-# CPU, jaxlib 0.10.2: `hybridslam run` on a paper-setup file 12.5 -> 8.6 s, the hallway hybrid
+# CPU, jaxlib 0.10.2: `hybridslam run` on a paper-setup file 12.5-13.6 -> 8.6-9.4 s, the hallway hybrid
 # belief's program 11.2-11.7 -> 7.8-8.7 s, `multimodal`'s 15.9-16.7 -> 11.3-12.0 s, every step as
 # fast or faster). A jaxlib that does not know an option compiles with its defaults.
 CPU_COMPILER_OPTIONS: dict[str, str | bool] = {"xla_cpu_use_fusion_emitters": False}
