@@ -105,13 +105,18 @@ CPU_COMPILER_OPTIONS: dict[str, str | bool] = {"xla_cpu_use_fusion_emitters": Fa
 XLA_DEFAULTS_ENV = "HYBRIDSLAM_XLA_DEFAULTS"  # "1": compile with XLA's own default options
 
 
-def compiler_options() -> dict[str, str | bool]:
-    """The XLA options :func:`compiled` passes: :data:`CPU_COMPILER_OPTIONS` on the CPU backend,
-    none on others or when ``$HYBRIDSLAM_XLA_DEFAULTS`` is ``1``."""
+def xla_defaults_from_environment() -> bool:
+    """Whether ``$HYBRIDSLAM_XLA_DEFAULTS`` is ``1``; a ``ValueError`` naming it unless unset, 0 or 1."""
     value = os.environ.get(XLA_DEFAULTS_ENV, "").strip()
     if value not in ("", "0", "1"):
         raise ValueError(f"{XLA_DEFAULTS_ENV}={value!r}: expected 0 or 1")
-    if value == "1" or jax.default_backend() != "cpu":
+    return value == "1"
+
+
+def compiler_options() -> dict[str, str | bool]:
+    """The XLA options :func:`compiled` passes: :data:`CPU_COMPILER_OPTIONS` on the CPU backend,
+    none on others or when ``$HYBRIDSLAM_XLA_DEFAULTS`` is ``1``."""
+    if xla_defaults_from_environment() or jax.default_backend() != "cpu":
         return {}
     return dict(CPU_COMPILER_OPTIONS)
 
@@ -128,7 +133,7 @@ def use_elemental_emitters_everywhere() -> bool:
     flags = os.environ.get("XLA_FLAGS", "")
     if ELEMENTAL_EMITTERS_FLAG in flags:
         return True
-    if os.environ.get(XLA_DEFAULTS_ENV, "").strip() == "1":
+    if xla_defaults_from_environment():
         return False
     env = dict(os.environ, XLA_FLAGS=f"{flags} {ELEMENTAL_EMITTERS_FLAG}".strip())
     probe = subprocess.run([sys.executable, "-c", "import jax.numpy as jnp; jnp.zeros(1).block_until_ready()"],

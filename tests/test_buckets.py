@@ -95,10 +95,10 @@ def test_bucketed_solve_under_vmap_with_a_live_count_per_member(small_buckets):
 
 def test_the_environment_sets_the_number_of_buckets_and_rejects_nonsense(monkeypatch):
     monkeypatch.setenv("HYBRIDSLAM_BUCKETS", "1")
-    assert buckets._buckets_from_environment() == 1
+    assert buckets.buckets_from_environment() == 1
     for bad in ("0", "-2", "four"):
         monkeypatch.setenv("HYBRIDSLAM_BUCKETS", bad)
         with pytest.raises(ValueError, match="HYBRIDSLAM_BUCKETS"):
-            buckets._buckets_from_environment()
+            buckets.buckets_from_environment()
     monkeypatch.setattr(buckets, "BUCKETS", 1)
     assert buckets.bucket_sizes(61, 70) == ((61, 70),)

@@ -39,6 +39,16 @@ def error_line(capsys) -> str:
     return lines[0]
 
 
+@pytest.mark.parametrize("name, value", [("HYBRIDSLAM_BUCKETS", "four"), ("HYBRIDSLAM_XLA_DEFAULTS", "yes")])
+def test_a_bad_environment_variable_is_a_one_line_error_naming_it(scenario_path, tmp_path, capsys, monkeypatch,
+                                                                  name, value):
+    monkeypatch.setenv(name, value)
+    assert cli.main(["run", scenario_path, "-o", str(tmp_path / "r.json")]) == 2
+    line = error_line(capsys)
+    assert name in line and repr(value) in line
+    assert not (tmp_path / "r.json").exists()
+
+
 def test_simulate_writes_loadable_scenario(scenario_path):
     s = hs.load_scenario(scenario_path)
     assert s.num_steps == 3 and s.num_objects == 6

@@ -43,10 +43,24 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _check_environment() -> None:
+    """The package's environment variables (``HYBRIDSLAM_BUCKETS``, ``HYBRIDSLAM_XLA_DEFAULTS``), checked
+    before any work: a bad value is a one-line error naming the variable."""
+    from ..driver import xla_defaults_from_environment
+    from ..inference.buckets import buckets_from_environment
+
+    try:
+        buckets_from_environment()
+        xla_defaults_from_environment()
+    except ValueError as e:
+        raise CLIError(f"environment: {e}") from None
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``hybridslam`` console script; returns the exit status."""
     try:
         args = build_parser().parse_args(argv)
+        _check_environment()
         cache.enable()
         return args.func(args)
     except (CLIError, ScenarioError) as e:

@@ -26,7 +26,8 @@ import jax.numpy as jnp
 from jax.custom_batching import custom_vmap
 from jaxtyping import Array, Int
 
-def _buckets_from_environment() -> int:
+def buckets_from_environment() -> int:
+    """``$HYBRIDSLAM_BUCKETS`` (default 4); a ``ValueError`` naming it for anything but a positive integer."""
     text = os.environ.get("HYBRIDSLAM_BUCKETS", "4")
     if not text.strip().isdigit() or int(text) < 1:
         raise ValueError(f"HYBRIDSLAM_BUCKETS: expected a positive integer (1: no buckets), got {text!r}")
@@ -35,7 +36,9 @@ def _buckets_from_environment() -> int:
 
 # Sizes compiled per bucketed axis; each one more compiles the solves again (about 1-1.5 s on the
 # MRCLAM and hallway programs). HYBRIDSLAM_BUCKETS=1 compiles them once, for short runs from a cold cache.
-BUCKETS = _buckets_from_environment()
+# None: read $HYBRIDSLAM_BUCKETS when a graph is bucketed (at trace time), so that a bad value is an
+# error of the run (one line from the CLI), not of importing the package.
+BUCKETS: int | None = None
 MIN_BUCKETED = 32  # an axis shorter than this is not bucketed (the paper setup's 11 poses: one compile)
 
 
@@ -58,7 +61,8 @@ def bucket_sizes(*lengths: int, count: int | None = None, minimum: int | None = 
     is whole in every bucket), ascending; a single bucket if every axis is short. One switch index
     for all axes (not one per axis) keeps the compiles at ``count``: the axes grow together (a run's
     poses and the objects it creates), or only one is long."""
-    count = BUCKETS if count is None else count
+    if count is None:
+        count = buckets_from_environment() if BUCKETS is None else BUCKETS
     minimum = MIN_BUCKETED if minimum is None else minimum
     if count <= 1 or all(n < minimum for n in lengths):
         return (tuple(lengths),)
