@@ -115,7 +115,7 @@ from ..models.classifier import ClassifierModel
 from ..models.measurement import Detections, SensorModel, log_visibility
 from ..models.model import Model, model_from_scenario
 from .. import __version__
-from ..inference.batching import map_live
+from ..inference.batching import map_live, smoothing_chunk
 from .base import AbstractEstimator, Mixture, StepInfo, classifier_name, history_length
 from .smoothing import (DataLog, Filter, Full, Lag, Smoother, WindowPrior, data_log, factor_budget,
                         history_factors, initial_trajectory, initial_window, new_overflow, smooth_step)
@@ -988,7 +988,8 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
         parent = ch.parent[centres]
         parent_window = None if state.window is None else jax.tree.map(lambda a: a[parent], state.window)
         out = map_live(smoothed, used, state.poses[parent], c_mean[centres], centre_cov, c_hist[centres],
-                       c_created[centres], parent_window)
+                       c_created[centres], parent_window,
+                       chunk=smoothing_chunk(state.poses.shape[-2], (c_mean.shape[-1] - 3) // 3))
         out = jax.tree.map(lambda a: jnp.where(used.reshape((-1,) + (1,) * (a.ndim - 1)), a, a[:1]), out)
         # Members keep their (filter) offsets from the centre and take its smoothed covariance: the
         # cluster moment-matched about the centre's smoothed estimate.

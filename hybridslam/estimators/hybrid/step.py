@@ -27,7 +27,7 @@ import optimistix as optx
 from jax.scipy.special import logsumexp
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
-from ...inference.batching import map_distinct, map_live
+from ...inference.batching import map_distinct, map_live, smoothing_chunk
 from ...inference.discovery import create_objects
 from ...inference.gating import gate
 from ...inference.update import gauss_newton_update
@@ -100,8 +100,6 @@ def _new_object_terms(belief: Belief, mean, cov, detections: Detections, kids: C
     return jnp.sum(jnp.where(kids.creates[:, :, None, :], picked, 0.0), axis=-1)
 
 
-_LARGE_GRAPH = 64  # poses + object slots of a graph whose long pose chain is smoothed in chunks (hybrid_step)
-CHAIN_CHUNK = 4  # components smoothed together where the pose chain is long (see hybrid_step)
 
 
 def _same_graph(history: Int[Array, "K T Dmax"], created: Int[Array, " K"], classes: Int[Array, "K N"],
@@ -277,7 +275,7 @@ def hybrid_step(
         # chunks of four, 1.05 s of two, 0.92 s one by one, the filter 0.90-0.94 s). Only long pose
         # chains (MRCLAM: a 201-step scan, latency-bound) batch better by four.
         poses_, objects_ = belief.poses.shape[-2], belief.num_objects
-        chunk = CHAIN_CHUNK if poses_ > objects_ and poses_ + objects_ > _LARGE_GRAPH else 1
+        chunk = smoothing_chunk(poses_, objects_)
 
         def smoothed(poses_i, mean_i, cov_i, history_i, classes_i, created_i, window_i):
             factors = history_factors(history_i, classes_i if realize else None)
