@@ -100,7 +100,8 @@ _COMPILED: dict = {}  # one executable per (estimator settings, state structure,
 # 25-35% slower than XLA's elemental emitters, and the programs run no faster (2026-11-26, 2-core
 # CPU, jaxlib 0.10.2: `hybridslam run` on a paper-setup file 12.5-13.6 -> 8.6-9.4 s, the hallway hybrid
 # belief's program 11.2-11.7 -> 7.8-8.7 s, `multimodal`'s 15.9-16.7 -> 11.3-12.0 s, every step as
-# fast or faster). A jaxlib that does not know an option compiles with its defaults.
+# fast or faster; a 16-track vmapped sweep's batched work ~7% slower, its end to end 4 s faster).
+# A jaxlib that does not know an option compiles with its defaults.
 CPU_COMPILER_OPTIONS: dict[str, str | bool] = {"xla_cpu_use_fusion_emitters": False}
 XLA_DEFAULTS_ENV = "HYBRIDSLAM_XLA_DEFAULTS"  # "1": compile with XLA's own default options
 
