@@ -13,6 +13,11 @@
 Every user error (bad option, missing or malformed file, invalid setting, unwritable output) ends
 with exit status 2 and one line ``hybridslam: error: <message>`` on stderr. Compiled steps are kept
 in JAX's persistent cache between runs (:mod:`.cache`; ``HYBRIDSLAM_NO_CACHE=1`` turns it off).
+
+Environment: ``HYBRIDSLAM_CACHE_DIR`` (the cache's folder), ``HYBRIDSLAM_NO_CACHE=1`` (no cache),
+``HYBRIDSLAM_BUCKETS`` (compiled sizes of the smoother's live-prefix solves, default 4; 1: the whole
+graph only), ``HYBRIDSLAM_XLA_DEFAULTS=1`` (XLA's default compile options instead of the elemental
+emitters on the CPU, :func:`hybridslam.driver.compiler_options`). Bad values are one-line errors.
 """
 
 from __future__ import annotations
