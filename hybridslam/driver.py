@@ -122,21 +122,24 @@ def compiler_options() -> dict[str, str | bool]:
     return dict(CPU_COMPILER_OPTIONS)
 
 
-ELEMENTAL_EMITTERS_FLAG = "--xla_cpu_use_fusion_emitters=false"
+def _as_xla_flags(options: dict[str, str | bool]) -> str:
+    """``{"xla_a": False, "xla_b": 2}`` as ``XLA_FLAGS`` text: ``--xla_a=false --xla_b=2``."""
+    return " ".join(f"--{name}={str(value).lower() if isinstance(value, bool) else value}"
+                    for name, value in options.items())
 
 
 def use_elemental_emitters_everywhere() -> bool:
-    """Add :data:`ELEMENTAL_EMITTERS_FLAG` to ``XLA_FLAGS``: then every compile of this process (not
-    only :func:`compiled`'s) and of the processes it starts uses them. Call it before JAX starts its
-    backend (XLA reads the flags then); the test suite and ``scripts/make_golden.py`` do. Only if this
-    jaxlib knows the flag (XLA aborts on an unknown one: a probe in a subprocess, about a second) and
-    ``$HYBRIDSLAM_XLA_DEFAULTS`` is not ``1``. Returns whether the flag is set."""
-    flags = os.environ.get("XLA_FLAGS", "")
-    if ELEMENTAL_EMITTERS_FLAG in flags:
+    """Put :data:`CPU_COMPILER_OPTIONS` into ``XLA_FLAGS`` as well: then every compile of this process
+    (not only :func:`compiled`'s) and of the processes it starts uses them. Call it before JAX starts
+    its backend (XLA reads the flags then); the test suite and ``scripts/make_golden.py`` do. Only if
+    this jaxlib knows the options (XLA aborts on an unknown flag: a probe in a subprocess, about a
+    second) and ``$HYBRIDSLAM_XLA_DEFAULTS`` is not ``1``. Returns whether the flags are set."""
+    flags, wanted = os.environ.get("XLA_FLAGS", ""), _as_xla_flags(CPU_COMPILER_OPTIONS)
+    if wanted in flags:
         return True
     if xla_defaults_from_environment():
         return False
-    env = dict(os.environ, XLA_FLAGS=f"{flags} {ELEMENTAL_EMITTERS_FLAG}".strip())
+    env = dict(os.environ, XLA_FLAGS=f"{flags} {wanted}".strip())
     probe = subprocess.run([sys.executable, "-c", "import jax.numpy as jnp; jnp.zeros(1).block_until_ready()"],
                            env=env, capture_output=True, timeout=300, check=False)
     if probe.returncode == 0:

@@ -42,3 +42,8 @@ def test_an_option_this_jaxlib_does_not_know_falls_back_to_the_defaults(monkeypa
     x = jnp.arange(5.0)
     out = driver.compile_lowered(jax.jit(_f).lower(x))(x)
     np.testing.assert_allclose(np.asarray(out), np.asarray(_f(x)), rtol=1e-14)
+
+
+def test_the_options_as_xla_flags():
+    assert driver._as_xla_flags(driver.CPU_COMPILER_OPTIONS) == "--xla_cpu_use_fusion_emitters=false"
+    assert driver._as_xla_flags({"xla_a": True, "xla_b": 2}) == "--xla_a=true --xla_b=2"
