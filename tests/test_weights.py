@@ -156,3 +156,33 @@ def test_children_and_sampled_weights_match_brute_force():
             assert found[key_] == -np.inf
     assert any(v > -np.inf for v in expected.values()) and any(v == -np.inf for v in expected.values())
 
+
+
+def test_linear_tables_equal_the_dense_jacobian_products():
+    """The tables take each row's Jacobian as two 3-column blocks (pose, its object) and Σ over
+    [x, objs] only: J Σ Jᵀ equals the product with the dense Jacobian over the whole state, on a
+    random full covariance, with a candidate list that repeats an object (gating); each in-view
+    term reads its own [x, object] block."""
+    from hybridslam.estimators.hybrid.weights import _log_visibility_probability, _residual_rows, linear_tables
+
+    scenario = hs.simulate(0, steps=1)
+    sensor = hs.model_from_scenario(scenario, "mirror").sensor
+    rng = np.random.default_rng(3)
+    n = 5
+    mean = jnp.asarray(np.concatenate([[0.3, -0.2, 0.1], rng.normal(0, 4, 3 * n)]))
+    a = rng.normal(size=(3 + 3 * n, 3 + 3 * n))
+    cov = jnp.asarray(0.05 * a @ a.T / (3 + 3 * n) + 1e-3 * np.eye(3 + 3 * n))
+    det = hs.Detections(jnp.array([[4.0, 0.3], [2.0, -0.5]]), jnp.array([[0.7, 0.3], [0.2, 0.8]]),
+                        jnp.array([True, True]))
+    objs = jnp.array([3, 0, 3, 1])
+    got = linear_tables(sensor, mean, cov, det, objs)
+    m = sensor.classifier.num_classes
+    jac = jax.vmap(jax.vmap(jax.jacfwd(lambda s, o, c: _residual_rows(sensor, s, o, c, det.geo[0], det.scores[0])[0]),
+                            (None, None, 0)), (None, 0, None))(mean, objs, jnp.arange(m))
+    jac = jac.reshape(-1, mean.shape[0])
+    np.testing.assert_allclose(got.gram, jac @ cov @ jac.T, rtol=1e-10, atol=1e-12)
+    for i, o in enumerate(np.asarray(objs)):  # each in-view term sees Σ over [x, its object] only
+        idx = np.r_[0:3, 3 + 3 * o: 6 + 3 * o]
+        want = _log_visibility_probability(sensor, mean[idx], cov[np.ix_(idx, idx)])
+        np.testing.assert_allclose(got.log_vis[i], want, rtol=1e-13)
+    assert bool(jnp.all(jnp.isfinite(got.log_vis)))

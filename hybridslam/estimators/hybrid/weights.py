@@ -218,12 +218,13 @@ def _residual_rows(sensor, state, n, c, z_geo, scores):
     return detection_residual(sensor, x, objs[n], z_geo, scores, c)
 
 
-def _log_visibility_probability(sensor: SensorModel, mean, cov, n):
-    """``log P(object n in view)`` under the linearized Gaussian predictive of its range/bearing."""
-    h = lambda s: range_bearing(s[:3], s[3:].reshape(-1, 3)[n])  # noqa: E731
-    jac = jax.jacfwd(h)(mean)
-    rb = h(mean)
-    std = jnp.sqrt(jnp.diagonal(jac @ cov @ jac.T) + 1e-12)
+def _log_visibility_probability(sensor: SensorModel, local: Float[Array, "6"], local_cov: Float[Array, "6 6"]):
+    """``log P(object in view)`` under the linearized Gaussian predictive of its range/bearing;
+    ``local = [x, object]`` and its covariance (range and bearing depend on nothing else)."""
+    h = lambda s: range_bearing(s[:3], s[3:])  # noqa: E731
+    jac = jax.jacfwd(h)(local)
+    rb = h(local)
+    std = jnp.sqrt(jnp.diagonal(jac @ local_cov @ jac.T) + 1e-12)
     if sensor.visibility_temperature is not None:
         # Smooth footprint (geometry.log_smooth_visibility): σ(m/τ) ≈ Φ(m/(τ√(8/π))) (equal slope at 0),
         # and E[Φ(m/s)] over m ~ N(m̄, v) is Φ(m̄/√(s² + v)): the hard formula with a wider spread.
@@ -265,13 +266,24 @@ def linear_tables(
     rows = jax.vmap(rows, (None, None, 0, None, None, None))  # objects
     rows = jax.vmap(rows, (None, None, None, None, 0, 0))  # detections
     r_bar, log_norm = rows(sensor, mean, objs, classes, detections.geo, detections.scores)
+    # A row depends on the pose and its own object only: its Jacobian is two 3-column blocks, and
+    # J Σ Jᵀ needs Σ only over [x, objs] (gathered, (3 + 3 O)²), not the whole (3 + 3 N)² state.
     # The whitened Jacobian does not depend on the measured values: take it from slot 0.
-    jac_fn = jax.jacfwd(lambda s, n, c: _residual_rows(sensor, s, n, c, detections.geo[0], detections.scores[0])[0])
-    jac = jax.vmap(jax.vmap(jac_fn, (None, None, 0)), (None, 0, None))(mean, objs, classes)
-    rdim = jac.shape[2]
-    jac = jac.reshape(n_obj * m * rdim, -1)
-    gram = jac @ cov @ jac.T  # (N M R, N M R)
-    log_vis = jax.vmap(_log_visibility_probability, (None, None, None, 0))(sensor, mean, cov, objs)
+    x, objects = _split(mean)
+    residual = lambda x, o, c: detection_residual(sensor, x, o, detections.geo[0], detections.scores[0], c)[0]  # noqa: E731
+    jac_fn = jax.vmap(jax.jacfwd(residual, argnums=(0, 1)), (None, None, 0))  # classes
+    jac_x, jac_o = jax.vmap(jac_fn, (None, 0, None))(x, objects[objs], classes)  # (O, M, R, 3) each
+    rdim = jac_x.shape[2]
+    jac_o = jnp.einsum("imra,ij->imrja", jac_o, jnp.eye(n_obj, dtype=jac_o.dtype)).reshape(n_obj, m, rdim, 3 * n_obj)
+    jac = jnp.concatenate([jac_x, jac_o], axis=-1).reshape(n_obj * m * rdim, 3 + 3 * n_obj)
+    obj_idx = 3 + 3 * objs[:, None] + jnp.arange(3)[None, :]  # (O, 3): each object's state coordinates
+    idx = jnp.concatenate([jnp.arange(3), obj_idx.reshape(-1)])
+    sub = cov[idx[:, None], idx[None, :]]  # Σ over [x, objs]
+    gram = jac @ sub @ jac.T  # (O M R, O M R)
+    local = jax.vmap(lambda o: jnp.concatenate([x, o]))(objects[objs])  # (O, 6)
+    blocks = jnp.concatenate([jnp.broadcast_to(jnp.arange(3), (n_obj, 3)), obj_idx], axis=1)
+    local_cov = cov[blocks[:, :, None], blocks[:, None, :]]  # (O, 6, 6): Σ over [x, object]
+    log_vis = jax.vmap(_log_visibility_probability, (None, 0, 0))(sensor, local, local_cov)
     return LinearTables(r_bar, log_norm, gram, log_vis)
 
 
