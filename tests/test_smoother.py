@@ -355,3 +355,26 @@ def test_a_steady_linear_rate_stops_once_the_gain_to_come_is_below_cost_atol():
     assert strict.result == optx.RESULTS.successful and steady.result == optx.RESULTS.successful
     assert int(steady.steps) < int(strict.steps)
     assert 0.0 <= float(steady.cost - strict.cost) <= 1e-9
+
+
+
+def test_a_nonfinite_solve_keeps_the_given_estimate():
+    """``smooth`` keeps the ``mean`` and ``cov`` it was given (and says ``nonfinite``) where the graph
+    yields no finite solution or marginal, and returns the graph's own where it does."""
+    from hybridslam.estimators.smoothing import Full, smooth
+
+    rng = np.random.default_rng(5)
+    good = _graph(rng)
+    # A NaN in the prior's information: no finite Hessian (NaN data alone would leave the start and
+    # the marginal finite: the solver says nonfinite and stops there, and that marginal is kept).
+    bad = eqx.tree_at(lambda g: g.prior_sqrt_info, good, good.prior_sqrt_info.at[4, 4].set(jnp.nan))
+    poses = jnp.zeros((P, 3))
+    mean = jnp.asarray(rng.normal(size=3 + 3 * N) * 0.1)
+    cov = jnp.eye(3 + 3 * N) * 7.0
+    k = jnp.asarray(P - 1)
+    ok, failed = (smooth(Full(), g, poses, mean, cov, k) for g in (good, bad))
+    assert ok.result == optx.RESULTS.successful and failed.result == optx.RESULTS.nonfinite
+    np.testing.assert_array_equal(failed.mean, mean)
+    np.testing.assert_array_equal(failed.cov, cov)
+    np.testing.assert_array_equal(failed.poses, poses.at[P - 1].set(mean[:3]))
+    assert bool(jnp.all(jnp.isfinite(ok.cov))) and not bool(jnp.allclose(ok.cov, cov))
