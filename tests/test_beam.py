@@ -1,6 +1,6 @@
 """The beam search over a step's joint assignments (inference/beam.py): exact when it has room
-for every assignment, and the same with an incremental score (``carry`` / ``advance``) as with
-a joint one."""
+for every assignment, and the same with an incremental score (``carry`` with ``advance``, or rows
+returned by the score) as with a joint one."""
 
 from __future__ import annotations
 
@@ -38,12 +38,18 @@ def _search(table, pair):
         """The parent's score plus slot j's terms, the coupling read from the carried previous option."""
         return parent + table[j, opts[j]] + jnp.where(j > 0, pair[previous, opts[j]], 0.0), jnp.zeros((), jnp.int32)
 
+    def with_row(opts, j, previous, parent):
+        """As ``incremental``, returning the extension's row (its option at j) as well."""
+        s, r = incremental(opts, j, previous, parent)
+        return s, r, opts[j]
+
     width = OPTIONS**SLOTS
     a = beam_search(joint, SLOTS, OPTIONS, width, fill=0)
     b = beam_search(incremental, SLOTS, OPTIONS, width, fill=0, carry=jnp.zeros(width, jnp.int32),
                     advance=lambda previous, opts, j: opts[j])
     c = beam_search(joint, SLOTS, OPTIONS, 4, fill=0)
-    return a, b, c
+    d = beam_search(with_row, SLOTS, OPTIONS, width, fill=0, carry=jnp.zeros(width, jnp.int32))
+    return a, b, c, d
 
 
 finite = st.floats(-5.0, 5.0, allow_nan=False)
@@ -52,20 +58,22 @@ finite = st.floats(-5.0, 5.0, allow_nan=False)
 @settings(max_examples=20, deadline=None, derandomize=True)
 @given(arrays(np.float64, (SLOTS, OPTIONS), elements=finite), arrays(np.float64, (OPTIONS, OPTIONS), elements=finite))
 def test_beam_with_room_for_all_is_the_exhaustive_enumeration(table, pair):
-    full, carried, narrow = _search(jnp.asarray(table), jnp.asarray(pair))
+    full, carried, narrow, scored_rows = _search(jnp.asarray(table), jnp.asarray(pair))
     want = {opts: sum(table[j, o] for j, o in enumerate(opts)) + sum(pair[a, b] for a, b in zip(opts, opts[1:]))
             for opts in itertools.product(range(OPTIONS), repeat=SLOTS)}
-    for found in (full, carried):
+    for found in (full, carried, scored_rows):
         got = {tuple(int(o) for o in row): float(s) for row, s in zip(np.asarray(found.options), np.asarray(found.score))}
         assert got.keys() == want.keys()
         assert all(abs(got[k] - want[k]) < 1e-9 for k in want)
         assert int(found.dropped) == 0
     # A narrow beam (4 of 27) returns its rows best first, none better than the best assignment.
+    for found in (carried, scored_rows):  # each final row is its assignment's last option
+        np.testing.assert_array_equal(found.rows, found.options[:, -1])
     narrow_scores = np.asarray(narrow.score)
     assert np.all(np.diff(narrow_scores) <= 1e-12)
     assert narrow_scores[0] <= max(want.values()) + 1e-9
 
 
-def test_carry_and_advance_go_together():
-    with pytest.raises(ValueError, match="carry and advance"):
-        beam_search(lambda o, j, r, p: (0.0, 0), 2, 2, 4, fill=0, carry=jnp.zeros(4))
+def test_advance_needs_a_carry():
+    with pytest.raises(ValueError, match="advance needs a carry"):
+        beam_search(lambda o, j, r, p: (0.0, 0), 2, 2, 4, fill=0, advance=lambda r, o, j: r)

@@ -37,3 +37,15 @@ def test_gaussian_terms_of_an_indefinite_matrix_are_nan(n):
     s[1, 1] = -1.0
     maha, log_det = unrolled.gaussian_terms(jnp.asarray(s), jnp.ones(n))
     assert np.isnan(maha) and np.isnan(log_det)
+
+
+@pytest.mark.parametrize("n", [1, 4, 13])  # 13: the LAPACK path
+def test_cholesky_whiten_gives_the_lower_factor_and_the_whitened_residual(n):
+    rng = np.random.default_rng(10 + n)
+    a = rng.standard_normal((n, n))
+    s = a @ a.T + 0.1 * np.eye(n)
+    r = rng.standard_normal(n)
+    low, white, log_det = unrolled.cholesky_whiten(jnp.asarray(s), jnp.asarray(r))
+    np.testing.assert_allclose(low, np.linalg.cholesky(s), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(white, np.linalg.solve(np.linalg.cholesky(s), r), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(log_det, np.linalg.slogdet(s)[1], rtol=1e-10, atol=1e-12)

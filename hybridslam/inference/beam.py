@@ -22,7 +22,10 @@ A score that is a sum of per-slot terms conditioned on the earlier slots (a join
 in its sequential form, ``N(r; 0, S) = Π_j N(r_j | r_<j)``) need not be recomputed from scratch for
 every extension: pass a ``carry`` (one row per partial assignment, e.g. a conditioned covariance)
 and an ``advance`` that updates the row of every kept extension; the score then gets the row and
-the score of the assignment it extends, and adds one slot's term.
+the score of the assignment it extends, and adds one slot's term. Without ``advance`` the score
+returns each extension's row itself (cheap rows: no second pass over the kept extensions, and the
+caller's code traced once). The rows of the final assignments come back with them
+(:attr:`Beam.rows`).
 """
 
 from __future__ import annotations
@@ -46,6 +49,7 @@ class Beam(eqx.Module):
     score: Float[Array, " W"]  # the caller's joint log score of the whole assignment
     rank: Int[Array, " W"]  # the caller's rank (lower first)
     dropped: Int[Array, ""]  # valid partial assignments dropped within keep_nats of the best
+    rows: PyTree | None = None  # with a ``carry``: each complete assignment's row
 
     @property
     def valid(self) -> Bool[Array, " W"]:
@@ -74,10 +78,11 @@ def beam_search(
     With ``carry`` (a pytree of arrays with a leading ``W`` axis: the caller's state of each partial
     assignment) the score is called as ``score(options, j, row, parent)`` with the row and the joint
     score ``parent`` of the assignment being extended, and after each slot ``advance(row, options,
-    j)`` returns the row of every kept extension (``options``: its assignment).
+    j)`` returns the row of every kept extension (``options``: its assignment). With ``carry`` and
+    no ``advance``, the score returns ``(score, rank, row)``: the extension's own row.
     """
-    if (carry is None) != (advance is None):
-        raise ValueError("beam_search: carry and advance go together")
+    if advance is not None and carry is None:
+        raise ValueError("beam_search: advance needs a carry")
     if start is None:
         start_options = jnp.full((width, num_slots), fill, dtype=jnp.int32)
         start_score = jnp.full((width,), -jnp.inf).at[0].set(0.0)
@@ -91,11 +96,14 @@ def beam_search(
         grown = jnp.broadcast_to(options[:, None, :], (width, num_options, num_slots))
         grown = grown.at[:, :, j].set(jnp.broadcast_to(choices[None, :], (width, num_options)))
         flat = grown.reshape(width * num_options, num_slots)
+        grown_rows = None
         if rows is None:
             s, r = jax.vmap(score, (0, None))(flat, j)
         else:
-            s, r = jax.vmap(jax.vmap(score, (0, None, None, None)), (0, None, 0, 0))(grown, j, rows, live_score)
-            s, r = s.reshape(-1), r.reshape(-1)
+            out = jax.vmap(jax.vmap(score, (0, None, None, None)), (0, None, 0, 0))(grown, j, rows, live_score)
+            s, r = out[0].reshape(-1), out[1].reshape(-1)
+            if advance is None:
+                grown_rows = jax.tree.map(lambda a: a.reshape((width * num_options,) + a.shape[2:]), out[2])
         parent_live = jnp.repeat(live_score > -jnp.inf, num_options)
         s = jnp.where(parent_live, s, -jnp.inf)
         key = jnp.where(s > -jnp.inf, s - _RANK_NATS * r.astype(s.dtype), -jnp.inf)
@@ -104,11 +112,13 @@ def beam_search(
         best = jnp.max(jnp.where(s > -jnp.inf, key, -jnp.inf))
         lost = (s > -jnp.inf) & ~kept & (key >= best - keep_nats)
         new_score = jnp.where(top > -jnp.inf, s[index], -jnp.inf)
-        if rows is not None:
+        if grown_rows is not None:
+            rows = jax.tree.map(lambda a: a[index], grown_rows)
+        elif rows is not None:
             parent = jax.tree.map(lambda a: a[index // num_options], rows)
             rows = jax.vmap(advance, (0, 0, None))(parent, flat[index], j)
         return (flat[index], new_score, r[index].astype(jnp.int32), dropped + jnp.sum(lost, dtype=jnp.int32), rows), None
 
     init = (start_options, start_score, start_rank, jnp.zeros((), jnp.int32), carry)
-    (options, final, rank, dropped, _), _ = jax.lax.scan(extend, init, jnp.arange(first_slot, num_slots))
-    return Beam(options, final, rank, dropped)
+    (options, final, rank, dropped, rows), _ = jax.lax.scan(extend, init, jnp.arange(first_slot, num_slots))
+    return Beam(options, final, rank, dropped, rows)

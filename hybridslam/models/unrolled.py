@@ -45,20 +45,28 @@ def gaussian_terms(s: Float[Array, "n n"], r: Float[Array, " n"]) -> tuple[Float
     triangle only (the same for a symmetric ``S``). Both give NaN where ``S`` is not positive
     definite.
     """
+    _, white, log_det = cholesky_whiten(s, r)
+    return jnp.sum(white**2), log_det
+
+
+def cholesky_whiten(s: Float[Array, "n n"], r: Float[Array, " n"]) -> tuple[Float[Array, "n n"], Float[Array, " n"], Float[Array, ""]]:
+    """``(L, L⁻¹ r, log|S|)`` with ``S = L Lᵀ`` (``L`` lower triangular), written out entry by entry up
+    to :data:`MAX_UNROLLED_CHOLESKY` rows as :func:`gaussian_terms` says, by LAPACK beyond."""
     n = s.shape[-1]
     if n > MAX_UNROLLED_CHOLESKY:
         chol = jnp.linalg.cholesky(s)
         whitened = jax.scipy.linalg.solve_triangular(chol, r, lower=True)
-        return jnp.sum(whitened**2), 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))
-    low: list[list] = [[None] * n for _ in range(n)]
+        return chol, whitened, 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))
+    zero = jnp.zeros((), s.dtype)
+    low: list[list] = [[zero] * n for _ in range(n)]
     white: list = [None] * n
-    log_det = jnp.zeros((), s.dtype)
+    log_det = zero
     for j in range(n):
-        d = s[j, j] - sum((low[j][k] ** 2 for k in range(j)), start=jnp.zeros((), s.dtype))
+        d = s[j, j] - sum((low[j][k] ** 2 for k in range(j)), start=zero)
         low[j][j] = jnp.sqrt(d)
         log_det = log_det + jnp.log(d)
         for i in range(j + 1, n):
-            off = s[i, j] - sum((low[i][k] * low[j][k] for k in range(j)), start=jnp.zeros((), s.dtype))
+            off = s[i, j] - sum((low[i][k] * low[j][k] for k in range(j)), start=zero)
             low[i][j] = off / low[j][j]
-        white[j] = (r[j] - sum((low[j][k] * white[k] for k in range(j)), start=jnp.zeros((), s.dtype))) / low[j][j]
-    return sum((w**2 for w in white), start=jnp.zeros((), s.dtype)), log_det
+        white[j] = (r[j] - sum((low[j][k] * white[k] for k in range(j)), start=zero)) / low[j][j]
+    return jnp.stack([jnp.stack(row) for row in low]), jnp.stack(white), log_det

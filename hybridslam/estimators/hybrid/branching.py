@@ -9,9 +9,11 @@
   linearized weight so far (parent weight × class priors × new-object terms × the linearized
   marginal likelihood of the detections it names, thesis Eq. 4.14-4.15, × the in-view
   probability), and the ``width`` best survive. ``Dmax · width · (G+1)·M`` scores per step: linear
-  in the detections. The survivors then get the weigher's own weight (Eq. 16), exactly as the
+  in the detections. The density is carried per partial child in sequential form
+  (:class:`~.weights.PartialChild`: ``N(r; 0, S) = Π_j N(r_j | r_<j)``), so a score costs one
+  ``R×R`` conditional density and an ``R``-column triangular solve, not a ``Dmax R`` Cholesky. The survivors then get the weigher's own weight (Eq. 16), exactly as the
   exhaustive children do, so on steps where no more than ``width`` partial children are valid the
-  two give the same children and weights (``tests/test_branching.py``). Partial children dropped
+  two give the same children and weights (``tests/test_step.py``). Partial children dropped
   within ``log(prune_ratio)`` of the best (children that could have survived pruning) are counted
   in ``StepInfo.dropped_budget``.
 """
@@ -29,7 +31,7 @@ from ...inference.batching import map_live
 from ...inference.beam import beam_search
 from ...models.measurement import Detections, SensorModel
 from .belief import Belief
-from .weights import LinearTables, linear_child, linear_tables
+from .weights import LinearTables, PartialChild, empty_child, extend_child, linear_tables
 
 # A child whose objects are (almost surely) out of view still ranks by its likelihood, this many
 # nats below any child in view (as the laplace-is screen does).
@@ -119,7 +121,8 @@ def beam_children(
     slots = jnp.arange(dmax)
 
     def child(opts: Int[Array, " S"], upto: Int[ArrayLike, ""]):
-        """Every field of the child ``opts = [parent, option of slot 0, ...]`` over slots ``0..upto``."""
+        """Every field of the child ``opts = [parent, option of slot 0, ...]`` over slots ``0..upto``
+        but its density, and the table rows its slots name (``rows``, ``named``)."""
         p = opts[0]
         o = opts[1:]
         considered = slots <= upto
@@ -146,23 +149,29 @@ def beam_children(
         if clutter:
             log_prior += jnp.sum(jnp.where(noise, clutter_terms[p], 0.0))
         rows = jnp.where(named, slots * g + jnp.minimum(choice, g - 1) if gated else obj, -1)
-        tab = jax.tree.map(lambda t: t[p], tables)
-        lin, lin_free = linear_child(tab, rows, slot_class, named)
-        return ok, assign, makes, new, slot_class, log_prior, lin, lin_free
+        return ok, assign, makes, new, slot_class, log_prior, rows, named
 
-    def score(opts, j):
-        ok, *_, log_prior, lin, lin_free = child(opts, j - 1)
-        rank = jnp.maximum(lin, lin_free - OUT_OF_VIEW_NATS)
-        return jnp.where(ok, log_prior + rank, -jnp.inf), jnp.zeros((), jnp.int32)
+    # The density of the detections a partial child names is carried per beam row in sequential
+    # form (weights.PartialChild): an extension adds one slot's conditional term, and its row is
+    # the score's by-product.
+    def score(opts, j, partial: PartialChild, parent_score):
+        ok, *_, slot_class, log_prior, rows, named = child(opts, j - 1)
+        grown = extend_child(tables, opts[0], partial, rows, slot_class, named, j - 1)
+        rank = jnp.maximum(grown.log_lik + grown.log_vis, grown.log_lik - OUT_OF_VIEW_NATS)
+        return jnp.where(ok, log_prior + rank, -jnp.inf), jnp.zeros((), jnp.int32), grown
 
     # The beam starts from the parents (slot 0 of an option vector is the parent's index).
     start = min(width, k)
     first = jnp.full((width, 1 + dmax), 0, jnp.int32).at[:start, 0].set(jnp.arange(start, dtype=jnp.int32))
     first_score = jnp.full((width,), -jnp.inf).at[:start].set(belief.log_weights[:start])
     keep = jnp.log(model.prune_ratio)
+    rdim = tables.r_bar.shape[-1]
+    empty = jax.tree.map(lambda a: jnp.broadcast_to(a, (width,) + a.shape), empty_child(dmax, rdim, mean.dtype))
     found = beam_search(score, 1 + dmax, num_options, width, fill=0, keep_nats=keep, start=(first, first_score),
-                        first_slot=1)
-    ok, assign, makes, new, slot_class, log_prior, lin, lin_free = jax.vmap(child, (0, None))(found.options, dmax - 1)
+                        first_slot=1, carry=empty)
+    ok, assign, makes, new, slot_class, log_prior, _, _ = jax.vmap(child, (0, None))(found.options, dmax - 1)
     valid = ok & found.valid
+    lin_free = found.rows.log_lik
+    lin = lin_free + found.rows.log_vis
     return FlatChildren(found.options[:, 0], assign, makes, new, slot_class, log_prior, lin, lin_free, valid,
                         found.dropped)

@@ -61,7 +61,7 @@ from ...models.measurement import (
     slot_residuals,
 )
 from ...models.model import NewObjects
-from ...models.unrolled import gaussian_terms, sum_last
+from ...models.unrolled import cholesky_whiten, gaussian_terms, sum_last
 from .hypotheses import EMPTY, NEW, Children, HypothesisTable
 
 ROW_CHUNK = 16  # hypothesis-table rows per chunk of linearized children (see linearized_log_likelihood)
@@ -306,6 +306,61 @@ def linear_child(
     log_lik = -0.5 * mahalanobis - 0.5 * log_det
     log_lik += jnp.sum(jnp.where(occupied, t.log_norm[slots, obj, slot_class], 0.0))
     return log_lik + jnp.sum(jnp.where(occupied, t.log_vis[obj], 0.0)), log_lik
+
+
+
+class PartialChild(NamedTuple):
+    """:func:`linear_child`'s density of a child built one slot at a time (inside a beam search): the
+    chain rule ``N(r; 0, S) = Π_j N(r_j | r_<j)`` over the slots named so far, in innovation space.
+    ``chol`` is the lower Cholesky factor of ``S`` over those slots' rows (identity in the rows of
+    the other slots: their rows of ``S`` are too, and stay so until a slot is named) and ``white``
+    is ``chol⁻¹ r`` (0 in the other rows). Extending by slot ``j`` costs one ``R×R`` density and a
+    triangular solve of ``R`` columns instead of a ``Dmax R`` joint Cholesky per extension."""
+
+    chol: Float[Array, "DR DR"]
+    white: Float[Array, " DR"]
+    log_lik: Float[Array, ""]  # the density so far with the slots' log normalizers (linear_child's second)
+    log_vis: Float[Array, ""]  # Σ log P(in view) of the named objects (its first minus its second)
+
+
+def empty_child(slots: int, rdim: int, dtype=float) -> PartialChild:
+    """A child that names nothing yet (``slots`` detection slots of ``rdim`` residual rows)."""
+    zero = jnp.zeros((), dtype)
+    return PartialChild(jnp.eye(slots * rdim, dtype=dtype), jnp.zeros(slots * rdim, dtype), zero, zero)
+
+
+def _slot_given_earlier(tables: LinearTables, p: Int[Array, ""], child: PartialChild, rows: Int[Array, " Dmax"],
+                        slot_class: Int[Array, " Dmax"], named: Bool[Array, " Dmax"], j: Int[Array, ""]):
+    """Slot ``j``'s rows given the earlier named slots of ``child`` (parent ``p``'s tables): ``c =
+    L⁻¹ S_<j,j``, the conditional covariance ``S_jj − cᵀc`` and residual ``r_j − cᵀ(L⁻¹ r_<j)``."""
+    m, rdim = tables.r_bar.shape[3], tables.r_bar.shape[4]
+    obj = jnp.maximum(rows, 0)
+    idx = ((obj * m + slot_class) * rdim)[:, None] + jnp.arange(rdim)[None, :]  # (Dmax, R): rows of the gram
+    own = idx[j]
+    earlier = jnp.repeat(named & (jnp.arange(rows.shape[0]) < j), rdim)
+    cross = jnp.where(earlier[:, None], tables.gram[p, idx.reshape(-1)[:, None], own[None, :]], 0.0)  # (Dmax R, R)
+    c = jax.scipy.linalg.solve_triangular(child.chol, cross, lower=True)
+    s = tables.gram[p, own[:, None], own[None, :]] + jnp.eye(rdim, dtype=c.dtype) - c.T @ c
+    r = tables.r_bar[p, j, obj[j], slot_class[j]] - c.T @ child.white
+    return c, s, r, obj[j]
+
+
+def extend_child(tables: LinearTables, p: Int[Array, ""], child: PartialChild, rows: Int[Array, " Dmax"],
+                 slot_class: Int[Array, " Dmax"], named: Bool[Array, " Dmax"], j: Int[Array, ""]) -> PartialChild:
+    """``child`` extended by slot ``j``: naming row ``rows[j]`` of parent ``p``'s ``tables`` (leading
+    parent axis) with class ``slot_class[j]`` if ``named[j]`` (else unchanged), slots before ``j``
+    as in ``child``. Its factor gains the block row ``[cᵀ, chol(S_jj − cᵀc)]`` in slot ``j``'s rows,
+    its density the slot's conditional term ``log N(r_j | r_<j)`` and log normalizer."""
+    c, s, r, o = _slot_given_earlier(tables, p, child, rows, slot_class, named, j)
+    rdim = s.shape[0]
+    low, w, log_det = cholesky_whiten(s, r)
+    block = jax.lax.dynamic_update_slice(c.T, low, (0, j * rdim))  # c's rows of slot j and later are 0
+    chol = jax.lax.dynamic_update_slice(child.chol, block, (j * rdim, 0))
+    white = jax.lax.dynamic_update_slice(child.white, w, (j * rdim,))
+    term = -0.5 * jnp.sum(w**2) - 0.5 * log_det + tables.log_norm[p, j, o, slot_class[j]]
+    on = named[j]
+    return PartialChild(jnp.where(on, chol, child.chol), jnp.where(on, white, child.white),
+                        child.log_lik + jnp.where(on, term, 0.0), child.log_vis + jnp.where(on, tables.log_vis[p, o], 0.0))
 
 
 def linearized_log_likelihood(
