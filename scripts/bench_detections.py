@@ -3,11 +3,12 @@
 A corridor of 32 mapped objects (two rows, 2 m apart along the track, two classes, ``mirror``
 classifier), 10 steps, and a detector that reports the ``D`` nearest objects in view (range 25
 m, 120° field of view) for ``D`` = 2, 4, 8, 12, 16: the same map and true track at every ``D``
-(the sensor noise is drawn anew), only the detections per step change. Each estimator runs with its usual settings for many detections
-(the hybrid belief as on the hallway: capacity 16, 3 gated candidates per detection, linearized
-weights, beam width 64; ``ml`` with its joint hypotheses built one detection at a time), full
-smoother. Prints compile seconds and the median step time after compilation per ``D``, and the
-growth from the smallest ``D``; asserts nothing (benchmarks never fail a build).
+(the sensor noise is drawn anew), only the detections per step change. Each estimator runs with
+its usual settings for many detections (the hybrid belief as on the hallway: capacity 16, 3
+gated candidates per detection, linearized weights, beam width 64; ``ml`` with its joint
+hypotheses built one detection at a time), full smoother. Prints compile seconds and the median
+step time after compilation per ``D``, and the growth from the smallest ``D``; asserts nothing
+(benchmarks never fail a build).
 
     python scripts/bench_detections.py [--detections 2,4,8,12,16] [--estimators hybrid,ml] [--smoother full]
 

@@ -49,7 +49,9 @@ def gaussian_terms(s: Float[Array, "n n"], r: Float[Array, " n"]) -> tuple[Float
     return jnp.sum(white**2), log_det
 
 
-def cholesky_whiten(s: Float[Array, "n n"], r: Float[Array, " n"]) -> tuple[Float[Array, "n n"], Float[Array, " n"], Float[Array, ""]]:
+def cholesky_whiten(
+    s: Float[Array, "n n"], r: Float[Array, " n"]
+) -> tuple[Float[Array, "n n"], Float[Array, " n"], Float[Array, ""]]:
     """``(L, L⁻¹ r, log|S|)`` with ``S = L Lᵀ`` (``L`` lower triangular), written out entry by entry up
     to :data:`MAX_UNROLLED_CHOLESKY` rows as :func:`gaussian_terms` says, by LAPACK beyond."""
     n = s.shape[-1]

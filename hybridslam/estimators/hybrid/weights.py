@@ -308,14 +308,15 @@ def linear_child(
     return log_lik + jnp.sum(jnp.where(occupied, t.log_vis[obj], 0.0)), log_lik
 
 
-
 class PartialChild(NamedTuple):
     """:func:`linear_child`'s density of a child built one slot at a time (inside a beam search): the
     chain rule ``N(r; 0, S) = Π_j N(r_j | r_<j)`` over the slots named so far, in innovation space.
     ``chol`` is the lower Cholesky factor of ``S`` over those slots' rows (identity in the rows of
     the other slots: their rows of ``S`` are too, and stay so until a slot is named) and ``white``
     is ``chol⁻¹ r`` (0 in the other rows). Extending by slot ``j`` costs one ``R×R`` density and a
-    triangular solve of ``R`` columns instead of a ``Dmax R`` joint Cholesky per extension."""
+    triangular solve of ``R`` columns instead of a ``Dmax R`` joint Cholesky per extension. The
+    same joint innovation density (thesis Eq. 4.14-4.15) to rounding; tested against the
+    exhaustive enumeration's joint form (``tests/test_step.py``)."""
 
     chol: Float[Array, "DR DR"]
     white: Float[Array, " DR"]
@@ -360,7 +361,8 @@ def extend_child(tables: LinearTables, p: Int[Array, ""], child: PartialChild, r
     term = -0.5 * jnp.sum(w**2) - 0.5 * log_det + tables.log_norm[p, j, o, slot_class[j]]
     on = named[j]
     return PartialChild(jnp.where(on, chol, child.chol), jnp.where(on, white, child.white),
-                        child.log_lik + jnp.where(on, term, 0.0), child.log_vis + jnp.where(on, tables.log_vis[p, o], 0.0))
+                        child.log_lik + jnp.where(on, term, 0.0),
+                        child.log_vis + jnp.where(on, tables.log_vis[p, o], 0.0))
 
 
 def linearized_log_likelihood(
