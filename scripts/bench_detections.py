@@ -58,7 +58,7 @@ def main() -> None:
                     r = hs.run(est, scenario)
                     compile_s = max(compile_s, r.result.timing["compile_s"])
                     steps += r.result.timing["step_s"]
-            except ValueError as e:  # an estimator's own limit (e.g. multimodal's association codes)
+            except ValueError as e:  # an estimator's own limit on the slots or objects
                 print(f"{name:12s} {d:3d} refused: {e}", flush=True)
                 continue
             finally:

@@ -421,3 +421,37 @@ def test_downdate_block_is_the_block_of_the_whole_downdate():
     np.testing.assert_allclose(whole, 0.5 * ((parent - k @ js) + (parent - k @ js).T), atol=1e-12)
     idx = jnp.asarray([0, 1, 2, 6, 7, 8])
     np.testing.assert_allclose(np.asarray(downdate(parent, k, js, idx)), whole[np.ix_(idx, idx)], atol=1e-12)
+
+
+@settings(max_examples=25, deadline=None, derandomize=True)
+@given(st.lists(st.tuples(st.integers(-1, 3), st.integers(-1, 3)), min_size=1, max_size=12),
+       st.lists(st.floats(-30.0, 5.0), min_size=12, max_size=12), st.integers(0, 11))
+def test_tuple_shares_are_each_tuples_part_of_the_mass(rows, masses, dead):
+    """Eq. 5.9: ``p_j`` is the mass of the children naming child j's object tuple over the total
+    (brute force over the distinct tuples); zero-mass children get ``-inf``."""
+    import jax.numpy as jnp
+
+    from hybridslam.estimators.multimodal import tuple_log_probs
+
+    objects = np.asarray(rows, np.int32)
+    log_mass = np.asarray(masses[: len(rows)])
+    log_mass[dead % len(rows)] = -np.inf
+    got = np.asarray(tuple_log_probs(jnp.asarray(objects), jnp.asarray(log_mass)))
+    total = np.sum(np.exp(log_mass))
+    for j, row in enumerate(rows):
+        if log_mass[j] == -np.inf:
+            assert got[j] == -np.inf
+            continue
+        same = np.sum([np.exp(m) for r, m in zip(rows, log_mass) if r == row])
+        np.testing.assert_allclose(got[j], np.log(same / total), rtol=1e-12, atol=1e-12)
+
+
+def test_many_detection_slots_over_many_objects_are_accepted():
+    """No integer code of the association tuples bounds the slots: 16 slots over 32 objects
+    ((N+1)^D ≈ 2e24, beyond int64) builds a state."""
+    import hybridslam as hs
+
+    objects = tuple((float(x), side * 2.5, 0.0) for x in range(2, 34, 2) for side in (1.0, -1.0))
+    scenario = hs.simulate(0, steps=2, setup=hs.PaperSetup(object_poses=objects, max_detections=16, max_range=25.0))
+    state = hs.make_estimator("multimodal", max_detections=16, smoother="filter").init(scenario)
+    assert state.history.shape[-1] == 16

@@ -493,23 +493,17 @@ def draws(key: jax.Array, cfg: Structure, params: Params) -> tuple[Float[Array, 
     return eps, jnp.sqrt(params.orientation_var) * theta
 
 
-def _segment_logsumexp(values: Float[Array, " n"], ids: Int[Array, " n"], n: int) -> Float[Array, " n"]:
-    top = jax.ops.segment_max(values, ids, num_segments=n)
-    top = jnp.where(jnp.isfinite(top), top, 0.0)
-    return top + jnp.log(jax.ops.segment_sum(jnp.exp(values - top[ids]), ids, num_segments=n))
-
-
-def tuple_log_probs(objects: Int[Array, "C Dmax"], log_mass: Float[Array, " C"], n_max: int) -> Float[Array, " C"]:
+def tuple_log_probs(objects: Int[Array, "C Dmax"], log_mass: Float[Array, " C"]) -> Float[Array, " C"]:
     """``log p_j`` (Eq. 5.9): each child's share of the total mass of the children naming its object tuple.
 
     Children of different components that associate the detections with the same objects are the
-    same association hypothesis. ``-inf`` for children of zero mass.
+    same association hypothesis. ``-inf`` for children of zero mass. The tuples are compared row
+    by row (``C²·Dmax`` comparisons for the few dozen children of a step), so no code of the tuple
+    bounds the objects or detection slots.
     """
-    powers = jnp.asarray((n_max + 1) ** np.arange(objects.shape[-1], dtype=np.int64))
-    codes = jnp.sum((objects.astype(jnp.int64) + 1) * powers[None, :], axis=-1)
-    _, ids = jnp.unique(codes, return_inverse=True, size=codes.size, fill_value=-1)
-    ids = ids.reshape(-1)
-    out = _segment_logsumexp(log_mass, ids, codes.size)[ids] - jax.nn.logsumexp(log_mass)
+    same = jnp.all(objects[:, None, :] == objects[None, :, :], axis=-1)  # (C, C): the same object tuple
+    shared = jax.nn.logsumexp(jnp.where(same, log_mass[None, :], -jnp.inf), axis=1)
+    out = shared - jax.nn.logsumexp(log_mass)
     return jnp.where(log_mass > -jnp.inf, out, -jnp.inf)
 
 
@@ -631,7 +625,7 @@ def hypotheses(
     log_lik = _chunked(weigh, parent, post_mean, gain, gain_js, state.class_log_probs[parent], objects, new)
     log_lik = jnp.where(sel_w > -jnp.inf, log_lik, -jnp.inf)
     log_mass = state.log_weights[parent] + log_lik
-    log_prob = tuple_log_probs(objects, log_mass, cfg.max_objects)
+    log_prob = tuple_log_probs(objects, log_mass)
     log_weight = log_mass + log_prob if cfg.association_prior == "mc" else log_mass
     dropped = jnp.maximum(-jnp.expm1(jax.nn.logsumexp(sel_w) - jax.nn.logsumexp(screen_w)), 0.0)
     return Children(parent, objects, new, post_mean, gain, gain_js, result, log_lik, log_prob, log_weight, dropped,
@@ -852,9 +846,6 @@ class Multimodal(AbstractEstimator):
         candidates = min(self.candidates, n_max)
         assignments = (candidates + 1) ** slots if self.max_assignments is None else self.max_assignments
         children = min(2 * self.capacity if self.children is None else self.children, self.capacity * assignments)
-        if (n_max + 1) ** slots >= 2**62:
-            raise ValueError(f"multimodal: {slots} detection slots over {n_max} objects "
-                             "overflow the int64 association codes")
         return Structure(self.capacity, n_max, slots, history_length(self.max_steps, scenario), self.samples, candidates, children,
                          self.gn_max_steps, scenario.discovery is not None, self.association_prior, self.proposal,
                          self.max_assignments)
