@@ -232,10 +232,19 @@ def test_marginalizing_keeps_an_uninformed_object_uninformed(solve):
     out = sm.solve(reduced, jnp.zeros((P - 1, 3)), jnp.zeros((N, 3)), max_steps=20)
     np.testing.assert_allclose(np.asarray(out.poses), np.asarray(sol.poses[1:]), atol=1e-9)
     np.testing.assert_allclose(np.asarray(out.objects), np.asarray(sol.objects), atol=1e-9)
-    # The same solve given the information instead of forming RᵀR (what a fixed-lag window does).
-    out = sm.solve(eqx.tree_at(lambda g: g.prior_info, reduced, info, is_leaf=lambda x: x is None),
-                   jnp.zeros((P - 1, 3)), jnp.zeros((N, 3)), max_steps=20)
-    np.testing.assert_allclose(np.asarray(out.poses), np.asarray(sol.poses[1:]), atol=1e-9)
+    # The same solve given the information instead of forming RᵀR, and given only the information
+    # (no R: the prior ½dᵀΛd, what a fixed-lag window carries): the same solution and cost.
+    with_info = eqx.tree_at(lambda g: g.prior_info, reduced, info, is_leaf=lambda x: x is None)
+    only_info = eqx.tree_at(lambda g: g.prior_sqrt_info, with_info, None)
+    for g in (with_info, only_info):
+        got = sm.solve(g, jnp.zeros((P - 1, 3)), jnp.zeros((N, 3)), max_steps=20)
+        np.testing.assert_allclose(np.asarray(got.poses), np.asarray(sol.poses[1:]), atol=1e-9)
+        np.testing.assert_allclose(float(got.cost), float(out.cost), rtol=1e-9, atol=1e-12)
+    lin_r, lin_info = (sm.linearize(g, sol.poses[1:], sol.objects + 0.1, info) for g in (reduced, only_info))
+    np.testing.assert_allclose(float(lin_info.cost), float(lin_r.cost), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(lin_info.grad_object), np.asarray(lin_r.grad_object), rtol=1e-9, atol=1e-9)
+    with pytest.raises(ValueError, match="prior_sqrt_info: None needs prior_info"):
+        sm.solve(eqx.tree_at(lambda g: g.prior_sqrt_info, reduced, None), jnp.zeros((P - 1, 3)), jnp.zeros((N, 3)))
 
 
 def test_max_mixture_picks_the_component_that_explains_the_data():

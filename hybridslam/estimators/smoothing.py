@@ -239,21 +239,22 @@ def scenario_log(scenario: Scenario, max_objects: int) -> DataLog:
 
 class WindowPrior(eqx.Module):
     """A fixed-lag window's Gaussian prior on ``[x_s, o_0..o_{N-1}]`` (``s``: the window's first
-    pose): ``½‖R (y ⊖ mean)‖²`` (``sqrt_info`` is ``R``, ``info`` is ``RᵀR``, carried so that the
-    window's solves skip that ``O(D₀³)`` product: 2 per component and step, ~1 ms each at
-    ``D₀ = 213``). Before the window first slides it is the run's prior (:class:`DataLog`)."""
+    pose): ``½ dᵀΛd`` with ``d = y ⊖ mean`` and ``Λ = info``, what the marginalization gives
+    (:func:`~hybridslam.inference.smoother.marginalize_first_information`). Only ``Λ`` is carried,
+    not also its factor ``R``: each ``D₀ × D₀`` matrix per component is copied several times a
+    step (sliced into the smoothing, written back, kept or not), 3-5 ms a step on the hallway.
+    Before the window first slides it is the run's prior (:class:`DataLog`)."""
 
     mean: Float[Array, "*K D0"]
-    sqrt_info: Float[Array, "*K D0 D0"]
     info: Float[Array, "*K D0 D0"]
 
 
 def initial_window(log: DataLog, components: int | None = None) -> WindowPrior:
     """The run's prior as every component's window prior (``components``: a leading axis of that size)."""
     if components is None:
-        return WindowPrior(log.prior_mean, log.prior_sqrt_info, log.prior_info)
+        return WindowPrior(log.prior_mean, log.prior_info)
     lead = lambda a: jnp.broadcast_to(a, (components,) + a.shape)  # noqa: E731
-    return WindowPrior(lead(log.prior_mean), lead(log.prior_sqrt_info), lead(log.prior_info))
+    return WindowPrior(lead(log.prior_mean), lead(log.prior_info))
 
 
 def _sqrt_information(cov: np.ndarray) -> np.ndarray:
@@ -344,7 +345,7 @@ def window_graph(
                                    flat(take(factors.classes)))
     odo_rows = start + jnp.arange(length)
     return sm.FactorGraph(
-        prior_mean=prior.mean, prior_sqrt_info=prior.sqrt_info, prior_info=prior.info,
+        prior_mean=prior.mean, prior_sqrt_info=None, prior_info=prior.info,
         odometry=jnp.take(log.odometry, jnp.clip(odo_rows, 0, t - 1), axis=0), odometry_active=odo_rows < k,
         motion_sqrt_info=jnp.linalg.cholesky(jnp.linalg.inv(motion_cov)).T,
         meas_pose=flat(jnp.broadcast_to(jnp.arange(length + 1)[:, None], (length + 1, dmax))),
@@ -401,26 +402,25 @@ def smooth_lag(
     objects = mean[3:].reshape(-1, 3)
     old, new = jnp.maximum(k - 1 - length, 0), jnp.maximum(k - length, 0)
     g_old = window_graph(log, factors, k, old, length, num_created, sensor, motion_cov, semantic, mode, window)
-    m_mean, m_sqrt, m_info = sm.marginalize_first_information(
+    m_mean, _, m_info = sm.marginalize_first_information(
         g_old, jax.lax.dynamic_slice_in_dim(start, old, length + 1), objects)
     # Objects not created yet carry no factor: keep their own prior rows (a heading prior only),
     # not the identity block the elimination gives inactive variables. Those rows touch no active
     # coordinate (nor do the active rows touch them), so the information splits the same way.
     inactive = jnp.concatenate([jnp.zeros(3, bool), jnp.repeat(~g_old.object_active, 3)])
     m_mean = jnp.where(inactive, window.mean, m_mean)
-    m_sqrt = jnp.where(inactive[:, None], window.sqrt_info, m_sqrt)
     m_info = jnp.where(inactive[:, None] | inactive[None, :], window.info, m_info)
     slide = new > old
-    prior = jax.tree.map(lambda a, b: jnp.where(slide, a, b), WindowPrior(m_mean, m_sqrt, m_info), window)
+    prior = jax.tree.map(lambda a, b: jnp.where(slide, a, b), WindowPrior(m_mean, m_info), window)
     g = window_graph(log, factors, k, new, length, num_created, sensor, motion_cov, semantic, mode, prior)
     sol = sm.solve(g, jax.lax.dynamic_slice_in_dim(start, new, length + 1), objects, max_steps=settings.max_steps,
                    cost_atol=step_tolerance(settings, log, k))
     m, c = sm.marginal(sol, k - new)
     finite = lambda *a: jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in a]))  # noqa: E731
-    ok = finite(sol.poses, m, c, prior.mean, prior.sqrt_info, prior.info)
+    ok = finite(sol.poses, m, c, prior.mean, prior.info)
     result = optx.RESULTS.where(ok, sol.result, optx.RESULTS.nonfinite)
     # No usable marginal: the old prior, moved to the new first pose (crude, cheap, and counted).
-    fallback = WindowPrior(window.mean.at[:3].set(start[new]), window.sqrt_info, window.info)
+    fallback = WindowPrior(window.mean.at[:3].set(start[new]), window.info)
     prior = jax.tree.map(lambda a, b, c: jnp.where(ok, a, jnp.where(slide, b, c)), prior, fallback, window)
     trajectory = jax.lax.dynamic_update_slice_in_dim(start, sol.poses, new, axis=0)
     return Smoothed(jnp.where(ok, trajectory, start), jnp.where(ok, m, mean), jnp.where(ok, c, cov), result, prior)

@@ -202,7 +202,9 @@ class FactorGraph(eqx.Module):
 
     * ``prior_mean (D₀,)``, ``prior_sqrt_info (D₀, D₀)``: Gaussian prior on ``[x_0, o_0..o_{N-1}]``,
       residual ``R (y₀ ⊖ μ)`` (every third entry, a heading, wrapped), ``Λ = RᵀR``. Uncreated
-      objects should carry an uncoupled block (the solver masks them anyway).
+      objects should carry an uncoupled block (the solver masks them anyway). ``None`` if
+      ``prior_info`` is given: the prior is then ``½ dᵀΛd`` with ``d = y₀ ⊖ μ``, the same function
+      without a square root (a fixed-lag window's marginalized prior: no factor to carry).
     * ``odometry (P-1, 3)``, ``odometry_active (P-1,)``, ``motion_sqrt_info (3, 3)``: factor ``i``
       (row ``i-1``) between ``x_{i-1}`` and ``x_i``, residual ``W odometry_fn(x_{i-1}, x_i, u_i)``.
     * ``meas_pose (F,)``, ``meas_objects (F, G)``: the pose and the candidate objects of each
@@ -219,7 +221,8 @@ class FactorGraph(eqx.Module):
     * ``odometry_fn(x_prev, x, u) -> (3,)``: unwhitened between-residual (default
       :func:`~hybridslam.motion.odometry_residual`; tests swap in a linear one).
     * ``mode``: ``"sum"`` or ``"max"`` (static), see the module docstring.
-    * ``prior_info (D₀, D₀)``, optional: ``Λ = RᵀR`` of ``prior_sqrt_info``, if the caller has it.
+    * ``prior_info (D₀, D₀)``, optional: ``Λ = RᵀR`` of ``prior_sqrt_info``, if the caller has it
+      (required without ``prior_sqrt_info``).
       A run's prior is constant, so its smoothers form this ``O(N³)`` product once
       (:class:`~hybridslam.estimators.smoothing.DataLog`) instead of once per step.
     * ``independent_objects`` (static): the caller promises that the prior couples no two objects
@@ -232,7 +235,7 @@ class FactorGraph(eqx.Module):
     """
 
     prior_mean: Float[Array, " D0"]
-    prior_sqrt_info: Float[Array, "D0 D0"]
+    prior_sqrt_info: Float[Array, "D0 D0"] | None
     odometry: Float[Array, "P1 3"]
     odometry_active: Bool[Array, " P1"]
     motion_sqrt_info: Float[Array, "3 3"]
@@ -268,7 +271,6 @@ def check_shapes(graph: FactorGraph, poses: Float[Array, "P 3"], objects: Float[
         "poses": ((p, 3), poses.shape),
         "objects": ((n, 3), objects.shape),
         "prior_mean": ((3 + 3 * n,), graph.prior_mean.shape),
-        "prior_sqrt_info": ((3 + 3 * n, 3 + 3 * n), graph.prior_sqrt_info.shape),
         "odometry": ((p - 1, 3), graph.odometry.shape),
         "odometry_active": ((p - 1,), graph.odometry_active.shape),
         "motion_sqrt_info": ((3, 3), graph.motion_sqrt_info.shape),
@@ -277,6 +279,10 @@ def check_shapes(graph: FactorGraph, poses: Float[Array, "P 3"], objects: Float[
         "meas_log_weight": ((f, g), graph.meas_log_weight.shape),
         "meas_null_log_weight": ((f,), graph.meas_null_log_weight.shape),
     }
+    if graph.prior_sqrt_info is None and graph.prior_info is None:
+        raise ValueError("FactorGraph.prior_sqrt_info: None needs prior_info (the prior's information Λ)")
+    if graph.prior_sqrt_info is not None:
+        expected["prior_sqrt_info"] = ((3 + 3 * n, 3 + 3 * n), graph.prior_sqrt_info.shape)
     if graph.prior_info is not None:
         expected["prior_info"] = ((3 + 3 * n, 3 + 3 * n), graph.prior_info.shape)
     for name, (want, got) in expected.items():
@@ -388,13 +394,17 @@ def _outer(j: Float[Array, "*B R a"], k: Float[Array, "*B R b"]) -> Float[Array,
 
 
 def _prior_terms(graph: FactorGraph, poses, objects):
-    """Prior residual ``R (y₀ ⊖ μ)``: its cost and gradient ``Rᵀr`` over ``[x_0, objects]``.
+    """Prior residual ``R (y₀ ⊖ μ)``: its cost and gradient ``Rᵀr`` over ``[x_0, objects]``
+    (``½ dᵀΛd`` and ``Λd`` from ``prior_info`` where the graph has no ``R``).
 
     Inactive entries of ``y₀ ⊖ μ`` are zeroed: an uncreated object contributes nothing, and cost,
     gradient and the masked ``Λ`` of :func:`prior_information` describe the same function.
     """
     d = wrap_angles(jnp.concatenate([poses[0], objects.reshape(-1)]) - graph.prior_mean)
     d = jnp.where(_prior_active(graph), d, 0.0)
+    if graph.prior_sqrt_info is None:
+        grad = graph.prior_info @ d
+        return 0.5 * jnp.dot(d, grad), grad
     r = graph.prior_sqrt_info @ d
     return 0.5 * jnp.sum(r**2), graph.prior_sqrt_info.T @ r
 
