@@ -81,6 +81,22 @@ def test_bucketed_solve_and_marginal_equal_the_whole_graphs(small_buckets, poses
     np.testing.assert_array_equal(np.asarray(mean), np.asarray(mean_w))
 
 
+@pytest.mark.parametrize("objects", [0, 1, 2, 3])
+def test_bucketed_marginalization_of_the_first_pose_equals_the_whole_graphs(small_buckets, monkeypatch, objects):
+    """The fixed-lag marginalization factors only the live objects' head of ``H'``; the inactive
+    objects keep their value and identity blocks of ``R`` and ``H'``, as on the whole graph."""
+    graph = _prefix_graph(7 + objects, P, objects)
+    rng = np.random.default_rng(objects)
+    poses, objs = jnp.asarray(rng.normal(size=(P, 3)) * 0.1), jnp.asarray(rng.normal(size=(N, 3)) * 0.1)
+    got = sm.marginalize_first_information(graph, poses, objs)
+    monkeypatch.setattr(buckets, "BUCKETS", 1)
+    want = sm.marginalize_first_information(graph, poses, objs)
+    for a, b, name in zip(got, want, ("mean", "R", "H'")):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-12, err_msg=name)
+    tail = slice(3 + 3 * objects, None)
+    np.testing.assert_array_equal(np.asarray(got[2])[tail, tail], np.eye(3 * (N - objects)))
+
+
 def test_bucketed_solve_under_vmap_with_a_live_count_per_member(small_buckets):
     graphs = [_prefix_graph(seed, poses, objects) for seed, (poses, objects) in enumerate([(2, 1), (5, 2), (3, 3)])]
     start = jnp.asarray(np.random.default_rng(1).normal(size=(P, 3)) * 0.1)

@@ -1030,19 +1030,33 @@ def marginalize_first_information(
     ``R`` that is zeroed. Handing ``H'`` on saves the next solve its ``O(D₀³)`` product ``RᵀR``.
     """
     lin = linearize(first_pose_factors(graph), poses, objects)
-    h_0r = jnp.concatenate([lin.pose_off[0], lin.pose_object[0]], axis=-1)  # (3, 3 + 3N)
-    h_rr = jnp.block([[lin.pose_diag[1], lin.pose_object[1]], [lin.pose_object[1].T, lin.object_dense()]])
-    g_r = jnp.concatenate([lin.grad_pose[1], lin.grad_object])
-    t = jsl.cho_solve((jnp.linalg.cholesky(lin.pose_diag[0]), True),
-                      jnp.concatenate([h_0r, lin.grad_pose[0][:, None]], axis=-1))
-    h = h_rr - h_0r.T @ t[:, :-1]
-    h = 0.5 * (h + h.T)
-    g = g_r - h_0r.T @ t[:, -1]
-    # A coordinate no factor informs (a discovered object's position, before the pose that saw it
-    # first is marginalized) has an exactly zero row and column: it stays uninformed (a zero row of
-    # R), factorized through a unit diagonal so that the Cholesky factor exists.
-    uninformed = jnp.diagonal(h) <= 0.0
-    chol = jnp.linalg.cholesky(h + jnp.diag(uninformed.astype(h.dtype)))
+    d0 = 3 + lin.grad_object.shape[0]
+
+    def on_head(size: tuple[int, int], lin: Linearization):
+        # The objects after the live ones are inactive: identity blocks of H', uncoupled, zero
+        # gradient, so they keep their value and an identity block of R and H' (what the whole
+        # computation gives them), and the O(D₀³) factorization is done on the live head only.
+        lin = lin.head(lin.pose_diag.shape[0], size[1])
+        h_0r = jnp.concatenate([lin.pose_off[0], lin.pose_object[0]], axis=-1)  # (3, 3 + 3n)
+        h_rr = jnp.block([[lin.pose_diag[1], lin.pose_object[1]], [lin.pose_object[1].T, lin.object_dense()]])
+        g_r = jnp.concatenate([lin.grad_pose[1], lin.grad_object])
+        t = jsl.cho_solve((jnp.linalg.cholesky(lin.pose_diag[0]), True),
+                          jnp.concatenate([h_0r, lin.grad_pose[0][:, None]], axis=-1))
+        h = h_rr - h_0r.T @ t[:, :-1]
+        h = 0.5 * (h + h.T)
+        g = g_r - h_0r.T @ t[:, -1]
+        # A coordinate no factor informs (a discovered object's position, before the pose that saw
+        # it first is marginalized) has an exactly zero row and column: it stays uninformed (a
+        # zero row of R), factorized through a unit diagonal so that the Cholesky factor exists.
+        uninformed = jnp.diagonal(h) <= 0.0
+        chol = jnp.linalg.cholesky(h + jnp.diag(uninformed.astype(h.dtype)))
+        step = jsl.cho_solve((chol, True), jnp.where(uninformed, 0.0, g))
+        eye = jnp.eye(d0 - h.shape[0], dtype=h.dtype)
+        return (jnp.concatenate([step, jnp.zeros(eye.shape[0], step.dtype)]),
+                jsl.block_diag(jnp.where(uninformed[:, None], 0.0, chol.T), eye), jsl.block_diag(h, eye))
+
+    sizes, (_, live_objects) = lin.buckets()
+    sizes = tuple(dict.fromkeys((0, n) for _, n in sizes))  # by the live objects only (x_0, x_1 are whole)
+    step, r, h = buckets.by_bucket(sizes, (0, live_objects), on_head, lin)
     y = jnp.concatenate([poses[1], objects.reshape(-1)])
-    mean = wrap_angles(y - jsl.cho_solve((chol, True), jnp.where(uninformed, 0.0, g)))
-    return mean, jnp.where(uninformed[:, None], 0.0, chol.T), h
+    return wrap_angles(y - step), r, h
