@@ -319,13 +319,16 @@ def test_unknown_map_creates_each_true_object_once(discovery_scenario, estimator
     assert not any(i.warnings() for i in run.infos)
 
 
-def test_no_free_slot_skips_the_detection_and_warns():
+@pytest.mark.parametrize("estimator", ["ml", "gpda", "max-mixture"])
+def test_no_free_slot_skips_the_detection_and_warns(estimator):
     full = [((3.0, 0.5 * i, 0.0), (0.01, 0.01, 0.1)) for i in range(4)]  # capacity 4 reached
     sc = _scenario(full, [[0.5, 0.5]] * 4, (0, 0, 0), (0.01, 0.01, 0.001), [_step((8.0, -1.0, (0.5, 0.5)))])
-    run = _runs(sc, "ml")
-    assert int(run.infos[0].skipped) == 1 and int(run.belief.num_created) == 4
-    assert "unassociated" in " ".join(run.infos[0].warnings())
+    run = _runs(sc, estimator)
+    assert int(run.infos[0].skipped) + int(run.infos[0].rejected) == 1 and int(run.belief.num_created) == 4
+    assert any(w in " ".join(run.infos[0].warnings()) for w in ("unassociated", "outlier"))
     assert np.isfinite(np.asarray(run.belief.mean)).all()
+    # The result file says so: -1, not the detection's nearest object (SCENARIO_FORMAT.md).
+    assert run.result.steps[0].components[0].associations == [[-1]]
 
 
 def test_result_files_and_cli(discovery_scenario, tmp_path, capsys):

@@ -470,13 +470,15 @@ def commit(est: SingleGaussian, state: GaussianState, mean, cov, class_log_post,
            ) -> tuple[GaussianState, StepInfo]:
     """Write the step's results into the state (and, with ``est.smoother`` ``Full()`` or ``Lag(L)``, smooth it).
 
-    ``assigned`` is the object recorded per detection in the history (a result file needs one for
-    every detection, so a skipped one records its nearest object); ``used`` marks the detections that
-    really were associated (their objects count as observed). ``factors``: the step's measurement
+    ``assigned`` is the object of each detection; ``used`` marks the detections that really were
+    associated (their objects count as observed). The history records ``assigned`` where ``used``
+    and ``-1`` elsewhere: a detection left unassociated (skipped, or an outlier) is ``-1`` in a
+    result file (SCENARIO_FORMAT: "-1 marks a detection that the component left unassociated"),
+    not a guess at its object. ``factors``: the step's measurement
     factors for the smoother, per detection slot its candidate objects, their log weights (``-inf``:
     none) and the null component's (:class:`~.smoothing.Factors`).
     """
-    assigned = jnp.where(detections.mask, assigned, -1).astype(jnp.int32)
+    assigned = jnp.where(detections.mask & used, assigned, -1).astype(jnp.int32)
     hit = (assigned[:, None] == jnp.arange(state.max_objects)[None, :]) & (used & detections.mask)[:, None]
     observed = state.observed | jnp.any(hit, axis=0)
     num_created = (state.num_created + num_new).astype(jnp.int32)

@@ -10,7 +10,8 @@ result is one Gaussian between the modes of the association hypotheses, nearer t
 Null hypothesis: a detection whose most probable option is "new object" creates one (initialized
 from it, :func:`hybridslam.discovery.create_object`) and adds no other factor; otherwise its null
 mass simply drops out (a constant in the expected log-likelihood). The history records each
-detection's most probable object. Settings: :class:`.gaussian.SingleGaussian`.
+detection's most probable object (``-1`` for a detection no candidate is compatible with).
+Settings: :class:`.gaussian.SingleGaussian`.
 """
 
 from __future__ import annotations

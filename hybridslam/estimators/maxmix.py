@@ -19,7 +19,8 @@ the solution is an outlier and moves nothing (counted in ``StepInfo.rejected``).
 New objects: a detection whose most probable option is the null hypothesis creates one (initialized
 from it) and gets no factor. Class estimates: Eq. 4.17, from the association probabilities (the
 "component weights of the max-mixture factors"). The history records the component active at the
-solution (the likeliest object where the null component is). Settings: :class:`.gaussian.SingleGaussian`.
+solution (``-1`` where the null component is: an outlier, left unassociated). Settings:
+:class:`.gaussian.SingleGaussian`.
 """
 
 from __future__ import annotations
