@@ -5,6 +5,8 @@ from __future__ import annotations
 import copy
 import json
 
+import math
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -80,6 +82,16 @@ def test_save_from_numpy_values(tmp_path) -> None:
     back = load_result(tmp_path / "r.json")
     assert back.steps[0].components[0].associations == [[0, 1]]
     assert back.steps[0].metrics["num_components"] == 1
+
+
+def test_a_negative_zero_metric_is_written_as_zero(tmp_path) -> None:
+    """One hypothesis: entropy 0, which jit may compute as -0.0; the file says 0.0 (text-equal to
+    other implementations' files)."""
+    r = parse_result(minimal())
+    r.steps[1].metrics["entropy"] = np.float64(-0.0)
+    save_result(r, tmp_path / "r.json")
+    assert '"entropy": -0.0' not in (tmp_path / "r.json").read_text()
+    assert math.copysign(1.0, load_result(tmp_path / "r.json").steps[1].metrics["entropy"]) == 1.0
 
 
 def test_save_validates(tmp_path) -> None:

@@ -23,7 +23,7 @@ def association_entropy(belief: WeightedMixture) -> Float[Array, ""]:
     p = association_probabilities(belief)
     w = jnp.where(belief.alive, belief.weights, 0.0)
     h = -jnp.sum(jnp.where(belief.alive, w * jnp.log(jnp.where(belief.alive, p, 1.0)), 0.0))
-    return jnp.maximum(h, 0.0) + 0.0  # never -0.0 (or -1e-17 from rounding) in a result file
+    return jnp.maximum(h, 0.0)  # never -1e-17 from rounding (-0.0 is made 0.0 when written: io.result)
 
 
 def metrics(belief: WeightedMixture, true_pose: Float[Array, "3"] | None = None) -> Metrics:

@@ -141,7 +141,9 @@ def result_to_json(r: Result) -> dict:
     out: dict[str, Any] = {"format": RESULT_FORMAT, "estimator": r.estimator, "steps": [
         {"k": int(s.k),
          "components": [_component_json(c) for c in s.components],
-         "metrics": {key: int(v) if key == "num_components" else float(v)
+         # + 0.0 in Python (IEEE): -0.0 becomes 0.0 (an entropy of one hypothesis computed as
+         # -0.0 inside jit, where XLA drops the same addition), so text comparisons agree too.
+         "metrics": {key: int(v) if key == "num_components" else float(v) + 0.0
                      for key, v in s.metrics.items()}}
         for s in r.steps]}
     if r.timing is not None:
