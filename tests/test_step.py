@@ -216,3 +216,29 @@ def test_beam_children_and_weights_equal_the_exhaustive_enumeration(key):
         for child, weight in a.items():
             np.testing.assert_allclose(b[child], weight, rtol=1e-9, atol=1e-12)
         belief = want
+
+
+def test_a_known_map_step_that_no_child_names_whole_skips_the_fewest_detections(key):
+    """Two detections whose gate (one candidate each) holds the same object: no injective child
+    names all three detections. The beam keeps the children that leave exactly one unassociated
+    (-1, counted in ``skipped``), and the belief, instead of losing the whole step."""
+    import dataclasses
+
+    scenario = hs.simulate(2, steps=2, setup=hs.PaperSetup(max_detections=2, max_range=12.0))
+    first = scenario.steps[0]
+    assert len(first.detections) == 2
+    near = dataclasses.replace(first.detections[0], range=first.detections[0].range + 0.3, true_object=None)
+    steps = (dataclasses.replace(first, detections=(first.detections[0], near, first.detections[1])),)
+    scenario = scenario.replace(steps=steps + scenario.steps[1:])
+    estimator = _estimator(gate=1, weights="linearized", smoother="filter", max_detections=3)
+    slots = hs.stack_steps(scenario, 3)
+    inputs = (jnp.asarray(slots.odometry[0]),
+              hs.Detections(jnp.asarray(slots.geo[0]), jnp.asarray(slots.scores[0]), jnp.asarray(slots.mask[0])))
+    belief, info = STEP(estimator, estimator.init(scenario), *inputs, key)
+    assert int(info.skipped) == 1
+    alive = np.isfinite(np.asarray(belief.log_weights))
+    assert alive.any() and np.isclose(np.exp(np.asarray(belief.log_weights)[alive]).sum(), 1.0)
+    for assoc in np.asarray(belief.history)[alive, 0]:
+        assert (assoc[:2] < 0).sum() == 1 and assoc[2] >= 0  # one of the two rivals, the third always
+    best = np.asarray(belief.history)[np.argmax(np.asarray(belief.log_weights)), 0]
+    assert best[0] == first.detections[0].true_object and best[1] == -1  # the true detection wins

@@ -147,8 +147,8 @@ def messages(t: dict[str, float], per_step: bool) -> list[str]:
         out.append(f"a kept weight rests on few draws (effective sample size {e:.3g} of 1); its value is luck: "
                    "prefer --weights laplace-is or more --samples")
     if (n := int(t["skipped"])) > 0:
-        out.append(f"{n} detection(s) left unassociated (no object inside the gate of a known map, or no free "
-                   "object slot: raise discovery.max_objects)")
+        out.append(f"{n} detection(s) left unassociated (no object inside the gate of a known map, more detections "
+                   "than objects that could explain them, or no free object slot: raise discovery.max_objects)")
     if (n := int(t["rejected"])) > 0:
         out.append(f"{n} detection(s) explained as clutter by the null hypothesis (treated as outliers)")
     if int(t["object_overflow"]) > 0:

@@ -169,8 +169,10 @@ def _beam(settings, belief: Belief, mean, cov, detections: Detections, candidate
         per_class = jax.vmap(new_object_log_likelihood, (None, 0, 0, None, None))(
             model.sensor, mean[:, :3], cov[:, :3, :3], detections, clutter)  # (K, Dmax, M)
         clutter_terms = logsumexp(per_class, axis=-1) - jnp.log(per_class.shape[-1])  # scores of no known class
+    # Known map, no clutter hypothesis: a detection may be skipped where no child names them all.
+    skip = settings.clutter is None and not discovery
     ch = beam_children(belief, mean, cov, detections, candidates, new_terms, realize, settings.branching.width,
-                       settings.batch_axis, clutter_terms)
+                       settings.batch_axis, clutter_terms, skip)
     log_lik, log_lik_free, ess, converged = settings.weights.weigh_children(
         model.sensor, belief.alive, mean, cov, detections, ch, settings.gn_max_steps, settings.batch_axis, key)
     log_w = jnp.where(ch.valid, ch.prior + log_lik, -jnp.inf)
@@ -309,16 +311,18 @@ def hybrid_step(
         window=window,
     )
     kept_ess = jnp.where(alive, ess, jnp.nan)
+    unassociated = jnp.sum(detections.mask & (assign[jnp.argmax(new_log_w)] < 0), dtype=jnp.int32)
     info = StepInfo(
         k=k + 1,
         num_components=jnp.sum(alive, dtype=jnp.int32),
         log_evidence=logsumexp(log_w),
         dropped_capacity=stats.dropped_capacity.astype(jnp.int32),
         dropped_budget=sc.dropped,
-        skipped=jnp.where(explained, 0, jnp.sum(detections.mask, dtype=jnp.int32)),
-        rejected=jnp.sum(jnp.where(alive[:, None] & (new_log_w[:, None] == jnp.max(new_log_w)),
-                                   detections.mask[None, :] & (assign < 0), False), dtype=jnp.int32)
-        if settings.clutter is not None else jnp.zeros((), jnp.int32),
+        # Unassociated detections of the best component: all of them if no child explains the
+        # step; those a known map's beam skipped; those clutter explains (rejected).
+        skipped=jnp.where(explained, 0 if settings.clutter is not None else unassociated,
+                          jnp.sum(detections.mask, dtype=jnp.int32)),
+        rejected=unassociated if settings.clutter is not None else jnp.zeros((), jnp.int32),
         visibility_ignored=visibility_ignored,
         solver_failures=jnp.sum(alive & (result != optx.RESULTS.successful), dtype=jnp.int32),
         is_failures=jnp.sum(alive & ~converged, dtype=jnp.int32),
