@@ -127,8 +127,10 @@ def positive(obj: Any, path: str) -> float:
 
 
 def integer(obj: Any, path: str, lo: int | None = None, hi: int | None = None) -> int:
-    """An integer in [lo, hi) (either bound may be None)."""
-    if isinstance(obj, (bool, np.bool_)) or not isinstance(obj, numbers.Integral):
+    """An integer in [lo, hi) (either bound may be None). A whole float (``2.0``) counts: the format's
+    numbers are plain JSON numbers, and a writer may print an integer with a decimal point."""
+    whole = isinstance(obj, float) and math.isfinite(obj) and obj.is_integer()
+    if isinstance(obj, (bool, np.bool_)) or not (isinstance(obj, numbers.Integral) or whole):
         got = repr(obj) if isinstance(obj, float) else kind(obj)
         fail(path, f"expected an integer, got {got}")
     value = int(obj)

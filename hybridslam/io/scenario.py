@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import math
 import os
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
@@ -170,9 +169,8 @@ def _classifier(obj: Any, path: str, num_classes: int) -> Classifier:
 def _sensor(obj: Any, path: str) -> tuple[float, float]:
     obj = jf.as_object(obj, path)
     max_range = jf.get(obj, "max_range", path, jf.positive)
-    fov = jf.get(obj, "fov", path, jf.number)
-    if not 0.0 < fov <= 2.0 * math.pi:
-        jf.fail(jf.join(path, "fov"), f"expected a number in (0, 2*pi], got {fov!r}")
+    # Any positive field of view: from 2π on, every bearing is inside it (|bearing| <= fov / 2).
+    fov = jf.get(obj, "fov", path, jf.positive)
     return max_range, fov
 
 
@@ -199,8 +197,18 @@ def _detection(obj: Any, path: str, num_classes: int, num_truth: int) -> Detecti
         range=rng,
         bearing=jf.get(obj, "bearing", path, jf.number),
         scores=jf.get(obj, "scores", path, jf.vector, num_classes),
-        true_object=jf.maybe(obj, "true_object", path, jf.integer, 0, num_truth),
+        true_object=jf.maybe(obj, "true_object", path, _truth_index(num_truth)),
     )
+
+
+def _truth_index(num_truth: int):
+    """``true_object``: an index into the map's objects (``true_objects`` with discovery)."""
+    def parse(obj: Any, path: str) -> int:
+        if num_truth == 0:
+            jf.fail(path, "names a true object, but the scenario lists none (with discovery, the top-level "
+                          "true_objects list holds them)")
+        return jf.integer(obj, path, 0, num_truth)
+    return parse
 
 
 def _step(obj: Any, path: str, num_classes: int, num_truth: int) -> Step:
