@@ -455,3 +455,27 @@ def test_many_detection_slots_over_many_objects_are_accepted():
     scenario = hs.simulate(0, steps=2, setup=hs.PaperSetup(object_poses=objects, max_detections=16, max_range=25.0))
     state = hs.make_estimator("multimodal", max_detections=16, smoother="filter").init(scenario)
     assert state.history.shape[-1] == 16
+
+
+def test_a_known_map_step_with_more_detections_than_objects_skips_the_fewest():
+    """Three detections, two mapped objects, no discovery: no injective assignment names all three.
+    The beam and the exhaustive enumeration both keep only the assignments that leave exactly one
+    detection unassociated (-1), the likeliest first, instead of losing the step."""
+    import jax
+
+    from hybridslam.driver import inputs_from_scenario
+    from hybridslam.estimators.multimodal import Multimodal, association_log_probabilities
+    from hybridslam.estimators.smoothing import Filter
+
+    obj = _crowded().replace(discovery=None)
+    two = obj.replace(object_prior_means=obj.object_prior_means[:2], object_prior_covs=obj.object_prior_covs[:2],
+                      class_prior=obj.class_prior[:2])
+    detections = jax.tree.map(lambda a: a[0], inputs_from_scenario(two, 3).detections)
+    for width in (64, None):
+        est = Multimodal(capacity=2, samples=32, max_detections=3, max_steps=2, smoother=Filter(), max_assignments=width)
+        ch = association_log_probabilities(est.init(two), detections, jax.random.key(0))
+        live = np.asarray(ch.log_weight) > -np.inf
+        objects = np.asarray(ch.objects)[live]
+        assert live.any() and np.all((objects < 0).sum(axis=1) == 1), (width, objects)
+        assert np.all(np.sort(objects, axis=1)[:, 1:] >= 0)  # the other two name distinct objects
+        assert objects[np.argmax(np.asarray(ch.log_weight)[live])].tolist() == [0, 1, -1]

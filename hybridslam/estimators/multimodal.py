@@ -222,11 +222,14 @@ def assignment_objects(
     and which assignments are joint-compatible (injective, within the object capacity).
 
     Several "new" detections create their own slots in slot order: ``num_created, num_created+1, ...``.
+    Without ``allow_new`` (a known map) the null choice ``G`` leaves its detection unassociated
+    (object ``-1``, no factor): :func:`skipped_detections` counts them, and only the assignments
+    that skip the fewest are kept (:func:`hypotheses`).
     """
     g = cand.shape[1]
     slots = jnp.arange(mask.shape[0])
     known = (choices < g) & mask[None, :]
-    new = (choices == g) & mask[None, :]
+    new = (choices == g) & mask[None, :] & allow_new
     cand_id = cand[slots[None, :], jnp.minimum(choices, g - 1)]
     new_id = num_created + jnp.cumsum(new, axis=1) - 1
     objects = jnp.where(known, cand_id, jnp.where(new, new_id, -1)).astype(jnp.int32)
@@ -235,9 +238,15 @@ def assignment_objects(
     padded_ok = jnp.all(mask[None, :] | (choices == g), axis=1)
     fits = num_created + jnp.sum(new, axis=1) <= n_max
     feasible = distinct & padded_ok & fits & ~jnp.any(known & (cand_id < 0), axis=1)
-    if not allow_new:
-        feasible = feasible & ~jnp.any(new, axis=1)
     return objects, new, feasible
+
+
+def skipped_detections(choices: Int[Array, "A Dmax"], mask: Bool[Array, " Dmax"], g: int,
+                       allow_new: bool) -> Int[Array, " A"]:
+    """Detections a joint assignment leaves unassociated (the null choice on a known map)."""
+    if allow_new:
+        return jnp.zeros(choices.shape[:1], jnp.int32)
+    return jnp.sum((choices == g) & mask[None, :], axis=1, dtype=jnp.int32)
 
 
 # --------------------------------------------------------------------------- #
@@ -576,7 +585,9 @@ def hypotheses(
                 objects, new, feasible = assignment_objects(opts[None], cand, mask, created, cfg.max_objects,
                                                             cfg.discovery)
                 inc = slot_log_likelihood(terms, row, j, opts[j], objects[0, j], new[0, j])
-                return jnp.where(feasible[0], parent + inc, -jnp.inf), jnp.zeros((), jnp.int32)
+                # Ranked by the detections left unassociated first (a known map's null choice).
+                skips = skipped_detections(opts[None], mask, cfg.candidates, cfg.discovery)[0]
+                return jnp.where(feasible[0], parent + inc, -jnp.inf), skips
 
             start = sequential.start(cfg.beam, terms.cov.shape[0], cfg.max_detections, m.dtype)
             found = beam_search(score, cfg.max_detections, cfg.candidates + 1, cfg.beam, fill=cfg.candidates,
@@ -584,21 +595,27 @@ def hypotheses(
             objects, new, feasible = assignment_objects(found.options, cand, detections.mask, created, cfg.max_objects,
                                                         cfg.discovery)
             # A row the beam did not fill is no hypothesis (it may repeat another).
-            return objects, new, jnp.where(feasible & found.valid, found.score, -jnp.inf), found.dropped
+            skips = skipped_detections(found.options, detections.mask, cfg.candidates, cfg.discovery)
+            return objects, new, jnp.where(feasible & found.valid, found.score, -jnp.inf), skips, found.dropped
         # Every joint assignment, (G+1)^Dmax rows, each scored at once: the reference.
         choices = jnp.asarray(gating.joint_options(cfg.candidates, cfg.max_detections))
         objects, new, feasible = assignment_objects(choices, cand, detections.mask, created, cfg.max_objects, cfg.discovery)
         screen = jax.vmap(partial(screen_log_likelihood, sensor, params, pred, m, c, class_lp), (0, 0, None))(
             objects, new, detections)
-        return objects, new, jnp.where(feasible, screen, -jnp.inf), jnp.zeros((), jnp.int32)
+        skips = skipped_detections(choices, detections.mask, cfg.candidates, cfg.discovery)
+        return objects, new, jnp.where(feasible, screen, -jnp.inf), skips, jnp.zeros((), jnp.int32)
 
     rows = (cfg.candidates + 1) ** cfg.max_detections if cfg.beam is None else cfg.beam
     per_batch = max(1, SMALL_LAPACK_BATCH // (rows * cfg.max_detections))
     # Dead components (weight -inf; a suffix after every merge) are skipped: their rows stay zero,
     # and their screening weights -inf through ``state.log_weights`` below.
     alive = state.log_weights > -jnp.inf
-    objects, new, screen, beam_dropped = map_live(per_component, alive, mean, cov, state.class_log_probs,
-                                                  state.num_created, chunk=per_batch)
+    objects, new, screen, skips, beam_dropped = map_live(per_component, alive, mean, cov, state.class_log_probs,
+                                                         state.num_created, chunk=per_batch)
+    # Only the joint assignments that leave the fewest detections unassociated (a known map's step
+    # that no injective assignment explains whole; elsewhere every kept one skips none).
+    usable = alive[:, None] & (screen > -jnp.inf)
+    screen = jnp.where(skips == jnp.min(jnp.where(usable, skips, jnp.iinfo(jnp.int32).max)), screen, -jnp.inf)
     num_assign = rows
     screen_w = (state.log_weights[:, None] + screen).reshape(-1)
     sel_w, sel = jax.lax.top_k(screen_w, cfg.children)
@@ -1004,7 +1021,10 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
         dropped_budget=ch.beam_dropped,
         solver_failures=jnp.sum(centre_ok & (ch.result != optx.RESULTS.successful), dtype=jnp.int32)
         + smooth_failed,
-        skipped=jnp.where(explained, 0, jnp.sum(detections.mask, dtype=jnp.int32)),
+        # The best component's unassociated detections (a known map's skipped ones), or all of
+        # them when nothing explains the step.
+        skipped=jnp.where(explained, jnp.sum(detections.mask & (c_hist[centres][jnp.argmax(log_w), state.k] < 0),
+                                             dtype=jnp.int32), jnp.sum(detections.mask, dtype=jnp.int32)),
         object_overflow=no_room,
         log_overflow=new_overflow(state.log, log),
         details=Details(ch.parent, ch.objects, ch.log_prob),
