@@ -975,7 +975,7 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
         ch.log_weight, c_mean, (lambda c: c_cov[c]) if filtering else child_full_cov, pose_cov, c_created,
         state.params.merge_threshold, cfg.capacity, centre_ok)
     shift, scatter = spread(wn, c_mean[centres], c_mean)
-    poses, log, smooth_failed = state.poses, state.log, jnp.zeros((), jnp.int32)
+    poses, log, smooth_failed = state.poses, state.log, jnp.zeros(cfg.capacity, bool)
     window = state.window
     if isinstance(smoother, Filter):  # each cluster moment-matched from its members' own Gaussians
         m_mean = jax.vmap(wrap_angles)(c_mean[centres] + shift)
@@ -1004,7 +1004,7 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
         m_mean = jax.vmap(wrap_angles)(out.mean + shift)
         m_cov = out.cov + scatter
         poses, window = out.poses, out.window
-        smooth_failed = jnp.sum(used & (out.result != optx.RESULTS.successful), dtype=jnp.int32)
+        smooth_failed = used & (out.result != optx.RESULTS.successful)
     m_cov = 0.5 * (m_cov + jnp.swapaxes(m_cov, 1, 2))
     # Warnings concern hypotheses within RELEVANT_NATS of the best; the rest carry no visible mass.
     relevant = relevant_children(state.log_weights)
@@ -1019,8 +1019,10 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
                                  jnp.sum(state.log_weights > -jnp.inf, dtype=jnp.int32)),
         dropped_mass=ch.dropped_mass,
         dropped_budget=ch.beam_dropped,
-        solver_failures=jnp.sum(centre_ok & (ch.result != optx.RESULTS.successful), dtype=jnp.int32)
-        + smooth_failed,
+        # Per merged component (the warning says "n of num_components"): a member's Gauss-Newton
+        # update or the component's smoothing did not converge.
+        solver_failures=jnp.sum((log_w > -jnp.inf) & (smooth_failed | jnp.any(
+            (wn > 0) & (centre_ok & (ch.result != optx.RESULTS.successful))[None, :], axis=1)), dtype=jnp.int32),
         # The best component's unassociated detections (a known map's skipped ones), or all of
         # them when nothing explains the step.
         skipped=jnp.where(explained, jnp.sum(detections.mask & (c_hist[centres][jnp.argmax(log_w), state.k] < 0),
