@@ -144,6 +144,7 @@ def test_resume_after_kill_gives_the_same_table(tiny, tmp_path, cache_env):
 
     resumed = subprocess.run(_sweep_cmd(folder), env=cache_env, capture_output=True, text=True, timeout=300)
     assert resumed.returncode == 0, resumed.stderr
+    assert "resuming: 1 of 3 cells already recorded" in resumed.stdout
     with open(os.path.join(folder, study.TABLE), encoding="utf-8") as f:
         assert f.read() == expected
     lines = open(records, encoding="utf-8").read().splitlines()

@@ -98,6 +98,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
               flush=True)
         t_start = time.perf_counter()
         cells = len(spec.cells()) if isinstance(spec, study.AlphaStudy) else None
+        if done:
+            print(f"resuming: {done} of {cells} cells already recorded in {study.RECORDS}", flush=True)
         bar = tqdm(total=cells, desc="sweep", unit="cell", file=sys.stderr, dynamic_ncols=True)
         compile_s = run_s = 0.0
 
