@@ -402,11 +402,13 @@ def _prior_terms(graph: FactorGraph, poses, objects):
     """
     d = wrap_angles(jnp.concatenate([poses[0], objects.reshape(-1)]) - graph.prior_mean)
     d = jnp.where(_prior_active(graph), d, 0.0)
-    if graph.prior_sqrt_info is None:
-        grad = graph.prior_info @ d
+    sqrt_info, info = graph.prior_sqrt_info, graph.prior_info
+    if sqrt_info is None:
+        assert info is not None  # check_shapes: one of the two is given
+        grad = info @ d
         return 0.5 * jnp.dot(d, grad), grad
-    r = graph.prior_sqrt_info @ d
-    return 0.5 * jnp.sum(r**2), graph.prior_sqrt_info.T @ r
+    r = sqrt_info @ d
+    return 0.5 * jnp.sum(r**2), sqrt_info.T @ r
 
 
 def _odometry_terms(graph: FactorGraph, poses):
@@ -520,7 +522,10 @@ def prior_information(graph: FactorGraph) -> Float[Array, "D0 D0"]:
     and not at all if the graph carries it (``FactorGraph.prior_info``).
     """
     on = _prior_active(graph)
-    info = graph.prior_sqrt_info.T @ graph.prior_sqrt_info if graph.prior_info is None else graph.prior_info
+    info, sqrt_info = graph.prior_info, graph.prior_sqrt_info
+    if info is None:
+        assert sqrt_info is not None  # check_shapes: one of the two is given
+        info = sqrt_info.T @ sqrt_info
     return jnp.where(on[:, None] & on[None, :], info, 0.0)
 
 
