@@ -1013,16 +1013,17 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
     # step's detections are skipped, and counted, and every component stays, propagated, with its
     # weight and no association for this step, rather than the belief lost.
     explained = jnp.any(log_w > -jnp.inf)
+    # Solver failures per merged component (the warning says "n of num_components"): a member's
+    # Gauss-Newton update or (above) the component's smoothing did not converge.
+    child_failed = centre_ok & (ch.result != optx.RESULTS.successful)
+    member_failed = jnp.any((wn > 0) & child_failed[None, :], axis=1)
     info = StepInfo(
         k=(state.k + 1).astype(jnp.int32),
         num_components=jnp.where(explained, jnp.sum(log_w > -jnp.inf, dtype=jnp.int32),
                                  jnp.sum(state.log_weights > -jnp.inf, dtype=jnp.int32)),
         dropped_mass=ch.dropped_mass,
         dropped_budget=ch.beam_dropped,
-        # Per merged component (the warning says "n of num_components"): a member's Gauss-Newton
-        # update or the component's smoothing did not converge.
-        solver_failures=jnp.sum((log_w > -jnp.inf) & (smooth_failed | jnp.any(
-            (wn > 0) & (centre_ok & (ch.result != optx.RESULTS.successful))[None, :], axis=1)), dtype=jnp.int32),
+        solver_failures=jnp.sum((log_w > -jnp.inf) & (smooth_failed | member_failed), dtype=jnp.int32),
         # The best component's unassociated detections (a known map's skipped ones), or all of
         # them when nothing explains the step.
         skipped=jnp.where(explained, jnp.sum(detections.mask & (c_hist[centres][jnp.argmax(log_w), state.k] < 0),

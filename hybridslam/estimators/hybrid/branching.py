@@ -12,8 +12,9 @@
   in the detections. The density is carried per partial child in sequential form
   (:class:`~.weights.PartialChild`: ``N(r; 0, S) = Π_j N(r_j | r_<j)``), so a score costs one
   ``R×R`` conditional density and an ``R``-column triangular solve, not a ``Dmax R`` Cholesky.
-  The survivors then get the weigher's own weight (Eq. 16), exactly as the exhaustive children do, so on steps where no more than ``width`` partial children are valid the
-  two give the same children and weights (``tests/test_step.py``). Partial children dropped
+  The survivors then get the weigher's own weight (Eq. 16), exactly as the exhaustive children
+  do, so on steps where no more than ``width`` partial children are valid the two give the same
+  children and weights (``tests/test_step.py``). Partial children dropped
   within ``log(prune_ratio)`` of the best (children that could have survived pruning) are counted
   in ``StepInfo.dropped_budget``.
 
