@@ -101,8 +101,13 @@ _COMPILED: dict = {}  # one executable per (estimator settings, state structure,
 # CPU, jaxlib 0.10.2: `hybridslam run` on a paper-setup file 12.5-13.6 -> 8.6-9.4 s, the hallway hybrid
 # belief's program 11.2-11.7 -> 7.8-8.7 s, `multimodal`'s 15.9-16.7 -> 11.3-12.0 s, every step as
 # fast or faster; a 16-track vmapped sweep's batched work ~7% slower, its end to end 4 s faster).
+# LLVM's optimization level 1 instead of XLA's default 3 compiles 15-25% faster again and the steps
+# run as fast (2026-11-26, alternating runs of scripts/bench_goals.py: paper4 hybrid 9.5, 10.6 -> 8.0,
+# 9.1 s, hallway multimodal 14.6, 15.8 -> 12.0, 11.9 s, MRCLAM hybrid 14.1, 14.2 -> 15.6, 10.4 s; step
+# times within the machine's noise; level 0 halves XLA's time but doubles the step time).
 # A jaxlib that does not know an option compiles with its defaults.
-CPU_COMPILER_OPTIONS: dict[str, str | bool] = {"xla_cpu_use_fusion_emitters": False}
+CPU_COMPILER_OPTIONS: dict[str, str | bool | int] = {"xla_cpu_use_fusion_emitters": False,
+                                                     "xla_backend_optimization_level": 1}
 XLA_DEFAULTS_ENV = "HYBRIDSLAM_XLA_DEFAULTS"  # "1": compile with XLA's own default options
 
 
@@ -114,7 +119,7 @@ def xla_defaults_from_environment() -> bool:
     return value == "1"
 
 
-def compiler_options() -> dict[str, str | bool]:
+def compiler_options() -> dict[str, str | bool | int]:
     """The XLA options :func:`compiled` passes: :data:`CPU_COMPILER_OPTIONS` on the CPU backend,
     none on others or when ``$HYBRIDSLAM_XLA_DEFAULTS`` is ``1``."""
     if xla_defaults_from_environment() or jax.default_backend() != "cpu":
@@ -122,7 +127,7 @@ def compiler_options() -> dict[str, str | bool]:
     return dict(CPU_COMPILER_OPTIONS)
 
 
-def _as_xla_flags(options: dict[str, str | bool]) -> str:
+def _as_xla_flags(options: dict[str, str | bool | int]) -> str:
     """``{"xla_a": False, "xla_b": 2}`` as ``XLA_FLAGS`` text: ``--xla_a=false --xla_b=2``."""
     return " ".join(f"--{name}={str(value).lower() if isinstance(value, bool) else value}"
                     for name, value in options.items())

@@ -18,7 +18,8 @@ def _f(x):
 def test_the_cpu_gets_the_elemental_emitters_unless_the_environment_asks_for_xla_defaults(monkeypatch):
     monkeypatch.delenv(driver.XLA_DEFAULTS_ENV, raising=False)
     on_cpu = jax.default_backend() == "cpu"  # other backends get XLA's defaults
-    assert driver.compiler_options() == ({"xla_cpu_use_fusion_emitters": False} if on_cpu else {})
+    wanted = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 1}
+    assert driver.compiler_options() == (wanted if on_cpu else {})
     monkeypatch.setenv(driver.XLA_DEFAULTS_ENV, "1")
     assert driver.compiler_options() == {}
     monkeypatch.setenv(driver.XLA_DEFAULTS_ENV, "0")
@@ -45,5 +46,6 @@ def test_an_option_this_jaxlib_does_not_know_falls_back_to_the_defaults(monkeypa
 
 
 def test_the_options_as_xla_flags():
-    assert driver._as_xla_flags(driver.CPU_COMPILER_OPTIONS) == "--xla_cpu_use_fusion_emitters=false"
+    assert (driver._as_xla_flags(driver.CPU_COMPILER_OPTIONS)
+            == "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=1")
     assert driver._as_xla_flags({"xla_a": True, "xla_b": 2}) == "--xla_a=true --xla_b=2"
