@@ -479,3 +479,67 @@ def test_a_known_map_step_with_more_detections_than_objects_skips_the_fewest():
         assert live.any() and np.all((objects < 0).sum(axis=1) == 1), (width, objects)
         assert np.all(np.sort(objects, axis=1)[:, 1:] >= 0)  # the other two name distinct objects
         assert objects[np.argmax(np.asarray(ch.log_weight)[live])].tolist() == [0, 1, -1]
+
+
+def _two_objects_three_detections():
+    obj = _crowded().replace(discovery=None)
+    return obj.replace(object_prior_means=obj.object_prior_means[:2], object_prior_covs=obj.object_prior_covs[:2],
+                       class_prior=obj.class_prior[:2])
+
+
+def test_a_known_maps_clutter_hypothesis_scores_the_null_choice_the_same_in_the_beam_and_the_enumeration():
+    """With a clutter density the null choice of a known map is a scored hypothesis, not a skip: the
+    beam (room for all 3³ rows) and the exhaustive enumeration keep the same children with the same
+    Monte Carlo weights (common random numbers), and the likeliest names both objects and calls the
+    third detection clutter."""
+    import jax
+
+    from hybridslam.driver import inputs_from_scenario
+    from hybridslam.estimators.multimodal import Multimodal, association_log_probabilities
+    from hybridslam.estimators.smoothing import Filter
+
+    two = _two_objects_three_detections()
+    detections = jax.tree.map(lambda a: a[0], inputs_from_scenario(two, 3).detections)
+    got = {}
+    for width in (64, None):
+        est = Multimodal(capacity=2, samples=32, max_detections=3, max_steps=2, smoother=Filter(),
+                         max_assignments=width, clutter=-4.0)
+        ch = association_log_probabilities(est.init(two), detections, jax.random.key(0))
+        live = np.asarray(ch.log_weight) > -np.inf
+        got[width] = {tuple(o): w for o, w in zip(np.asarray(ch.objects)[live].tolist(), np.asarray(ch.log_weight)[live])}
+    assert got[64].keys() == got[None].keys() and len(got[64]) > 1
+    for objects, w in got[64].items():
+        np.testing.assert_allclose(got[None][objects], w, rtol=1e-9)
+    assert max(got[64], key=got[64].get) == (0, 1, -1)
+    # Each clutter slot contributes the density once to the Monte Carlo likelihood: raising it by
+    # 2 nats raises a child's log L_ij by 2 per detection it calls clutter.
+    lik = {}
+    for density in (-4.0, -2.0):
+        est = Multimodal(capacity=2, samples=32, max_detections=3, max_steps=2, smoother=Filter(), clutter=density)
+        ch = association_log_probabilities(est.init(two), detections, jax.random.key(0))
+        live = np.asarray(ch.log_lik) > -np.inf
+        lik[density] = {tuple(o): v for o, v in zip(np.asarray(ch.objects)[live].tolist(), np.asarray(ch.log_lik)[live])}
+    common = lik[-4.0].keys() & lik[-2.0].keys()
+    assert common
+    for objects in common:
+        np.testing.assert_allclose(lik[-2.0][objects] - lik[-4.0][objects], 2.0 * objects.count(-1), atol=1e-9)
+
+
+def test_clutter_is_refused_on_an_unknown_map_and_counted_as_rejected_on_a_known_one():
+    """A run of the three-detections step with ``clutter``: one detection explained as clutter
+    (``rejected``, warned, ``-1`` in the result), none skipped; on an unknown map the option is
+    refused with the reason."""
+    import hybridslam as hs
+
+    with pytest.raises(ValueError, match="--clutter is for a known map"):
+        hs.make_estimator("multimodal", clutter=-4.0).init(_crowded())
+    with pytest.raises(ValueError, match="Multimodal.clutter: expected a finite log density"):
+        hs.make_estimator("multimodal", clutter=float("nan"))
+    run = run_estimator(_two_objects_three_detections(), "multimodal", capacity=2, samples=32, max_detections=3,
+                        max_steps=2, smoother="filter", clutter=-4.0)
+    info = run.infos[0]
+    assert int(info.rejected) == 1 and int(info.skipped) == 0
+    assert any("clutter" in w for w in info.warnings())
+    best = max(run.result.steps[0].components, key=lambda c: c.weight)
+    assert sorted(best.associations[0]) == [-1, 0, 1]
+    assert "clutter=-4" in hs.make_estimator("multimodal", clutter=-4.0).describe()

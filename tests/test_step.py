@@ -218,10 +218,9 @@ def test_beam_children_and_weights_equal_the_exhaustive_enumeration(key):
         belief = want
 
 
-def test_a_known_map_step_that_no_child_names_whole_skips_the_fewest_detections(key):
-    """Two detections whose gate (one candidate each) holds the same object: no injective child
-    names all three detections. The beam keeps the children that leave exactly one unassociated
-    (-1, counted in ``skipped``), and the belief, instead of losing the whole step."""
+def _duplicated_detection():
+    """The paper setup's first step with a spurious copy of its first detection (0.3 m farther) in
+    slot 1, and the step's inputs over three slots."""
     import dataclasses
 
     scenario = hs.simulate(2, steps=2, setup=hs.PaperSetup(max_detections=2, max_range=12.0))
@@ -230,10 +229,18 @@ def test_a_known_map_step_that_no_child_names_whole_skips_the_fewest_detections(
     near = dataclasses.replace(first.detections[0], range=first.detections[0].range + 0.3, true_object=None)
     steps = (dataclasses.replace(first, detections=(first.detections[0], near, first.detections[1])),)
     scenario = scenario.replace(steps=steps + scenario.steps[1:])
-    estimator = _estimator(gate=1, weights="linearized", smoother="filter", max_detections=3)
     slots = hs.stack_steps(scenario, 3)
     inputs = (jnp.asarray(slots.odometry[0]),
               hs.Detections(jnp.asarray(slots.geo[0]), jnp.asarray(slots.scores[0]), jnp.asarray(slots.mask[0])))
+    return scenario, first, inputs
+
+
+def test_a_known_map_step_that_no_child_names_whole_skips_the_fewest_detections(key):
+    """Two detections whose gate (one candidate each) holds the same object: no injective child
+    names all three detections. The beam keeps the children that leave exactly one unassociated
+    (-1, counted in ``skipped``), and the belief, instead of losing the whole step."""
+    scenario, first, inputs = _duplicated_detection()
+    estimator = _estimator(gate=1, weights="linearized", smoother="filter", max_detections=3)
     belief, info = STEP(estimator, estimator.init(scenario), *inputs, key)
     assert int(info.skipped) == 1
     alive = np.isfinite(np.asarray(belief.log_weights))
@@ -242,3 +249,30 @@ def test_a_known_map_step_that_no_child_names_whole_skips_the_fewest_detections(
         assert (assoc[:2] < 0).sum() == 1 and assoc[2] >= 0  # one of the two rivals, the third always
     best = np.asarray(belief.history)[np.argmax(np.asarray(belief.log_weights)), 0]
     assert best[0] == first.detections[0].true_object and best[1] == -1  # the true detection wins
+
+
+def test_the_clutter_hypothesis_explains_a_spurious_detection(key):
+    """The same duplicated detection with a clutter hypothesis (``clutter``, a log density over
+    [range, bearing]): the likeliest child names the true detection's object and calls the copy
+    clutter (-1, counted in ``rejected``, not ``skipped``); every child that calls a detection
+    clutter carries the density once per such detection."""
+    scenario, first, inputs = _duplicated_detection()
+    beliefs = {}
+    for density in (-10.0, -9.0):
+        estimator = _estimator(gate=1, weights="linearized", smoother="filter", max_detections=3, clutter=density)
+        belief, info = STEP(estimator, estimator.init(scenario), *inputs, key)
+        assert int(info.rejected) == 1 and int(info.skipped) == 0
+        alive = np.isfinite(np.asarray(belief.log_weights))
+        assert np.isclose(np.exp(np.asarray(belief.log_weights)[alive]).sum(), 1.0)
+        best = np.asarray(belief.history)[np.argmax(np.asarray(belief.log_weights)), 0]
+        assert best[0] == first.detections[0].true_object and best[1] == -1 and best[2] >= 0
+        beliefs[density] = {tuple(h): w for h, w in zip(np.asarray(belief.history)[alive, 0].tolist(),
+                                                         np.asarray(belief.log_weights)[alive])}
+    # One more nat of clutter density: a child's unnormalized log weight rises by one per clutter slot,
+    # so between two children the log ratio moves by the difference of their clutter counts.
+    common = sorted(beliefs[-10.0].keys() & beliefs[-9.0].keys())
+    assert len(common) > 1
+    ref = common[0]
+    for child in common[1:]:
+        moved = (beliefs[-9.0][child] - beliefs[-9.0][ref]) - (beliefs[-10.0][child] - beliefs[-10.0][ref])
+        np.testing.assert_allclose(moved, child.count(-1) - ref.count(-1), atol=1e-9)

@@ -115,8 +115,9 @@ def add_estimator_options(p: argparse.ArgumentParser, seed_help: str = "PRNG see
     p.add_argument("--exhaustive", action="store_true", default=None,
                    help="hybrid: enumerate every child (exponential in the detections; the exact reference)")
     p.add_argument("--clutter", type=float, default=None, metavar="LOG_DENSITY",
-                   help="hybrid: a detection may be clutter, with this log density over [range, bearing] "
-                        "(e.g. log(0.01 / (max_range * fov)))")
+                   help="hybrid, multimodal (known map): a detection may be clutter, with this log density over "
+                        "[range, bearing] (e.g. log(0.01 / (max_range * fov))); without it a known map's detection "
+                        "is always of an object")
     p.add_argument("--smoother", type=_smoother, default=None, metavar="{full,lag:L,filter}",
                    help="full (default): every component keeps its trajectory and relinearizes it at every step, "
                         "as the papers' smoothers do; lag:L: only the last L steps and the map, older poses "

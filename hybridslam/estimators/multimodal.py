@@ -87,7 +87,16 @@ of every object the component has associated, ``-1`` otherwise.
 Settings (:class:`Multimodal`): ``candidates`` (3), ``children`` (``2·capacity``),
 ``merge_threshold`` (4.0, squared Mahalanobis distance over the whole state), ``association_prior``
 (``"mc"`` or ``"uniform"``), ``proposal`` (``"posterior"`` or ``"prior"``), ``samples``
-(draws per child, 256).
+(draws per child, 256), ``clutter`` (``None``).
+
+Clutter (``clutter``, a known map only): without it every detection is of an object (the
+thesis's model), and the null choice of a known map leaves a detection unassociated only where no
+injective assignment names them all (ranked below every full assignment, counted in ``skipped``).
+With a log density over [range, bearing] the null choice is a clutter detection scored like a new
+object's (:func:`_null_log_likelihood`, that density for ``new_object_log_density``; the hybrid
+belief's clutter hypothesis), weighed against the assignments by the same Monte Carlo integral,
+and counted in ``rejected``: spurious detections (ghosts, a duplicate, one outside every object's
+footprint) are explained instead of dragging the pose or emptying the step.
 """
 
 from __future__ import annotations
@@ -158,6 +167,7 @@ class Structure:
     association_prior: str  # "mc" (thesis Eq. 5.11) or "uniform"
     proposal: str  # "posterior" (importance sampling) or "prior" (Eq. 5.10 as written)
     beam: int | None = None  # joint assignments kept per component while they are built (None: all)
+    clutter: bool = False  # a known map's null choice is a clutter detection (scored), not a skip
 
 
 class Params(eqx.Module):
@@ -166,6 +176,7 @@ class Params(eqx.Module):
     new_object_log_density: Float[Array, ""]
     orientation_var: Float[Array, ""]
     merge_threshold: Float[Array, ""]
+    clutter_log_density: Float[Array, ""]  # used where Structure.clutter
 
 
 class State(eqx.Module):
@@ -284,12 +295,21 @@ def _known_semantic(sensor: SensorModel, x: Float[Array, "3"], obj: Float[Array,
     return semantic_log_marginal(sensor.classifier, scores, geometry.viewpoint(x, obj), class_log_probs)
 
 
+def _null_log_likelihood(sensor: SensorModel, log_density: Float[Array, ""], x: Float[Array, "3"],
+                         geo: Float[Array, "2"], scores: Float[Array, " M"], theta: Float[Array, ""]) -> Float[Array, ""]:
+    """A detection of no known object: ``log_density`` over [range, bearing] times the semantic term
+    under a uniform class prior, seen from an object back-projected with heading ``theta``. A new
+    object (the null hypothesis, Sec. 3.2.1) with ``new_object_log_density``; clutter on a known map
+    with ``clutter_log_density`` (as the hybrid belief's clutter hypothesis)."""
+    obj = _new_object(x, geo, theta)
+    return log_density + _known_semantic(sensor, x, obj, scores, _uniform(sensor.classifier.num_classes))
+
+
 def _new_log_likelihood(sensor: SensorModel, params: Params, x: Float[Array, "3"], geo: Float[Array, "2"],
                         scores: Float[Array, " M"], theta: Float[Array, ""]) -> Float[Array, ""]:
-    """A detection that creates its object (the null hypothesis, Sec. 3.2.1): ``new_object_log_density``
-    times the semantic term under a uniform class prior, the object back-projected with heading ``theta``."""
-    obj = _new_object(x, geo, theta)
-    return params.new_object_log_density + _known_semantic(sensor, x, obj, scores, _uniform(sensor.classifier.num_classes))
+    """A detection that creates its object (the null hypothesis, Sec. 3.2.1): :func:`_null_log_likelihood`
+    with ``new_object_log_density``."""
+    return _null_log_likelihood(sensor, params.new_object_log_density, x, geo, scores, theta)
 
 
 def joint_log_likelihood(
@@ -302,13 +322,15 @@ def joint_log_likelihood(
     slot_class_log_probs: Float[Array, "Dmax M"],
     detections: Detections,
     theta: Float[Array, " Dmax"],
+    clutter: Bool[Array, " Dmax"] | None = None,
 ) -> Float[Array, ""]:
     """``log Π_k p(z_k | x, objects, d_k)`` of one joint assignment at one sample (Eq. 5.10's integrand).
 
     A detection of an object: range-bearing density, object observation model (footprint) and the
     class-marginal semantic term. A new object (the null hypothesis, Sec. 3.2.1):
     ``new_object_log_density`` and the semantic term under a uniform class prior, seen from an object
-    back-projected from the detection with orientation ``theta``.
+    back-projected from the detection with orientation ``theta``. A ``clutter`` slot (a known map
+    with a clutter hypothesis): the same with ``clutter_log_density``.
     """
     w, geo_norm = sensor.geometric_sqrt_information()
 
@@ -318,7 +340,12 @@ def joint_log_likelihood(
 
     per_obj = jax.vmap(of_object)(slot_objects, detections.geo, detections.scores, slot_class_log_probs)
     per_new = jax.vmap(partial(_new_log_likelihood, sensor, params, x))(detections.geo, detections.scores, theta)
-    return jnp.sum(jnp.where(known, per_obj, 0.0)) + jnp.sum(jnp.where(new, per_new, 0.0))
+    total = jnp.sum(jnp.where(known, per_obj, 0.0)) + jnp.sum(jnp.where(new, per_new, 0.0))
+    if clutter is not None:
+        per_clutter = jax.vmap(partial(_null_log_likelihood, sensor, params.clutter_log_density, x))(
+            detections.geo, detections.scores, theta)
+        total = total + jnp.sum(jnp.where(clutter, per_clutter, 0.0))
+    return total
 
 
 def _sub_indices(objects: Int[Array, " Dmax"], known: Bool[Array, " Dmax"]) -> tuple[Int[Array, " P"], Bool[Array, " P"]]:
@@ -354,6 +381,7 @@ def screen_log_likelihood(
     objects: Int[Array, " Dmax"],
     new: Bool[Array, " Dmax"],
     detections: Detections,
+    clutter: Bool[Array, " Dmax"] | None = None,
 ) -> Float[Array, ""]:
     """Linearized ``log L_ij``: the joint innovation density ``N(r; 0, H Σ Hᵀ + Σ_v)`` of the detections
     of created objects, plus the semantic and null terms at the mean. Used only to pick which
@@ -380,7 +408,7 @@ def screen_log_likelihood(
     theta = jnp.zeros(objects.shape, cov.dtype)
     x, objs = mean[:3], mean[3:].reshape(-1, 3)
     rest = joint_log_likelihood(sensor, params, x, objs[obj], jnp.zeros_like(known), new,
-                                class_log_probs[obj], detections, theta)
+                                class_log_probs[obj], detections, theta, clutter)
     known_sem = jax.vmap(partial(_known_semantic, sensor, x))(objs[obj], detections.scores, class_log_probs[obj])
     return geo + rest + jnp.sum(jnp.where(known, known_sem, 0.0))
 
@@ -393,18 +421,20 @@ class SlotTerms(eqx.Module):
     cov: Float[Array, "D D"]
     cand: Int[Array, "Dmax G"]
     known: Float[Array, "Dmax G"]  # semantic term of a detection of each candidate, at the mean
-    new: Float[Array, " Dmax"]  # null-hypothesis term of each detection, at the mean (theta = 0)
+    new: Float[Array, " Dmax"]  # null-hypothesis term of each detection (new object or clutter), at the mean (theta = 0)
 
 
 def slot_terms(sensor: SensorModel, params: Params, pred: gating.Innovations, mean: Float[Array, " D"],
                cov: Float[Array, "D D"], class_log_probs: Float[Array, "Nmax M"], cand: Int[Array, "Dmax G"],
-               detections: Detections) -> SlotTerms:
-    """The :class:`SlotTerms` of one component (the per-detection terms of :func:`screen_log_likelihood`)."""
+               detections: Detections, clutter: bool = False) -> SlotTerms:
+    """The :class:`SlotTerms` of one component (the per-detection terms of :func:`screen_log_likelihood`);
+    with ``clutter`` the null term is the clutter hypothesis's (a known map)."""
     x, objs = mean[:3], mean[3:].reshape(-1, 3)
     cid = jnp.maximum(cand, 0)
     per_candidate = jax.vmap(partial(_known_semantic, sensor, x), (0, None, 0))
     known = jax.vmap(per_candidate)(objs[cid], detections.scores, class_log_probs[cid])
-    new = jax.vmap(partial(_new_log_likelihood, sensor, params, x))(
+    density = params.clutter_log_density if clutter else params.new_object_log_density
+    new = jax.vmap(partial(_null_log_likelihood, sensor, density, x))(
         detections.geo, detections.scores, jnp.zeros(detections.mask.shape, mean.dtype))
     return SlotTerms(pred, cov, cand, known, new)
 
@@ -431,16 +461,18 @@ def localized_terms(terms: SlotTerms) -> SlotTerms:
 
 
 def slot_log_likelihood(terms: SlotTerms, row: sequential.Conditioned, j: Int[Array, ""], choice: Int[Array, ""],
-                        obj: Int[Array, ""], is_new: Bool[Array, ""]) -> Float[Array, ""]:
+                        obj: Int[Array, ""], is_new: Bool[Array, ""],
+                        is_clutter: Bool[Array, ""] | bool = False) -> Float[Array, ""]:
     """Detection ``j``'s factor of the linearized ``log L_ij`` given the earlier slots of ``row``
     (:mod:`hybridslam.inference.sequential`): the conditional innovation density and semantic term
-    of a created object, the null-hypothesis term of a new one, 0 for an empty slot. Summed over the
-    slots this is :func:`screen_log_likelihood`."""
+    of a created object, the null-hypothesis term of a new one or of clutter (``is_clutter``), 0 for
+    an empty or skipped slot. Summed over the slots this is :func:`screen_log_likelihood`."""
     g = terms.cand.shape[1]
     # The candidate's own index into terms.pred (obj itself, or its local index: localized_terms).
     gauss = sequential.innovation_log_density(terms.pred, row, j, terms.cand[j, jnp.minimum(choice, g - 1)])
     known = (obj >= 0) & ~is_new
-    return jnp.where(known, gauss + terms.known[j, jnp.minimum(choice, g - 1)], jnp.where(is_new, terms.new[j], 0.0))
+    null = is_new | is_clutter
+    return jnp.where(known, gauss + terms.known[j, jnp.minimum(choice, g - 1)], jnp.where(null, terms.new[j], 0.0))
 
 
 def condition(terms: SlotTerms, mask: Bool[Array, " Dmax"], row: sequential.Conditioned, options: Int[Array, " Dmax"],
@@ -463,6 +495,7 @@ def sampled_log_likelihood(
     detections: Detections,
     eps: Float[Array, "S P"],
     theta: Float[Array, "S Dmax"],
+    clutter: Bool[Array, " Dmax"] | None = None,
 ) -> Float[Array, ""]:
     """Monte Carlo ``log L_ij = log ∫ N_i(y) Π_k p(z_k | y, d_k) dy`` over ``y = [x_k, associated objects]``
     (Eq. 5.10, joint compatibility: every detection is scored on the same sample).
@@ -486,7 +519,7 @@ def sampled_log_likelihood(
 
     def one(ys, th):
         return joint_log_likelihood(sensor, params, ys[:3], ys[3:].reshape(-1, 3), known, new,
-                                    class_log_probs, detections, th)
+                                    class_log_probs, detections, th, clutter)
 
     log_lik = jax.vmap(one)(y, theta)
     return jax.nn.logsumexp(log_lik + log_ratio) - math.log(eps.shape[0])
@@ -571,12 +604,17 @@ def hypotheses(
     components at the current pose (after propagation)."""
     cfg, sensor, params = state.config, state.model.sensor, state.params
     slots = jnp.arange(cfg.max_detections)
+    # With a clutter hypothesis a known map's null choice is scored, not ranked as a skip.
+    scored_null = cfg.discovery or cfg.clutter
+
+    def clutter_slots(choices, mask):  # (A, Dmax): the known map's null choices, with a clutter hypothesis
+        return (choices >= cfg.candidates) & mask[None, :] if cfg.clutter else None
 
     def per_component(m, c, class_lp, created):
         pred = gating.innovations(sensor, m, c, detections)
         cand = gate(pred.d2, created, cfg.candidates)
         if cfg.beam is not None:  # built one detection at a time, the `beam` best kept (inference.beam), scored sequentially
-            terms = slot_terms(sensor, params, pred, m, c, class_lp, cand, detections)
+            terms = slot_terms(sensor, params, pred, m, c, class_lp, cand, detections, cfg.clutter)
             if 3 + 3 * cand.size < m.shape[0]:  # static: the candidates' rows are fewer than the map's
                 terms = localized_terms(terms)
 
@@ -584,9 +622,10 @@ def hypotheses(
                 mask = detections.mask & (slots <= j)
                 objects, new, feasible = assignment_objects(opts[None], cand, mask, created, cfg.max_objects,
                                                             cfg.discovery)
-                inc = slot_log_likelihood(terms, row, j, opts[j], objects[0, j], new[0, j])
+                is_clutter = cfg.clutter & mask[j] & (opts[j] >= cfg.candidates)
+                inc = slot_log_likelihood(terms, row, j, opts[j], objects[0, j], new[0, j], is_clutter)
                 # Ranked by the detections left unassociated first (a known map's null choice).
-                skips = skipped_detections(opts[None], mask, cfg.candidates, cfg.discovery)[0]
+                skips = skipped_detections(opts[None], mask, cfg.candidates, scored_null)[0]
                 return jnp.where(feasible[0], parent + inc, -jnp.inf), skips
 
             start = sequential.start(cfg.beam, terms.cov.shape[0], cfg.max_detections, m.dtype)
@@ -595,14 +634,15 @@ def hypotheses(
             objects, new, feasible = assignment_objects(found.options, cand, detections.mask, created, cfg.max_objects,
                                                         cfg.discovery)
             # A row the beam did not fill is no hypothesis (it may repeat another).
-            skips = skipped_detections(found.options, detections.mask, cfg.candidates, cfg.discovery)
+            skips = skipped_detections(found.options, detections.mask, cfg.candidates, scored_null)
             return objects, new, jnp.where(feasible & found.valid, found.score, -jnp.inf), skips, found.dropped
         # Every joint assignment, (G+1)^Dmax rows, each scored at once: the reference.
         choices = jnp.asarray(gating.joint_options(cfg.candidates, cfg.max_detections))
         objects, new, feasible = assignment_objects(choices, cand, detections.mask, created, cfg.max_objects, cfg.discovery)
-        screen = jax.vmap(partial(screen_log_likelihood, sensor, params, pred, m, c, class_lp), (0, 0, None))(
-            objects, new, detections)
-        skips = skipped_detections(choices, detections.mask, cfg.candidates, cfg.discovery)
+        clutter = clutter_slots(choices, detections.mask)
+        screen = jax.vmap(partial(screen_log_likelihood, sensor, params, pred, m, c, class_lp), (0, 0, None, 0))(
+            objects, new, detections, clutter)
+        skips = skipped_detections(choices, detections.mask, cfg.candidates, scored_null)
         return objects, new, jnp.where(feasible, screen, -jnp.inf), skips, jnp.zeros((), jnp.int32)
 
     rows = (cfg.candidates + 1) ** cfg.max_detections if cfg.beam is None else cfg.beam
@@ -636,8 +676,9 @@ def hypotheses(
         prior = sub_gaussian(mean[i], cov[i], idx, dummy)
         proposal = (_placeholders(qm[idx], downdate(cov[i], k, js, idx), dummy) if cfg.proposal == "posterior"
                     else prior)
+        clutter = detections.mask & (obj < 0) if cfg.clutter else None
         return sampled_log_likelihood(sensor, params, prior, proposal, class_lp[jnp.maximum(obj, 0)], obj, nw,
-                                      detections, eps, theta)
+                                      detections, eps, theta, clutter)
 
     log_lik = _chunked(weigh, parent, post_mean, gain, gain_js, state.class_log_probs[parent], objects, new)
     log_lik = jnp.where(sel_w > -jnp.inf, log_lik, -jnp.inf)
@@ -812,7 +853,8 @@ class Multimodal(AbstractEstimator):
     ``candidates`` (``G`` gated objects per detection, plus the null hypothesis), ``children``
     (children that get a Gauss-Newton update; ``None``: ``2·capacity``), ``merge_threshold``
     (squared Mahalanobis distance over the whole state), ``association_prior`` (``"mc"``: thesis
-    Eq. 5.11; ``"uniform"``), ``proposal`` (``"posterior"`` or ``"prior"``), ``gn_max_steps``,
+    Eq. 5.11; ``"uniform"``), ``proposal`` (``"posterior"`` or ``"prior"``), ``clutter`` (a known
+    map's clutter log density; module docstring), ``gn_max_steps``,
     ``classifier``, ``max_detections``, ``max_steps`` and ``smoother`` (:class:`~.smoothing.Full` by
     default: each component's trajectory relinearized at every step, the thesis's mm-iSAM in spirit;
     :class:`~.smoothing.Filter`) as in every estimator.
@@ -831,6 +873,7 @@ class Multimodal(AbstractEstimator):
     classifier: str | ClassifierModel | None = None
     max_detections: int | None = eqx.field(default=None, static=True)
     max_steps: int | None = eqx.field(default=None, static=True)
+    clutter: float | None = eqx.field(default=None, static=True)
 
     name: ClassVar[str] = "multimodal"
     reference: ClassVar[str] = "Doherty thesis Ch. 5, Eq. 5.9-5.11"
@@ -851,11 +894,17 @@ class Multimodal(AbstractEstimator):
             raise ValueError(f"Multimodal.proposal: must be one of {PROPOSALS}, got {self.proposal!r}")
         if not (isinstance(self.merge_threshold, (int, float)) and self.merge_threshold > 0):
             raise ValueError(f"Multimodal.merge_threshold: must be positive, got {self.merge_threshold!r}")
+        if self.clutter is not None and not (isinstance(self.clutter, (int, float)) and not isinstance(self.clutter, bool)
+                                             and math.isfinite(self.clutter)):
+            raise ValueError(f"Multimodal.clutter: expected a finite log density, got {self.clutter!r}")
 
     def _structure(self, scenario: Scenario) -> Structure:
         n_max = scenario.discovery.max_objects if scenario.discovery is not None else scenario.num_objects
         if n_max < 1:
             raise ValueError("multimodal: the scenario has no objects and no discovery section (nothing to associate)")
+        if self.clutter is not None and scenario.discovery is not None:
+            raise ValueError("multimodal: --clutter is for a known map; on an unknown map (a discovery section) a "
+                             "detection of no known object creates one (the null hypothesis, thesis Sec. 3.2.1)")
         slots = self.max_detections or max(scenario.max_detections, 1)
         if scenario.max_detections > slots:
             raise ValueError(f"max_detections: {slots} slots, but a step of the scenario has "
@@ -865,7 +914,7 @@ class Multimodal(AbstractEstimator):
         children = min(2 * self.capacity if self.children is None else self.children, self.capacity * assignments)
         return Structure(self.capacity, n_max, slots, history_length(self.max_steps, scenario), self.samples, candidates, children,
                          self.gn_max_steps, scenario.discovery is not None, self.association_prior, self.proposal,
-                         self.max_assignments)
+                         self.max_assignments, self.clutter is not None)
 
     def init(self, scenario: Scenario) -> State:
         """One component of weight 1: the robot and object priors, uncreated slots ``N(0, I)`` (Eq. 3)."""
@@ -888,6 +937,7 @@ class Multimodal(AbstractEstimator):
             jnp.asarray(disc.new_object_log_density if disc else -jnp.inf, dtype=float),
             jnp.asarray(disc.new_object_orientation_var if disc else 1.0, dtype=float),
             jnp.asarray(float(self.merge_threshold), dtype=float),
+            jnp.asarray(-jnp.inf if self.clutter is None else float(self.clutter), dtype=float),
         )
         # The class prior padded to Nmax rows: runs with the same capacities share one compiled step.
         model = eqx.tree_at(lambda mo: mo.class_prior, model, jnp.asarray(np.exp(class_lp)))
@@ -938,6 +988,7 @@ class Multimodal(AbstractEstimator):
             f"children={2 * self.capacity if self.children is None else self.children}, "
             f"merge_threshold={self.merge_threshold}, association_prior={self.association_prior}, "
             f"proposal={self.proposal}, gn_max_steps={self.gn_max_steps}, smoother={self.smoother.name}"
+            + ("" if self.clutter is None else f", clutter={self.clutter:g}")
         )
 
 
@@ -1017,6 +1068,7 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
     # Gauss-Newton update or (above) the component's smoothing did not converge.
     child_failed = centre_ok & (ch.result != optx.RESULTS.successful)
     member_failed = jnp.any((wn > 0) & child_failed[None, :], axis=1)
+    unassociated = jnp.sum(detections.mask & (c_hist[centres][jnp.argmax(log_w), state.k] < 0), dtype=jnp.int32)
     info = StepInfo(
         k=(state.k + 1).astype(jnp.int32),
         num_components=jnp.where(explained, jnp.sum(log_w > -jnp.inf, dtype=jnp.int32),
@@ -1024,10 +1076,10 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
         dropped_mass=ch.dropped_mass,
         dropped_budget=ch.beam_dropped,
         solver_failures=jnp.sum((log_w > -jnp.inf) & (smooth_failed | member_failed), dtype=jnp.int32),
-        # The best component's unassociated detections (a known map's skipped ones), or all of
-        # them when nothing explains the step.
-        skipped=jnp.where(explained, jnp.sum(detections.mask & (c_hist[centres][jnp.argmax(log_w), state.k] < 0),
-                                             dtype=jnp.int32), jnp.sum(detections.mask, dtype=jnp.int32)),
+        # The best component's unassociated detections (a known map's skipped ones, or those its
+        # clutter hypothesis explains: rejected), or all of them when nothing explains the step.
+        skipped=jnp.where(explained, 0 if cfg.clutter else unassociated, jnp.sum(detections.mask, dtype=jnp.int32)),
+        rejected=jnp.where(explained & cfg.clutter, unassociated, 0),
         object_overflow=no_room,
         log_overflow=new_overflow(state.log, log),
         details=Details(ch.parent, ch.objects, ch.log_prob),

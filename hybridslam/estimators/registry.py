@@ -35,7 +35,7 @@ _OPTIONS: dict[str, dict[str, str]] = {
                     "max_children": "max_hypotheses"},
     "multimodal": {**_COMMON, "capacity": "capacity", "samples": "samples", "gate": "candidates",
                    "max_children": "children", "merge_threshold": "merge_threshold",
-                   "association_prior": "association_prior", "proposal": "proposal"},
+                   "association_prior": "association_prior", "proposal": "proposal", "clutter": "clutter"},
 }
 
 
@@ -52,7 +52,8 @@ def make_estimator(name: str, **options: Any) -> AbstractEstimator:
     (hybrid); ``gate`` (the association gate: candidate objects per detection; the hybrid's default
     ``None`` enumerates every object); ``gate_probability`` (ml, gpda, max-mixture);
     ``max_children`` (the hybrid's beam width, ml/gpda/max-mixture's joint hypotheses, multimodal's
-    updated children); ``exhaustive`` (hybrid: enumerate every child, the reference). An option the
+    updated children); ``exhaustive`` (hybrid: enumerate every child, the reference); ``clutter`` (a
+    clutter log density: hybrid; multimodal on a known map). An option the
     estimator has no use for is an error naming it.
     """
     if name not in ESTIMATORS:
