@@ -543,3 +543,61 @@ def test_clutter_is_refused_on_an_unknown_map_and_counted_as_rejected_on_a_known
     best = max(run.result.steps[0].components, key=lambda c: c.weight)
     assert sorted(best.associations[0]) == [-1, 0, 1]
     assert "clutter=-4" in hs.make_estimator("multimodal", clutter=-4.0).describe()
+
+
+def test_a_pose_belief_that_contradicts_every_association_is_flagged():
+    """A robot believed 1.5 m from where it is, with a tight prior (a kidnap): the best component
+    can explain no detection (a known map without clutter: each is skipped or named far outside
+    its prediction), and the step says so (``inconsistent``, warned); the true start is not
+    flagged. The same for ``ml``."""
+    import jax
+
+    from hybridslam.estimators.base import summarize
+
+    two = _two_objects_three_detections()
+    tight = np.diag([1e-4, 1e-4, 1e-6])
+    options = dict(capacity=2, samples=32, max_detections=3, max_steps=2, smoother="filter")
+    flags = {}
+    for shift in (0.0, 1.5):
+        scenario = two.replace(robot_prior_mean=np.asarray(two.robot_prior_mean) + [0.0, shift, 0.0],
+                               robot_prior_cov=tight)
+        run = run_estimator(scenario, "multimodal", **options)
+        flags[shift] = bool(run.infos[0].inconsistent)
+        if shift:
+            assert any("contradicts the detections" in w for w in run.infos[0].warnings())
+            assert "at 1 step(s)" in " ".join(summarize(jax.tree.map(lambda *a: np.stack(a), *run.infos)))
+        # ml's associations pass its gate: there the detections it skips are the unexplained ones.
+        flags[("ml", shift)] = bool(run_estimator(scenario, "ml", max_detections=3, max_steps=2,
+                                                  smoother="filter").infos[0].inconsistent)
+    assert flags == {0.0: False, 1.5: True, ("ml", 0.0): False, ("ml", 1.5): True}
+
+
+def test_contradicted_counts_skipped_and_far_detections_against_half_the_step():
+    """``gating.contradicted`` against ``d²`` computed here: a step is contradicted when more than
+    half of its detections are skipped or named beyond the 1e-6 bound."""
+    import jax.numpy as jnp
+
+    import hybridslam as hs
+    from hybridslam.driver import inputs_from_scenario
+
+    two = _two_objects_three_detections()
+    state = hs.make_estimator("multimodal", smoother="filter", max_detections=3).init(two)
+    det = _first(inputs_from_scenario(two, 3).detections)
+    mean, cov, sensor = state.mean[0], state.cov[0], state.model.sensor
+    for m in (mean, mean.at[1].add(3.0)):  # as believed, and 3 m to the side (every association far)
+        c = cov if m is mean else cov * 1e-3
+        d2 = np.asarray(gating.mahalanobis(sensor, m, c, det))
+        for objects in ([0, 1, -1], [1, 0, -1], [-1, -1, -1], [0, -1, 1], [1, -1, -1]):
+            for skipped in (False, True):
+                unassociated = np.array([o < 0 and skipped for o in objects])
+                bad = sum((o >= 0 and d2[j, o] > gating.CONTRADICTION_D2) or unassociated[j] for j, o in enumerate(objects))
+                got = gating.contradicted(sensor, m, c, det, jnp.asarray(objects), jnp.asarray(unassociated))
+                assert bool(got) == (2 * bad > 3), (objects, skipped)
+    assert bool(gating.contradicted(sensor, mean.at[1].add(3.0), cov * 1e-3, det, jnp.asarray([0, 1, -1]),
+                                    jnp.zeros(3, bool)))
+
+
+def _first(tree):
+    import jax
+
+    return jax.tree.map(lambda a: a[0], tree)

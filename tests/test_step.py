@@ -276,3 +276,18 @@ def test_the_clutter_hypothesis_explains_a_spurious_detection(key):
     for child in common[1:]:
         moved = (beliefs[-9.0][child] - beliefs[-9.0][ref]) - (beliefs[-10.0][child] - beliefs[-10.0][ref])
         np.testing.assert_allclose(moved, child.count(-1) - ref.count(-1), atol=1e-9)
+
+
+def test_a_pose_belief_that_contradicts_every_association_is_flagged(key):
+    """The step of the skip test from a belief 2 m off to the side with a tight covariance (a
+    kidnap): its best child names objects far outside their predictions, and the step says so
+    (``inconsistent``); from the true belief it does not."""
+    scenario, _, inputs = _duplicated_detection()
+    estimator = _estimator(gate=1, weights="linearized", smoother="filter", max_detections=3)
+    belief = estimator.init(scenario)
+    _, info = STEP(estimator, belief, *inputs, key)
+    assert not bool(info.inconsistent)
+    away = eqx.tree_at(lambda b: (b.mean, b.cov), belief, (belief.mean.at[:, 1].add(2.0), belief.cov * 1e-4))
+    _, info = STEP(estimator, away, *inputs, key)
+    assert bool(info.inconsistent)
+    assert any("contradicts the detections" in w for w in info.warnings())

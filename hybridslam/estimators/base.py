@@ -94,6 +94,8 @@ class StepInfo(eqx.Module):
     rejected: Int[Array, ""] = eqx.field(default_factory=_zero_int)  # detections explained as clutter / null
     object_overflow: Bool[Array, ""] = eqx.field(default_factory=lambda: jnp.zeros((), bool))  # no free object slot
     log_overflow: Int[Array, ""] = eqx.field(default_factory=_zero_int)  # detections beyond the smoother's factor budget
+    # Most detections of the step unexplained by the best component (gating.contradicted).
+    inconsistent: Bool[Array, ""] = eqx.field(default_factory=lambda: jnp.zeros((), bool))
     details: Any = None  # estimator-specific diagnostics (e.g. the hybrid belief's per-component solver results)
 
     def warnings(self) -> list[str]:
@@ -105,7 +107,7 @@ def _totals(info: StepInfo) -> dict[str, float]:
     """Host-side totals of the counts of one info, or of a stack of them (any leading axes)."""
     a = {name: np.asarray(getattr(info, name)) for name in
          ("dropped_capacity", "dropped_budget", "dropped_mass", "visibility_ignored", "solver_failures",
-          "is_failures", "skipped", "rejected", "object_overflow", "log_overflow", "num_components")}
+          "is_failures", "skipped", "rejected", "object_overflow", "log_overflow", "num_components", "inconsistent")}
     ess = np.asarray(info.min_ess, dtype=float)
     out: dict[str, float] = {name: float(np.sum(v)) for name, v in a.items()}
     out["steps_dropped_capacity"] = float(np.sum(a["dropped_capacity"] > 0))
@@ -153,6 +155,11 @@ def messages(t: dict[str, float], per_step: bool) -> list[str]:
         out.append(f"{n} detection(s) explained as clutter by the null hypothesis (treated as outliers)")
     if int(t["object_overflow"]) > 0:
         out.append("object capacity full: a detection could not create a new object (raise discovery.max_objects)")
+    if (n := int(t["inconsistent"])) > 0:
+        out.append("most detections the best hypothesis could not explain (left unassociated, or associated beyond "
+                   "the 1e-6 tail of its prediction) " + ("at this step" if per_step else f"at {n} step(s)")
+                   + ": the pose belief contradicts the detections (a kidnapped robot, wrong odometry, a wrong map) "
+                     "or they are spurious (--clutter)")
     if (n := int(t["log_overflow"])) > 0:
         out.append(f"{n} detection(s) beyond the smoother's factor budget are not in its graph (the state was sized "
                    "for a scenario with fewer detections; build it with max_steps set for room for every slot)")

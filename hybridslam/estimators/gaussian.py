@@ -502,9 +502,12 @@ def commit(est: SingleGaussian, state: GaussianState, mean, cov, class_log_post,
         factors=stored, window=window,
     )
     zero = jnp.zeros((), jnp.int32)
+    skipped = info.get("skipped", zero).astype(jnp.int32)
     step_info = StepInfo(
         k=(state.k + 1).astype(jnp.int32), num_components=jnp.ones((), jnp.int32),
-        skipped=info.get("skipped", zero).astype(jnp.int32), rejected=info.get("rejected", zero).astype(jnp.int32),
+        skipped=skipped, rejected=info.get("rejected", zero).astype(jnp.int32),
+        # Associations pass the gate, so only skipped detections go unexplained (gating.contradicted).
+        inconsistent=2 * skipped > jnp.sum(detections.mask),
         dropped_budget=info.get("dropped", zero).astype(jnp.int32),
         solver_failures=(result != optx.RESULTS.successful).astype(jnp.int32),
         log_overflow=new_overflow(state.log, log),

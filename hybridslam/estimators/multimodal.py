@@ -1069,6 +1069,12 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
     child_failed = centre_ok & (ch.result != optx.RESULTS.successful)
     member_failed = jnp.any((wn > 0) & child_failed[None, :], axis=1)
     unassociated = jnp.sum(detections.mask & (c_hist[centres][jnp.argmax(log_w), state.k] < 0), dtype=jnp.int32)
+    # The best centre's associations against its parent's prediction (objects it creates aside;
+    # clutter explains a detection, a skip does not).
+    best = centres[jnp.argmax(log_w)]
+    inconsistent = explained & gating.contradicted(state.model.sensor, mean[ch.parent[best]], cov[ch.parent[best]],
+                                                   detections, jnp.where(ch.new[best], -1, ch.objects[best]),
+                                                   (ch.objects[best] < 0) & (not cfg.clutter))
     info = StepInfo(
         k=(state.k + 1).astype(jnp.int32),
         num_components=jnp.where(explained, jnp.sum(log_w > -jnp.inf, dtype=jnp.int32),
@@ -1082,6 +1088,7 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
         rejected=jnp.where(explained & cfg.clutter, unassociated, 0),
         object_overflow=no_room,
         log_overflow=new_overflow(state.log, log),
+        inconsistent=inconsistent,
         details=Details(ch.parent, ch.objects, ch.log_prob),
     )
     keep = lambda new, old: jnp.where(explained, new, old)  # noqa: E731

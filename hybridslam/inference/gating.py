@@ -18,12 +18,13 @@ from __future__ import annotations
 
 import functools
 import itertools
+import math
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
 from ..models.geometry import geometric_residual, range_bearing
 from ..models.measurement import Detections, SensorModel
@@ -74,6 +75,31 @@ def mahalanobis(
 ) -> Float[Array, "Dmax N"]:
     """``d²`` of every (detection, object) pair of one component."""
     return innovations(sensor, mean, cov, detections).d2
+
+
+# The chi-square quantile of 2 degrees of freedom at 1 - 1e-6 (its tail is exp(-d²/2)): a correct
+# association lies beyond it once in a million detections.
+CONTRADICTION_D2 = -2.0 * math.log(1e-6)
+
+
+def contradicted(
+    sensor: SensorModel, mean: Float[Array, " D"], cov: Float[Array, "D D"], detections: Detections,
+    objects: Int[Array, " Dmax"], unassociated: Bool[Array, " Dmax"],
+) -> Bool[Array, ""]:
+    """Whether a component's prediction ``(mean, cov)`` contradicts the step's detections: more than
+    half of them are unexplained, either left ``unassociated`` (skipped: no clutter hypothesis, no
+    new object) or named (``objects[j] >= 0``) with a ``d²`` beyond :data:`CONTRADICTION_D2`.
+
+    A spurious detection makes one such slot; a robot whose pose belief is wrong (kidnapped, or
+    odometry that contradicts the detections) makes most of them. Estimators report it per step
+    (``StepInfo.inconsistent``) for their best component: the model's best explanation, kept
+    because it has no better one.
+    """
+    d2 = mahalanobis(sensor, mean, cov, detections)
+    named = detections.mask & (objects >= 0)
+    far = named & (d2[jnp.arange(objects.shape[0]), jnp.maximum(objects, 0)] > CONTRADICTION_D2)
+    unexplained = jnp.sum(far | (detections.mask & unassociated))
+    return 2 * unexplained > jnp.sum(detections.mask)
 
 
 def nearest(

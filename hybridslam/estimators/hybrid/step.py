@@ -29,7 +29,7 @@ from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from ...inference.batching import map_distinct, map_live, smoothing_chunk
 from ...inference.discovery import create_objects
-from ...inference.gating import gate
+from ...inference.gating import contradicted, gate
 from ...inference.update import gauss_newton_update
 from ...models.measurement import Detections
 from ...models.model import NewObjects
@@ -311,7 +311,13 @@ def hybrid_step(
         window=window,
     )
     kept_ess = jnp.where(alive, ess, jnp.nan)
-    unassociated = jnp.sum(detections.mask & (assign[jnp.argmax(new_log_w)] < 0), dtype=jnp.int32)
+    best = jnp.argmax(new_log_w)
+    unassociated = jnp.sum(detections.mask & (assign[best] < 0), dtype=jnp.int32)
+    # The best child's associations against its parent's prediction (objects it creates aside;
+    # clutter explains a detection, a skip does not).
+    inconsistent = explained & contradicted(model.sensor, mean[parent[best]], cov[parent[best]], detections,
+                                            jnp.where(creates[best], -1, assign[best]),
+                                            (assign[best] < 0) & (settings.clutter is None))
     info = StepInfo(
         k=k + 1,
         num_components=jnp.sum(alive, dtype=jnp.int32),
@@ -324,6 +330,7 @@ def hybrid_step(
                           jnp.sum(detections.mask, dtype=jnp.int32)),
         rejected=unassociated if settings.clutter is not None else jnp.zeros((), jnp.int32),
         visibility_ignored=visibility_ignored,
+        inconsistent=inconsistent,
         solver_failures=jnp.sum(alive & (result != optx.RESULTS.successful), dtype=jnp.int32),
         is_failures=jnp.sum(alive & ~converged, dtype=jnp.int32),
         # The ESS of a visibility-ignored step is that of an estimate the step did not use.
