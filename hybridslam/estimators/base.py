@@ -137,7 +137,7 @@ def messages(t: dict[str, float], per_step: bool) -> list[str]:
     if (n := int(t["visibility_ignored"])) > 0:
         out.append("no hypothesis has every detected object in view; the visibility model was ignored "
                    + ("for this step" if per_step else f"for {n} step(s)")
-                   + " (weights from the measurement likelihood alone)")
+                   + " (weights from the measurement likelihood alone; spurious detections? --clutter)")
     if (n := int(t["solver_failures"])) > 0:
         of = f" of {int(t['num_components'])}" if per_step else ""
         out.append(f"the update (Gauss-Newton; with a smoother, its Levenberg-Marquardt solve) did not converge for "
@@ -150,7 +150,8 @@ def messages(t: dict[str, float], per_step: bool) -> list[str]:
                    "prefer --weights laplace-is or more --samples")
     if (n := int(t["skipped"])) > 0:
         out.append(f"{n} detection(s) left unassociated (no object inside the gate of a known map, more detections "
-                   "than objects that could explain them, or no free object slot: raise discovery.max_objects)")
+                   "than objects that could explain them: spurious ones? --clutter with hybrid or multimodal; or no free "
+                   "object slot: raise discovery.max_objects)")
     if (n := int(t["rejected"])) > 0:
         out.append(f"{n} detection(s) explained as clutter by the null hypothesis (treated as outliers)")
     if int(t["object_overflow"]) > 0:
@@ -159,7 +160,7 @@ def messages(t: dict[str, float], per_step: bool) -> list[str]:
         out.append("most detections the best hypothesis could not explain (left unassociated, or associated beyond "
                    "the 1e-6 tail of its prediction) " + ("at this step" if per_step else f"at {n} step(s)")
                    + ": the pose belief contradicts the detections (a kidnapped robot, wrong odometry, a wrong map) "
-                     "or they are spurious (--clutter)")
+                     "or they are spurious (--clutter with hybrid or multimodal)")
     if (n := int(t["log_overflow"])) > 0:
         out.append(f"{n} detection(s) beyond the smoother's factor budget are not in its graph (the state was sized "
                    "for a scenario with fewer detections; build it with max_steps set for room for every slot)")
