@@ -171,3 +171,21 @@ def test_covariance_ellipse_and_band():
     mean, half = plot.mean_band(np.array([[1.0, 2.0], [3.0, np.nan]]))
     assert np.allclose(mean, [2.0, 2.0])
     assert np.isclose(half[0], 1.96 * np.sqrt(2.0) / np.sqrt(2.0)) and np.isnan(half[1])
+
+
+def test_a_warning_repeated_at_many_steps_is_printed_three_times_then_counted(capsys):
+    """``hybridslam run`` prints each kind of per-step warning (its text, numbers aside) three times,
+    the third saying so, and at the end how many more steps had it; other kinds are unaffected."""
+    from hybridslam.cli.run import REPEATS, WarningThrottle
+
+    throttle = WarningThrottle()
+    for k in range(1, 8):
+        throttle(f"step {k}: {k + 4} hypotheses above the pruning threshold dropped for lack of capacity")
+    throttle("step 8: the update did not converge for 1 of 4 component(s)")
+    throttle.finish()
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("WARNING")]
+    capacity = [line for line in lines if "lack of capacity" in line]
+    assert len(capacity) == REPEATS + 1 == 4
+    assert "step 1:" in capacity[0] and "step 3:" in capacity[2] and "not repeated" in capacity[2]
+    assert capacity[3].startswith("WARNING: and at 4 more step(s): 5 hypotheses")
+    assert sum("did not converge" in line for line in lines) == 1

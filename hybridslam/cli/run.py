@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import re
+from collections import Counter
 
 from ..analysis.trajectory import error_summary
 from ..driver import run
@@ -31,6 +33,34 @@ def table_row(record: StepRecord, num_detections: int, seconds: float) -> str:
             f"{fmt(1e3 * seconds, '.1f'):>9}")
 
 
+REPEATS = 3  # per-step warnings of one kind printed before the rest are only counted
+
+
+class WarningThrottle:
+    """Prints a run's per-step warnings, each kind (the text with its numbers blanked) at most
+    :data:`REPEATS` times, and at the end how many more steps each silenced kind had: a real log
+    can raise the same warning at dozens of steps, and the table must stay readable."""
+
+    def __init__(self) -> None:
+        self.seen: Counter[str] = Counter()
+        self.example: dict[str, str] = {}
+
+    def __call__(self, line: str) -> None:
+        message = line.split(": ", 1)[-1]  # without "step k: "
+        kind = re.sub(r"\d+(\.\d+)?(e[-+]?\d+)?", "#", message)
+        self.seen[kind] += 1
+        self.example.setdefault(kind, message)
+        if self.seen[kind] < REPEATS:
+            warn(line)
+        elif self.seen[kind] == REPEATS:
+            warn(f"{line} (this warning is not repeated; its count follows at the end)")
+
+    def finish(self) -> None:
+        for kind, count in self.seen.items():
+            if count > REPEATS:
+                warn(f"and at {count - REPEATS} more step(s): {self.example[kind]}")
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     """Run the estimator over a scenario file, print a per-step table, write the result file."""
     scenario = load_scenario(args.scenario)
@@ -46,15 +76,17 @@ def cmd_run(args: argparse.Namespace) -> int:
           f"{estimator.describe().split('; ', 1)[-1]}, seed={args.seed}")
     print("compiling the step ...", flush=True)
     num_det = [len(s.detections) for s in scenario.steps]
+    throttle = WarningThrottle()
 
     def on_step(record: StepRecord, info: StepInfo, seconds: float) -> None:
         if record.k == 1:
             print(TABLE_HEADER)
         print(table_row(record, num_det[record.k - 1], seconds), flush=True)
         for line in info.warnings():
-            warn(line)
+            throttle(line)
 
     result = run(estimator, scenario, seed=args.seed, on_step=on_step).result
+    throttle.finish()
     timing = result.timing or {"compile_s": 0.0, "step_s": []}
     steps_s = sum(timing["step_s"])
     per_step = 1e3 * steps_s / max(len(timing["step_s"]), 1)
