@@ -305,13 +305,6 @@ def _null_log_likelihood(sensor: SensorModel, log_density: Float[Array, ""], x: 
     return log_density + _known_semantic(sensor, x, obj, scores, _uniform(sensor.classifier.num_classes))
 
 
-def _new_log_likelihood(sensor: SensorModel, params: Params, x: Float[Array, "3"], geo: Float[Array, "2"],
-                        scores: Float[Array, " M"], theta: Float[Array, ""]) -> Float[Array, ""]:
-    """A detection that creates its object (the null hypothesis, Sec. 3.2.1): :func:`_null_log_likelihood`
-    with ``new_object_log_density``."""
-    return _null_log_likelihood(sensor, params.new_object_log_density, x, geo, scores, theta)
-
-
 def joint_log_likelihood(
     sensor: SensorModel,
     params: Params,
@@ -339,13 +332,12 @@ def joint_log_likelihood(
         return geo_norm - 0.5 * r @ r + log_visibility(sensor, x, obj) + _known_semantic(sensor, x, obj, scores, class_lp)
 
     per_obj = jax.vmap(of_object)(slot_objects, detections.geo, detections.scores, slot_class_log_probs)
-    per_new = jax.vmap(partial(_new_log_likelihood, sensor, params, x))(detections.geo, detections.scores, theta)
-    total = jnp.sum(jnp.where(known, per_obj, 0.0)) + jnp.sum(jnp.where(new, per_new, 0.0))
-    if clutter is not None:
-        per_clutter = jax.vmap(partial(_null_log_likelihood, sensor, params.clutter_log_density, x))(
-            detections.geo, detections.scores, theta)
-        total = total + jnp.sum(jnp.where(clutter, per_clutter, 0.0))
-    return total
+    null, density = new, jnp.full(new.shape, params.new_object_log_density)
+    if clutter is not None:  # a known map: no slot is new, a null slot is clutter
+        null, density = new | clutter, jnp.where(new, density, params.clutter_log_density)
+    per_null = jax.vmap(partial(_null_log_likelihood, sensor), (0, None, 0, 0, 0))(
+        density, x, detections.geo, detections.scores, theta)
+    return jnp.sum(jnp.where(known, per_obj, 0.0)) + jnp.sum(jnp.where(null, per_null, 0.0))
 
 
 def _sub_indices(objects: Int[Array, " Dmax"], known: Bool[Array, " Dmax"]) -> tuple[Int[Array, " P"], Bool[Array, " P"]]:
@@ -1068,10 +1060,10 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
     # Gauss-Newton update or (above) the component's smoothing did not converge.
     child_failed = centre_ok & (ch.result != optx.RESULTS.successful)
     member_failed = jnp.any((wn > 0) & child_failed[None, :], axis=1)
-    unassociated = jnp.sum(detections.mask & (c_hist[centres][jnp.argmax(log_w), state.k] < 0), dtype=jnp.int32)
-    # The best centre's associations against its parent's prediction (objects it creates aside;
-    # clutter explains a detection, a skip does not).
-    best = centres[jnp.argmax(log_w)]
+    best = centres[jnp.argmax(log_w)]  # the best merged component's centre (a child)
+    unassociated = jnp.sum(detections.mask & (ch.objects[best] < 0), dtype=jnp.int32)
+    # Its associations against its parent's prediction (objects it creates aside; clutter explains
+    # a detection, a skip does not).
     inconsistent = explained & gating.contradicted(state.model.sensor, mean[ch.parent[best]], cov[ch.parent[best]],
                                                    detections, jnp.where(ch.new[best], -1, ch.objects[best]),
                                                    (ch.objects[best] < 0) & (not cfg.clutter))
