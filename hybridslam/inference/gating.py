@@ -95,9 +95,19 @@ def contradicted(
     (``StepInfo.inconsistent``) for their best component: the model's best explanation, kept
     because it has no better one.
     """
-    d2 = mahalanobis(sensor, mean, cov, detections)
+    x, objs = mean[:3], mean[3:].reshape(-1, 3)
+    obj = jnp.maximum(objects, 0)
+    pose = jnp.broadcast_to(jnp.arange(3), (obj.shape[0], 3))
+    idx = jnp.concatenate([pose, 3 + 3 * obj[:, None] + jnp.arange(3)[None, :]], axis=1)  # (Dmax, 6)
+
+    def slot_d2(z, o, i):  # d² of one detection against the object it names only, not every object
+        pred, _, _, s = _predicted(sensor, x, o, cov[i][:, i])
+        r = geometric_residual(z, pred)
+        return r @ jnp.linalg.solve(s, r)
+
+    d2 = jax.vmap(slot_d2)(detections.geo, objs[obj], idx)
     named = detections.mask & (objects >= 0)
-    far = named & (d2[jnp.arange(objects.shape[0]), jnp.maximum(objects, 0)] > CONTRADICTION_D2)
+    far = named & ~(d2 <= CONTRADICTION_D2)  # a non-finite d² contradicts too
     unexplained = jnp.sum(far | (detections.mask & unassociated))
     return 2 * unexplained > jnp.sum(detections.mask)
 

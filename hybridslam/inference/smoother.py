@@ -332,13 +332,8 @@ class Linearization(eqx.Module):
     def dense(self) -> tuple[Float[Array, "D D"], Float[Array, " D"]]:
         """The full ``H (3P+3N, 3P+3N)`` and ``g`` (reference solver and tests)."""
         p = self.pose_diag.shape[0]
-        i = jnp.arange(p)
-        a = jnp.zeros((p, 3, p, 3), self.pose_diag.dtype)
-        a = a.at[i, :, i, :].set(self.pose_diag)
-        a = a.at[i[:-1], :, i[1:], :].set(self.pose_off)
-        a = a.at[i[1:], :, i[:-1], :].set(jnp.swapaxes(self.pose_off, -1, -2))
         b = self.pose_object.reshape(3 * p, -1)
-        h = jnp.block([[a.reshape(3 * p, 3 * p), b], [b.T, self.object_dense()]])
+        h = jnp.block([[_tridiagonal_dense(self.pose_diag, self.pose_off), b], [b.T, self.object_dense()]])
         return h, jnp.concatenate([self.grad_pose.reshape(-1), self.grad_object])
 
     def head(self, poses: int, objects: int) -> Linearization:
@@ -694,10 +689,20 @@ def _solve_poses_first(lin: Linearization) -> tuple[Float[Array, "P 3"], Float[A
 
 
 def _tridiagonal_dense(diag: Float[Array, "P 3 3"], off: Float[Array, "P1 3 3"]) -> Float[Array, "P3 P3"]:
+    """The dense ``3P × 3P`` block-tridiagonal matrix with diagonal blocks ``diag`` and ``off[i]`` at
+    block ``(i, i+1)`` (its transpose at ``(i+1, i)``). Built by selects, not scatters: XLA's CPU
+    backend expands every scatter into a loop compiled as a kernel of its own."""
     p = diag.shape[0]
-    lin = Linearization(diag, off, jnp.zeros((p, 3, 0)), jnp.zeros((0, 0)), jnp.zeros((p, 3)),
-                        jnp.zeros((0,)), jnp.zeros(()), jnp.zeros((0,), int))
-    return lin.dense()[0]
+    i = jnp.arange(p)
+    zero = jnp.zeros((1, 3, 3), diag.dtype)
+    above = jnp.concatenate([off, zero])  # row i: the block at (i, i+1)
+    below = jnp.concatenate([zero, jnp.swapaxes(off, -1, -2)])  # row i: the block at (i, i-1)
+
+    def band(shift: int, rows: Float[Array, "P 3 3"]) -> Float[Array, "P 3 P 3"]:
+        on = (i[:, None] + shift == i[None, :])[:, None, :, None]
+        return jnp.where(on, rows[:, :, None, :], 0.0)
+
+    return (band(0, diag) + band(1, above) + band(-1, below)).reshape(3 * p, 3 * p)
 
 
 def _object_blocks(lin: Linearization) -> Float[Array, "N 3 3"]:
@@ -829,6 +834,7 @@ class Solution(eqx.Module):
 
 
 class _LMState(eqx.Module):
+    started: Bool[Array, ""]  # False until the first iteration has linearized at the start
     poses: Float[Array, "P 3"]
     objects: Float[Array, "N 3"]
     lin: Linearization
@@ -854,6 +860,23 @@ def _nielsen(lam, nu, accept, rho):
     shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
     lam = jnp.where(accept, lam * shrink, lam * nu)
     return jnp.clip(lam, *_LAMBDA_RANGE), jnp.where(accept, 2.0, 2.0 * nu)
+
+
+def _unlinearized(graph: FactorGraph, p: int, n: int, dtype) -> Linearization:
+    """An identity system with cost ``+inf`` in place of the start's linearization: :func:`solve`'s
+    first iteration solves it (``δ = 0``) and linearizes at the start. One :func:`linearize` in the
+    loop instead of one before it and one in it: the program holds it once (0.7 s less XLA
+    compilation of `hybridslam run` on a paper-setup file, 2026-11-26)."""
+    eye = jnp.eye(3, dtype=dtype)
+    obj = jnp.broadcast_to(eye, (n, 3, 3)) if graph.independent_objects else jnp.eye(3 * n, dtype=dtype)
+    index = jnp.result_type(int)  # what linearize's int fields are (int64 under x64)
+    return Linearization(
+        pose_diag=jnp.broadcast_to(eye, (p, 3, 3)), pose_off=jnp.zeros((p - 1, 3, 3), dtype),
+        pose_object=jnp.zeros((p, 3, 3 * n), dtype), object=obj, grad_pose=jnp.zeros((p, 3), dtype),
+        grad_object=jnp.zeros((3 * n,), dtype), cost=jnp.asarray(jnp.inf, dtype),
+        active=jnp.full(graph.meas_pose.shape, -1, index), object_blocks=graph.independent_objects,
+        live_poses=jnp.asarray(p, index), live_objects=jnp.asarray(n, index),
+    )
 
 
 def _lm_step(graph, info, method, state_tol, cost_rtol, cost_atol, max_steps, s: _LMState) -> _LMState:
@@ -884,9 +907,16 @@ def _lm_step(graph, info, method, state_tol, cost_rtol, cost_atol, max_steps, s:
         optx.RESULTS.where(out_of_steps, optx.RESULTS.nonlinear_max_steps_reached, optx.RESULTS.successful),
     )
     kept = pick((poses, objects, new), (s.poses, s.objects, s.lin))
-    return _LMState(*kept, lam, nu, steps, converged | out_of_steps, result,  # type: ignore[call-arg]  # (*kept: 3)
-                    s.history.at[s.steps].set(kept[2].cost), jnp.where(accept, actual, s.gain),
-                    jnp.where(accept, rate, s.rate))
+    step = _LMState(jnp.asarray(True), *kept, lam, nu, steps,  # type: ignore[call-arg]  # (*kept: 3)
+                    converged | out_of_steps, result, s.history.at[s.steps].set(kept[2].cost),
+                    jnp.where(accept, actual, s.gain), jnp.where(accept, rate, s.rate))
+    # The first iteration only linearizes at the start (δ solved from the identity stand-in is 0):
+    # it takes no step, and a non-finite start ends the solve.
+    finite = jnp.isfinite(new.cost)
+    start = eqx.tree_at(lambda t: (t.started, t.lin, t.done, t.result), s,
+                        (jnp.asarray(True), new, ~finite,
+                         optx.RESULTS.where(finite, optx.RESULTS.successful, optx.RESULTS.nonfinite)))
+    return jax.tree.map(lambda a, b: jnp.where(s.started, a, b), step, start)
 
 
 def solve(
@@ -915,16 +945,17 @@ def solve(
     dtype = jnp.result_type(float)
     poses0, objects0 = jnp.asarray(poses0, dtype), jnp.asarray(objects0, dtype)
     info = prior_information(graph)
-    lin0 = linearize(graph, poses0, objects0, info)
-    finite = jnp.isfinite(lin0.cost)
+    if max_steps == 0:
+        lin = linearize(graph, poses0, objects0, info)
+        result = optx.RESULTS.where(jnp.isfinite(lin.cost), optx.RESULTS.successful, optx.RESULTS.nonfinite)
+        return Solution(poses0, objects0, lin.cost, jnp.asarray(0), result, lin.active, jnp.zeros((0,), dtype), lin)
     init = _LMState(
-        poses0, objects0, lin0, jnp.asarray(lambda_init, dtype), jnp.asarray(2.0, dtype), jnp.asarray(0),
-        ~finite | (max_steps <= 0),
-        optx.RESULTS.where(finite, optx.RESULTS.successful, optx.RESULTS.nonfinite),
-        jnp.full((max_steps,), jnp.nan, dtype), jnp.zeros((), dtype), jnp.zeros((), dtype),
+        jnp.asarray(False), poses0, objects0, _unlinearized(graph, poses0.shape[0], objects0.shape[0], dtype),
+        jnp.asarray(lambda_init, dtype), jnp.asarray(2.0, dtype), jnp.asarray(0), jnp.asarray(False),
+        optx.RESULTS.successful, jnp.full((max_steps,), jnp.nan, dtype), jnp.zeros((), dtype), jnp.zeros((), dtype),
     )
     body = lambda s: _lm_step(graph, info, method, state_tol, cost_rtol, cost_atol, max_steps, s)  # noqa: E731
-    s = jax.lax.while_loop(lambda s: ~s.done, body, init) if max_steps > 0 else init
+    s = jax.lax.while_loop(lambda s: ~s.done, body, init)
     return Solution(s.poses, s.objects, s.lin.cost, s.steps, s.result, s.lin.active, s.history, s.lin)
 
 

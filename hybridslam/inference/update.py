@@ -8,8 +8,8 @@ from the Gauss-Newton Hessian ``Σ⁻¹ + JᵀJ`` at the mode. The solver result
 (``throw=False``) so a failed solve is visible, not fatal.
 
 :func:`gauss_newton` (``optimistix.GaussNewton`` on whitened residuals, covariance ``R⁻¹R⁻ᵀ`` from
-``J = QR``) serves the Laplace mode search of ``laplace-is`` and is the reference the Kalman form
-is tested against.
+``J = QR``) is the dense reference the Kalman form is tested against (``laplace-is`` searched its
+modes with it until it moved to the Kalman form, which compiles faster).
 """
 
 from __future__ import annotations
@@ -30,7 +30,9 @@ GN_TOLERANCE = 1e-6  # on the state: 1 µm, 1 µrad — far below the posterior 
 
 def wrap_angles(state: Float[Array, " D"]) -> Float[Array, " D"]:
     """Wrap every heading (indices 2, 5, 8, ...) of a ``[x_k, x^o_1, ...]`` state."""
-    return state.at[2::3].set(se2.wrap(state[2::3]))
+    # An elementwise select, not a strided scatter: XLA's CPU backend expands every scatter into a
+    # loop compiled as a kernel of its own.
+    return jnp.where(jnp.arange(state.shape[0]) % 3 == 2, se2.wrap(state), state)
 
 
 def _residuals(y, args):
@@ -95,11 +97,11 @@ def support_of(objects: Int[Array, "*F"]) -> Int[Array, " P"]:
 
 def prior_gauss_newton(
     measurement: Callable, mean: Float[Array, " D"], cov: Float[Array, "D D"], args, max_steps: int,
-    support: Int[Array, " P"] | None = None,
+    support: Int[Array, " P"] | None = None, difference: Callable | None = None,
 ) -> tuple[Float[Array, " D"], Float[Array, "D D"], optx.RESULTS]:
     """The mode and covariance of :func:`prior_gauss_newton_gain`'s Gauss-Newton:
     ``Σ⁺ = Σ − K (JΣ)``, symmetrized."""
-    value, k, js, result = prior_gauss_newton_gain(measurement, mean, cov, args, max_steps, support)
+    value, k, js, result = prior_gauss_newton_gain(measurement, mean, cov, args, max_steps, support, difference)
     return value, downdate(cov, k, js), result
 
 
@@ -115,7 +117,7 @@ def downdate(cov: Float[Array, "D D"], gain: Float[Array, "D m"], gain_js: Float
 
 def prior_gauss_newton_gain(
     measurement: Callable, mean: Float[Array, " D"], cov: Float[Array, "D D"], args, max_steps: int,
-    support: Int[Array, " P"] | None = None,
+    support: Int[Array, " P"] | None = None, difference: Callable | None = None,
 ) -> tuple[Float[Array, " D"], Float[Array, "D m"], Float[Array, "m D"], optx.RESULTS]:
     """Gauss-Newton on ``½‖y ⊖ μ‖²_Σ + ½‖measurement(y, args)‖²``, in Kalman form (an iterated EKF).
 
@@ -136,6 +138,10 @@ def prior_gauss_newton_gain(
     only — ``P`` forward-mode passes instead of ``D``, and ``O(D P m)`` products — with the same
     result. A repeated index gets its derivative split evenly over its copies, so every product
     with ``J`` sums to the derivative once.
+
+    ``difference(a, b)``: ``a ⊖ b`` on the state's manifold (default: every heading, indices 2, 5,
+    ..., wrapped). Given one, the mode is returned as iterated (unwrapped), for callers whose state
+    holds entries that are not poses.
     """
 
     def jacobian(y, args):
@@ -161,11 +167,12 @@ def prior_gauss_newton_gain(
         # 2π jump to the fixed-point test. The result is wrapped once at the end.
         mean, cov, args = inputs
         r, jac, cols, _, k = gain(y, cov, args)
-        return mean + k @ -(r + jac @ wrap_angles(mean - y)[cols])
+        delta = wrap_angles(mean - y) if difference is None else difference(mean, y)
+        return mean + k @ -(r + jac @ delta[cols])
 
     # A fixed point of `iterate` is a stationary point of the objective (Σ⁻¹(y − μ) + Jᵀr = 0), so
     # optimistix's implicit adjoint differentiates the mode exactly without unrolling the iterations.
     solver = optx.FixedPointIteration(rtol=0.0, atol=GN_TOLERANCE)
     sol = optx.fixed_point(iterate, solver, mean, (mean, cov, args), max_steps=max_steps, throw=False)
     _, _, _, js, k = gain(sol.value, cov, args)
-    return wrap_angles(sol.value), k, js, sol.result
+    return (wrap_angles(sol.value) if difference is None else sol.value), k, js, sol.result
