@@ -864,9 +864,9 @@ def _nielsen(lam, nu, accept, rho):
 
 def _unlinearized(graph: FactorGraph, p: int, n: int, dtype) -> Linearization:
     """An identity system with cost ``+inf`` in place of the start's linearization: :func:`solve`'s
-    first iteration solves it (``δ = 0``) and linearizes at the start. One :func:`linearize` in the
-    loop instead of one before it and one in it: the program holds it once (0.7 s less XLA
-    compilation of `hybridslam run` on a paper-setup file, 2026-11-26)."""
+    first iteration takes no step (``δ = 0``, the solve skipped) and linearizes at the start. One
+    :func:`linearize` in the loop instead of one before it and one in it: the program holds it once
+    (0.7 s less XLA compilation of `hybridslam run` on a paper-setup file, 2026-11-26)."""
     eye = jnp.eye(3, dtype=dtype)
     obj = jnp.broadcast_to(eye, (n, 3, 3)) if graph.independent_objects else jnp.eye(3 * n, dtype=dtype)
     index = jnp.result_type(int)  # what linearize's int fields are (int64 under x64)
@@ -881,7 +881,12 @@ def _unlinearized(graph: FactorGraph, p: int, n: int, dtype) -> Linearization:
 
 def _lm_step(graph, info, method, state_tol, cost_rtol, cost_atol, max_steps, s: _LMState) -> _LMState:
     lin = s.lin.damped(s.lam)
-    d_p, d_o = solve_normal(lin, method)
+    # The first iteration has no step to solve for; a solve costs what a linearization does (the
+    # MRCLAM graph's 201-pose chain). Every member of a vmapped batch starts together, so "any member
+    # unstarted" (batch_max: unbatched) is a real branch, not a select that runs both sides.
+    first = buckets.batch_max(jnp.asarray(~s.started, jnp.int32)) > 0
+    d_p, d_o = jax.lax.cond(first, lambda: (jnp.zeros_like(s.poses), jnp.zeros_like(s.objects)),
+                            lambda: solve_normal(lin, method))
     small = jnp.maximum(jnp.max(jnp.abs(d_p)), jnp.max(jnp.abs(d_o), initial=0.0)) < state_tol
     poses = retract(s.poses, d_p, graph.pose_active)
     objects = retract(s.objects, d_o, graph.object_active)
@@ -890,7 +895,11 @@ def _lm_step(graph, info, method, state_tol, cost_rtol, cost_atol, max_steps, s:
     g_dot = jnp.sum(s.lin.grad_pose * d_p) + jnp.sum(s.lin.grad_object * d_o.reshape(-1))
     predicted = 0.5 * (s.lam * s.lin.damping_norm(d_p, d_o.reshape(-1)) - g_dot)
     actual = s.lin.cost - new.cost
-    accept = jnp.isfinite(new.cost) & (actual > 0)
+    finite = jnp.isfinite(new.cost)
+    # The first iteration linearizes at the start and takes no step (scalars kept below); a
+    # non-finite start ends the solve.
+    begin = ~s.started
+    accept = (finite & (actual > 0)) | begin
     lam, nu = _nielsen(s.lam, s.nu, accept, actual / jnp.where(predicted > 0, predicted, 1.0))
     pick = lambda a, b: jax.tree.map(lambda u, v: jnp.where(accept, u, v), a, b)  # noqa: E731
     steps = s.steps + 1
@@ -899,24 +908,22 @@ def _lm_step(graph, info, method, state_tol, cost_rtol, cost_atol, max_steps, s:
     linear = (rate >= 0.05) & (rate <= 0.9) & (rate <= 2.0 * s.rate) & (s.rate <= 2.0 * rate)
     steady = accept & linear & (s.lam <= 1.0) & (to_come <= cost_atol)
     # The Newton decrement: a (nearly) Gauss-Newton step whose model gain is below cost_atol.
-    decrement = jnp.isfinite(new.cost) & (s.lam <= _DECREMENT_LAMBDA) & (predicted <= cost_atol)
+    decrement = finite & (s.lam <= _DECREMENT_LAMBDA) & (predicted <= cost_atol)
     converged = small | (accept & (actual <= cost_rtol * jnp.abs(s.lin.cost))) | steady | decrement
     out_of_steps = steps >= max_steps
     result = optx.RESULTS.where(
         converged, optx.RESULTS.successful,
         optx.RESULTS.where(out_of_steps, optx.RESULTS.nonlinear_max_steps_reached, optx.RESULTS.successful),
     )
+    result = optx.RESULTS.where(begin, optx.RESULTS.where(finite, optx.RESULTS.successful, optx.RESULTS.nonfinite),
+                                result)
     kept = pick((poses, objects, new), (s.poses, s.objects, s.lin))
-    step = _LMState(jnp.asarray(True), *kept, lam, nu, steps,  # type: ignore[call-arg]  # (*kept: 3)
-                    converged | out_of_steps, result, s.history.at[s.steps].set(kept[2].cost),
-                    jnp.where(accept, actual, s.gain), jnp.where(accept, rate, s.rate))
-    # The first iteration only linearizes at the start (δ solved from the identity stand-in is 0):
-    # it takes no step, and a non-finite start ends the solve.
-    finite = jnp.isfinite(new.cost)
-    start = eqx.tree_at(lambda t: (t.started, t.lin, t.done, t.result), s,
-                        (jnp.asarray(True), new, ~finite,
-                         optx.RESULTS.where(finite, optx.RESULTS.successful, optx.RESULTS.nonfinite)))
-    return jax.tree.map(lambda a, b: jnp.where(s.started, a, b), step, start)
+    before = lambda now, then: jnp.where(begin, then, now)  # noqa: E731
+    gained = accept & ~begin
+    return _LMState(jnp.asarray(True), *kept, before(lam, s.lam), before(nu, s.nu),  # type: ignore[call-arg]
+                    before(steps, s.steps), before(converged | out_of_steps, ~finite), result,
+                    before(s.history.at[s.steps].set(kept[2].cost), s.history),
+                    jnp.where(gained, actual, s.gain), jnp.where(gained, rate, s.rate))
 
 
 def solve(
