@@ -8,7 +8,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hybridslam.inference.batching import map_distinct, map_live
+from hybridslam.inference.batching import fold_live, map_distinct, map_live
 
 K = 7  # not a multiple of the chunk: the padded last chunk is exercised too
 
@@ -68,3 +68,28 @@ def test_live_slots_equal_vmap_for_every_chunk_size_and_under_an_outer_vmap():
             ref = jax.vmap(_fn)(xs[t], ys[t])
             mask = np.asarray(lives[t])
             np.testing.assert_array_equal(np.asarray(out["prod"][t])[mask], np.asarray(ref["prod"])[mask])
+
+
+def _sum_live(live, x, chunk, axis_name=None):
+    """Σ over the live slots of x² via fold_live, and the number of chunks visited."""
+    def fold(acc, first, lv, xc):
+        assert xc.shape[0] == min(chunk, K)  # fn sees its chunk batched
+        total, chunks = acc
+        real = first + jnp.arange(xc.shape[0]) < K  # the last chunk is padded with copies of slot 0
+        return total + jnp.sum(jnp.where(lv & real, xc**2, 0.0)), chunks + 1
+    return fold_live(fold, (jnp.zeros(()), jnp.zeros((), jnp.int32)), live, live, x, chunk=chunk, axis_name=axis_name)
+
+
+def test_fold_live_visits_only_chunks_with_a_live_slot():
+    live = jnp.array([False, False, False, True, False, False, True])
+    x = jnp.linspace(-1.0, 2.0, K)
+    want = float(jnp.sum(jnp.where(live, x**2, 0.0)))
+    for chunk, visited in ((1, 2), (3, 2), (4, 2), (K, 1)):
+        total, chunks = jax.jit(lambda lv, a, c=chunk: _sum_live(lv, a, c))(live, x)
+        np.testing.assert_allclose(total, want, rtol=1e-15)
+        assert int(chunks) == visited, chunk
+    # Under an outer vmap with its axis name, a chunk live in either track is visited in both.
+    lives = jnp.stack([live, jnp.zeros(K, bool).at[0].set(True)])
+    total, chunks = jax.vmap(lambda lv, a: _sum_live(lv, a, 4, "t"), axis_name="t")(lives, jnp.stack([x, x]))
+    np.testing.assert_allclose(total, [want, float(x[0] ** 2)], rtol=1e-15)
+    assert chunks.tolist() == [2, 2]

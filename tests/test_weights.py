@@ -163,7 +163,8 @@ def test_linear_tables_equal_the_dense_jacobian_products():
     [x, objs] only: J Σ Jᵀ equals the product with the dense Jacobian over the whole state, on a
     random full covariance, with a candidate list that repeats an object (gating); each in-view
     term reads its own [x, object] block."""
-    from hybridslam.estimators.hybrid.weights import _log_visibility_probability, _residual_rows, linear_tables
+    from hybridslam.estimators.hybrid.weights import _log_visibility_probability, linear_tables
+    from hybridslam.models.measurement import detection_residual
 
     scenario = hs.simulate(0, steps=1)
     sensor = hs.model_from_scenario(scenario, "mirror").sensor
@@ -177,8 +178,18 @@ def test_linear_tables_equal_the_dense_jacobian_products():
     objs = jnp.array([3, 0, 3, 1])
     got = linear_tables(sensor, mean, cov, det, objs)
     m = sensor.classifier.num_classes
-    jac = jax.vmap(jax.vmap(jax.jacfwd(lambda s, o, c: _residual_rows(sensor, s, o, c, det.geo[0], det.scores[0])[0]),
-                            (None, None, 0)), (None, 0, None))(mean, objs, jnp.arange(m))
+
+    def row(state, o, c, j):  # detection j's whitened residual and log normalizer, object o, class c
+        return detection_residual(sensor, state[:3], state[3:].reshape(-1, 3)[o], det.geo[j], det.scores[j], c)
+
+    for j in range(2):  # every class's rows come from one residual evaluation: the same as class by class
+        for i, o in enumerate(np.asarray(objs)):
+            for c in range(m):
+                r, log_norm = row(mean, o, jnp.asarray(c), j)
+                np.testing.assert_allclose(got.r_bar[j, i, c], r, rtol=1e-15, atol=1e-15)
+                np.testing.assert_allclose(got.log_norm[j, i, c], log_norm, rtol=1e-15)
+    jac = jax.vmap(jax.vmap(jax.jacfwd(lambda s, o, c: row(s, o, c, 0)[0]), (None, None, 0)), (None, 0, None))(
+        mean, objs, jnp.arange(m))
     jac = jac.reshape(-1, mean.shape[0])
     np.testing.assert_allclose(got.gram, jac @ cov @ jac.T, rtol=1e-10, atol=1e-12)
     for i, o in enumerate(np.asarray(objs)):  # each in-view term sees Σ over [x, its object] only
@@ -186,3 +197,44 @@ def test_linear_tables_equal_the_dense_jacobian_products():
         want = _log_visibility_probability(sensor, mean[idx], cov[np.ix_(idx, idx)])
         np.testing.assert_allclose(got.log_vis[i], want, rtol=1e-13)
     assert bool(jnp.all(jnp.isfinite(got.log_vis)))
+
+
+def test_sampled_children_are_each_childs_monte_carlo_mean_over_its_parents_draws():
+    """The beam's sampled weights (Eq. 16 per child, parents' tables reduced chunk by chunk, never
+    stacked) equal the plain Monte-Carlo mean of each child's likelihood over its parent's draws
+    ``mean + L eps`` (L = chol(Σ)), with and without the visibility term, and its ESS."""
+    from hybridslam.estimators.hybrid.weights import log_likelihood_table, sampled_children
+
+    scenario = hs.simulate(1, steps=1)
+    sensor = hs.model_from_scenario(scenario, "mirror").sensor
+    rng = np.random.default_rng(5)
+    n, k, s = scenario.num_objects, 6, 64
+    d = 3 + 3 * n
+    mean = jnp.asarray(np.concatenate([scenario.robot_prior_mean[None, :], np.zeros((1, 3 * n))], 1)
+                       + rng.normal(0, 0.05, (k, d)) + np.r_[[0.0] * 3, np.asarray(scenario.object_prior_means).reshape(-1)])
+    a = rng.normal(size=(k, d, d))
+    cov = jnp.asarray(0.01 * a @ np.swapaxes(a, 1, 2) / d + 1e-3 * np.eye(d))
+    det = hs.Detections(jnp.array([[4.0, 0.3], [6.0, -0.2]]), jnp.array([[0.7, 0.3], [0.2, 0.8]]),
+                        jnp.array([True, True]))
+    eps = jax.random.normal(jax.random.PRNGKey(0), (s, d))
+    alive = jnp.array([True, False, True, True, False, True])  # chunks of 4: one wholly dead slot, one padded
+    parent = jnp.array([0, 2, 3, 5, 1, 0])
+    measured = jnp.array([[0, 1], [2, -1], [1, 0], [3, 4], [0, 1], [-1, 5]])
+    slot_class = jnp.array([[0, 1], [1, 0], [0, 0], [1, 1], [0, 0], [0, 1]])
+    got = sampled_children(sensor, mean, cov, det, eps, alive, parent, measured, slot_class)
+    live_children = np.asarray(alive)[np.asarray(parent)]
+    assert np.all(np.isfinite(np.asarray(got[1])[live_children]))
+    assert np.sum(np.isfinite(np.asarray(got[0])[live_children])) >= 2  # some children in view, too
+    for i in range(parent.shape[0]):
+        p = int(parent[i])
+        if not bool(alive[p]):  # masked by the caller
+            continue
+        draws = mean[p][None, :] + eps @ jnp.linalg.cholesky(cov[p]).T
+        lik, view = jax.vmap(log_likelihood_table, (None, 0, None))(sensor, draws, det)
+        terms_free = sum(lik[:, j, measured[i, j], slot_class[i, j]] for j in range(2) if measured[i, j] >= 0)
+        terms = terms_free + sum(view[:, measured[i, j]] for j in range(2) if measured[i, j] >= 0)
+        log_mean = lambda t: jax.scipy.special.logsumexp(t) - np.log(s)  # noqa: E731
+        np.testing.assert_allclose(got[0][i], log_mean(terms), rtol=1e-12)
+        np.testing.assert_allclose(got[1][i], log_mean(terms_free), rtol=1e-12)
+        if np.isfinite(float(got[0][i])):
+            np.testing.assert_allclose(got[2][i], np.exp(2 * log_mean(terms) - log_mean(2 * terms)), rtol=1e-10)

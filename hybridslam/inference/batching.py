@@ -71,6 +71,33 @@ def map_live(fn: Callable, live: Bool[Array, " K"], *args, chunk: int = 4, axis_
     return jax.tree.map(lambda x: x.reshape((k + pad,) + x.shape[2:])[:k], out)
 
 
+def fold_live(fn: Callable, init: Any, live: Bool[Array, " K"], *args, chunk: int = 4,
+              axis_name: str | None = None) -> Any:
+    """``acc = fn(acc, first, *chunk_args)`` over chunks of ``chunk`` slots of the leading ``K`` axis
+    (``first``: the chunk's first slot index), skipping chunks with no live slot, as :func:`map_live`
+    does; ``fn`` sees its chunk batched (``chunk`` leading; the last chunk padded with copies of slot
+    0, at indices ``K`` and above) and returns an accumulator of ``init``'s structure. For work whose per-slot outputs are large but consumed at once (e.g. per-sample tables
+    reduced to a few numbers): nothing per slot is stacked, and dead chunks write nothing.
+    ``axis_name``: as in :func:`map_live`."""
+    k = live.shape[0]
+    size = min(chunk, k)
+    pad = -k % size
+    live = jnp.concatenate([live, jnp.zeros(pad, bool)])
+    args = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[:1], pad, axis=0)]), args)
+    split = lambda x: x.reshape((x.shape[0] // size, size) + x.shape[1:])  # noqa: E731
+
+    def one_chunk(acc, xs):
+        first, live_c, args_c = xs
+        any_live = jnp.any(live_c)
+        if axis_name is not None:
+            any_live = jax.lax.psum(any_live.astype(jnp.int32), axis_name) > 0
+        return jax.lax.cond(any_live, lambda: fn(acc, first, *args_c), lambda: acc), None
+
+    firsts = jnp.arange(0, k + pad, size)
+    acc, _ = jax.lax.scan(one_chunk, init, (firsts, split(live), jax.tree.map(split, args)))
+    return acc
+
+
 def map_distinct(
     fn: Callable, live: Bool[Array, " K"], same: Bool[Array, "K K"], *args, chunk: int = 4,
     axis_name: str | None = None,
