@@ -64,13 +64,14 @@ def inputs_from_scenario(scenario: Scenario, max_detections: int, first_step: in
         raise ValueError(f"num_steps: {total}, but the scenario has {t} steps")
     pad = lambda a: np.concatenate([a, np.zeros((total - t,) + a.shape[1:], a.dtype)])  # noqa: E731
     truth = np.full((t, 3), np.nan) if scenario.true_robot_poses is None else scenario.true_robot_poses[1:]
+    put = jax.device_put  # numpy to the device without a compile (jnp.asarray compiles a small program)
     return Inputs(
-        odometry=jnp.asarray(pad(np.asarray(stacked.odometry, float).reshape(t, 3))),
-        detections=Detections(jnp.asarray(pad(stacked.geo), dtype=float), jnp.asarray(pad(stacked.scores), dtype=float),
-                              jnp.asarray(pad(stacked.mask))),
-        steps=jnp.arange(first_step, first_step + total, dtype=jnp.int32),
-        truth=jnp.asarray(pad(np.asarray(truth, float).reshape(t, 3))),
-        active=jnp.arange(total) < t,
+        odometry=put(pad(np.asarray(stacked.odometry, float).reshape(t, 3))),
+        detections=Detections(put(pad(np.asarray(stacked.geo, float))), put(pad(np.asarray(stacked.scores, float))),
+                              put(pad(np.asarray(stacked.mask, bool)))),
+        steps=put(np.arange(first_step, first_step + total, dtype=np.int32)),
+        truth=put(pad(np.asarray(truth, float).reshape(t, 3))),
+        active=put(np.arange(total) < t),
     )
 
 
@@ -260,8 +261,14 @@ class Run:
         return self.state
 
 
+# One small program (cached per estimator and shapes) rather than one eager op after another, each a
+# compile of its own in a fresh process.
+_trajectory = eqx.filter_jit(lambda estimator, state: estimator.trajectory(state))
+
+
 def _first(tree):
-    return jax.tree.map(lambda x: x[0], tree)
+    """The first entry of every leaf, on the host (numpy: indexing a device array compiles a program)."""
+    return jax.tree.map(lambda x: np.asarray(x)[0], jax.device_get(tree))
 
 
 def run(
@@ -277,12 +284,13 @@ def run(
     the info's warnings). The same estimator, scenario and seed give the same result.
     """
     state = estimator.init(scenario)
-    history = estimator.view(state).history
+    history = jax.eval_shape(estimator.view, state).history  # its shape only: nothing to compute
     if scenario.num_steps > history.shape[-2]:
         raise ValueError(f"history is full: the state has room for {history.shape[-2]} steps, the scenario has "
                          f"{scenario.num_steps} (max_steps)")
     slots = history.shape[-1]
-    inputs = inputs_from_scenario(scenario, slots)
+    # Sliced on the host: slicing device arrays compiles a program per leaf shape.
+    inputs = jax.tree.map(np.asarray, inputs_from_scenario(scenario, slots))
     key = jax.random.PRNGKey(seed)
     num_det = [len(s.detections) for s in scenario.steps]
     has_truth = scenario.true_robot_poses is not None
@@ -297,13 +305,13 @@ def run(
         t0 = time.perf_counter()
         state, trace = jax.block_until_ready(step_fn(estimator, state, xs, key))
         step_s.append(time.perf_counter() - t0)
-        trace = jax.device_get(_first(trace))
+        trace = _first(trace)
         records.append(trace_record(trace, num_det, has_truth))
         infos.append(trace.info)
         if on_step is not None:
             on_step(records[-1], trace.info, step_s[-1])
     extra = {}
-    trajectory = estimator.trajectory(state)
+    trajectory = _trajectory(estimator, state)
     if trajectory is not None:
         # x_0..x_T of this scenario: a history longer than the scenario (max_steps) holds padding after it.
         extra["trajectory"] = np.asarray(trajectory, dtype=float)[: scenario.num_steps + 1]

@@ -17,7 +17,7 @@ world frame of the scenario. Trajectories are compared pose by pose, so they mus
 
 A TUM file (``evo_ape tum ref.txt est.txt``) has one line ``t tx ty tz qx qy qz qw`` per pose;
 :func:`write_tum` writes SE(2) poses as ``tz = qx = qy = 0``, ``qz = sin(θ/2)``, ``qw = cos(θ/2)``.
-Host-side, after a run: the SE(2) algebra is :mod:`hybridslam.se2`, vmapped.
+Host-side, after a run, in numpy: the SE(2) algebra of :mod:`hybridslam.models.se2`, row by row.
 """
 
 from __future__ import annotations
@@ -26,19 +26,27 @@ import dataclasses
 import math
 import os
 
-import jax
-import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import ArrayLike, Float
 
 from ..io.result import Result
 from ..io.scenario import Scenario
-from ..models import se2
 
 STATISTICS = ("max", "mean", "median", "min", "rmse", "sse", "std")
 _PLANAR_TOL = 1e-9  # a TUM pose further than this from the plane is not an SE(2) pose
 
-_between = jax.jit(jax.vmap(se2.between))
+def _wrap(angle: np.ndarray) -> np.ndarray:
+    """:func:`hybridslam.models.se2.wrap` in numpy: angles to (-pi, pi]."""
+    return np.pi - np.mod(np.pi - angle, 2 * np.pi)
+
+
+def _between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a_i⁻¹ ∘ b_i`` for every row (:func:`hybridslam.models.se2.between`, in numpy: these host-side
+    metrics would otherwise compile a small XLA program per array shape)."""
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    d = b[:, :2] - a[:, :2]
+    t = np.stack([c * d[:, 0] + s * d[:, 1], c * d[:, 1] - s * d[:, 0]], axis=-1)  # R(θ_a)ᵀ (b − a)
+    return np.concatenate([t, _wrap(b[:, 2:] - a[:, 2:])], axis=-1)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,23 +73,23 @@ def statistics(errors: np.ndarray) -> dict[str, float]:
     }
 
 
-def _poses(poses: Float[ArrayLike, "T 3"], name: str) -> jax.Array:
-    p = jnp.asarray(poses, dtype=float)
+def _poses(poses: Float[ArrayLike, "T 3"], name: str) -> np.ndarray:
+    p = np.asarray(poses, dtype=float)
     if p.ndim != 2 or p.shape[1] != 3 or p.shape[0] == 0:
         raise ValueError(f"{name}: expected a (T, 3) array of poses [x, y, theta], got shape {p.shape}")
-    if not bool(jnp.all(jnp.isfinite(p))):
+    if not bool(np.all(np.isfinite(p))):
         raise ValueError(f"{name}: not all finite")
     return p
 
 
-def _pair(reference, estimate) -> tuple[jax.Array, jax.Array]:
+def _pair(reference, estimate) -> tuple[np.ndarray, np.ndarray]:
     ref, est = _poses(reference, "reference"), _poses(estimate, "estimate")
     if ref.shape != est.shape:
         raise ValueError(f"estimate: {est.shape[0]} poses, but the reference has {ref.shape[0]}")
     return ref, est
 
 
-def _error(poses: jax.Array) -> PoseError:
+def _error(poses: np.ndarray) -> PoseError:
     """Translation norm and absolute rotation angle of error poses ``E`` (n, 3)."""
     e = np.asarray(poses)
     return PoseError(np.linalg.norm(e[:, :2], axis=-1), np.abs(e[:, 2]))
@@ -213,4 +221,4 @@ def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     if not rows:
         raise ValueError(f"{os.fspath(path)}: no poses")
     data = np.array(rows)
-    return data[:, 0], np.concatenate([data[:, 1:3], np.asarray(se2.wrap(data[:, 3:]))], axis=-1)
+    return data[:, 0], np.concatenate([data[:, 1:3], _wrap(data[:, 3:])], axis=-1)

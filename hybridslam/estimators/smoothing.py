@@ -193,17 +193,18 @@ def data_log(scenario: Scenario, max_steps: int, max_detections: int, max_object
     var = scenario.discovery.new_object_orientation_var if scenario.discovery is not None else 1.0
     for i in range(n, max_objects):
         info_sqrt[5 + 3 * i, 5 + 3 * i] = 1.0 / np.sqrt(var)
-    f = lambda a: jnp.asarray(a, dtype=float)  # noqa: E731
     budget = max_steps * max_detections if max_factors is None else max_factors
     if not 1 <= budget <= max_steps * max_detections:
         raise ValueError(f"max_factors: expected 1 to {max_steps * max_detections} (steps × detection slots), "
                          f"got {budget}")
+    put = jax.device_put  # numpy to the device without a compile (eager jnp ops each compile one)
     return DataLog(
-        odometry=jnp.zeros((max_steps, 3)), geo=jnp.zeros((max_steps, max_detections, 2)),
-        scores=jnp.zeros((max_steps, max_detections, m)), mask=jnp.zeros((max_steps, max_detections), bool),
-        rows=jnp.zeros((budget,), jnp.int32),
-        prior_mean=f(mean), prior_sqrt_info=f(info_sqrt), prior_info=f(info_sqrt.T @ info_sqrt),
-        last_step=jnp.asarray(scenario.num_steps, dtype=jnp.int32),
+        odometry=put(np.zeros((max_steps, 3))), geo=put(np.zeros((max_steps, max_detections, 2))),
+        scores=put(np.zeros((max_steps, max_detections, m))), mask=put(np.zeros((max_steps, max_detections), bool)),
+        rows=put(np.zeros((budget,), np.int32)),
+        prior_mean=put(np.asarray(mean, float)), prior_sqrt_info=put(np.asarray(info_sqrt, float)),
+        prior_info=put(np.asarray(info_sqrt.T @ info_sqrt, float)),
+        last_step=put(np.asarray(scenario.num_steps, dtype=np.int32)),
     )
 
 
@@ -264,7 +265,7 @@ def _sqrt_information(cov: np.ndarray) -> np.ndarray:
 
 def initial_trajectory(scenario: Scenario, max_steps: int) -> Float[Array, "T1 3"]:
     """``x_0`` at the prior mean, the poses not reached yet at the same place (inactive until reached)."""
-    return jnp.broadcast_to(jnp.asarray(scenario.robot_prior_mean, dtype=float), (max_steps + 1, 3))
+    return jax.device_put(np.broadcast_to(np.asarray(scenario.robot_prior_mean, dtype=float), (max_steps + 1, 3)))
 
 
 class Factors(eqx.Module):
