@@ -203,7 +203,7 @@ class SingleGaussian(AbstractEstimator):
         class_log_post = np.tile(uniform, (n_max, 1))
         class_log_post[:n] = np.log(scenario.class_prior)
         # One class prior row per slot, so the state's shapes depend on the capacity alone.
-        model = eqx.tree_at(lambda mod: mod.class_prior, model, jnp.asarray(np.exp(class_log_post)))
+        model = eqx.tree_at(lambda mod: mod.class_prior, model, jax.device_put(np.exp(class_log_post)))
         dim = 3 + 3 * n_max
         mean = np.zeros(dim)
         cov = np.eye(dim)
@@ -211,7 +211,8 @@ class SingleGaussian(AbstractEstimator):
         for i in range(n):  # host-side, once
             mean[3 + 3 * i : 6 + 3 * i] = scenario.object_prior_means[i]
             cov[3 + 3 * i : 6 + 3 * i, 3 + 3 * i : 6 + 3 * i] = scenario.object_prior_covs[i]
-        f = lambda a: jnp.asarray(a, dtype=float)  # noqa: E731
+        put = jax.device_put  # numpy to the device without a compile (eager jnp ops compile one each)
+        f = lambda a: put(np.asarray(a, dtype=float))  # noqa: E731
         params = Params(
             gate=f(chi2_gate(self.gate_probability)),
             new_object_log_density=f(0.0 if disc is None else disc.new_object_log_density),
@@ -221,16 +222,16 @@ class SingleGaussian(AbstractEstimator):
         steps = history_length(self.max_steps, scenario)
         g = min(self.candidates, n_max)
         state = GaussianState(
-            mean=f(mean), cov=f(cov), num_created=jnp.asarray(n, dtype=jnp.int32),
-            class_log_post=f(class_log_post), observed=jnp.zeros(n_max, dtype=bool),
-            history=jnp.full((steps, slots), -1, dtype=jnp.int32),
-            k=jnp.zeros((), dtype=jnp.int32), model=model, params=params,
+            mean=f(mean), cov=f(cov), num_created=put(np.asarray(n, dtype=np.int32)),
+            class_log_post=f(class_log_post), observed=put(np.zeros(n_max, dtype=bool)),
+            history=put(np.full((steps, slots), -1, dtype=np.int32)),
+            k=put(np.zeros((), dtype=np.int32)), model=model, params=params,
             structure=Structure(disc is not None, g),
         )
         if isinstance(self.smoother, Filter):
             return state
-        none = Factors(jnp.zeros((steps, slots, g), jnp.int32), jnp.full((steps, slots, g), -jnp.inf),
-                       jnp.full((steps, slots), -jnp.inf), jnp.zeros((steps, slots, g), jnp.int32))
+        none = Factors(put(np.zeros((steps, slots, g), np.int32)), put(np.full((steps, slots, g), -np.inf)),
+                       put(np.full((steps, slots), -np.inf)), put(np.zeros((steps, slots, g), np.int32)))
         log = data_log(scenario, steps, slots, n_max, factor_budget(scenario, self.max_steps, slots))
         return dataclasses.replace(state, poses=initial_trajectory(scenario, steps), log=log, factors=none,
                                    window=initial_window(log) if isinstance(self.smoother, Lag) else None)

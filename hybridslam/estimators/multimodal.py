@@ -925,30 +925,32 @@ class Multimodal(AbstractEstimator):
         with np.errstate(divide="ignore"):
             class_lp[:n] = np.log(scenario.class_prior)
         disc = scenario.discovery
+        put = jax.device_put  # numpy to the device without a compile (eager jnp ops compile one each)
+        f = lambda a: put(np.asarray(a, dtype=float))  # noqa: E731
         params = Params(
-            jnp.asarray(disc.new_object_log_density if disc else -jnp.inf, dtype=float),
-            jnp.asarray(disc.new_object_orientation_var if disc else 1.0, dtype=float),
-            jnp.asarray(float(self.merge_threshold), dtype=float),
-            jnp.asarray(-jnp.inf if self.clutter is None else float(self.clutter), dtype=float),
+            f(disc.new_object_log_density if disc else -np.inf),
+            f(disc.new_object_orientation_var if disc else 1.0),
+            f(float(self.merge_threshold)),
+            f(-np.inf if self.clutter is None else float(self.clutter)),
         )
         # The class prior padded to Nmax rows: runs with the same capacities share one compiled step.
-        model = eqx.tree_at(lambda mo: mo.class_prior, model, jnp.asarray(np.exp(class_lp)))
+        model = eqx.tree_at(lambda mo: mo.class_prior, model, put(np.exp(class_lp)))
         k = cfg.capacity
         smoothing: dict[str, Any] = {} if isinstance(self.smoother, Filter) else dict(
-            poses=jnp.broadcast_to(initial_trajectory(scenario, cfg.max_steps), (k, cfg.max_steps + 1, 3)),
+            poses=put(np.broadcast_to(np.asarray(initial_trajectory(scenario, cfg.max_steps)), (k, cfg.max_steps + 1, 3))),
             log=data_log(scenario, cfg.max_steps, cfg.max_detections, n_max,
                          factor_budget(scenario, self.max_steps, cfg.max_detections)))
         if isinstance(self.smoother, Lag):
             smoothing["window"] = initial_window(smoothing["log"], k)
         return State(
-            log_weights=jnp.full((k,), -jnp.inf).at[0].set(0.0),
-            mean=jnp.broadcast_to(jnp.asarray(mean), (k, dim)),
-            cov=jnp.broadcast_to(jnp.asarray(cov), (k, dim, dim)),
-            class_log_probs=jnp.broadcast_to(jnp.asarray(class_lp), (k, n_max, m)),
-            observed=jnp.zeros((k, n_max), dtype=bool),
-            num_created=jnp.full((k,), n, dtype=jnp.int32),
-            history=jnp.full((k, cfg.max_steps, cfg.max_detections), -1, dtype=jnp.int32),
-            k=jnp.zeros((), dtype=jnp.int32),
+            log_weights=put(np.concatenate([[0.0], np.full(k - 1, -np.inf)])),
+            mean=put(np.broadcast_to(mean, (k, dim))),
+            cov=put(np.broadcast_to(cov, (k, dim, dim))),
+            class_log_probs=put(np.broadcast_to(class_lp, (k, n_max, m))),
+            observed=put(np.zeros((k, n_max), dtype=bool)),
+            num_created=put(np.full((k,), n, dtype=np.int32)),
+            history=put(np.full((k, cfg.max_steps, cfg.max_detections), -1, dtype=np.int32)),
+            k=put(np.zeros((), dtype=np.int32)),
             model=model,
             params=params,
             config=cfg,
