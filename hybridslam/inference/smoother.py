@@ -103,7 +103,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable
-from typing import Literal
+from typing import Literal, cast
 
 import equinox as eqx
 import jax
@@ -959,7 +959,8 @@ def solve(
     init = _LMState(
         jnp.asarray(False), poses0, objects0, _unlinearized(graph, poses0.shape[0], objects0.shape[0], dtype),
         jnp.asarray(lambda_init, dtype), jnp.asarray(2.0, dtype), jnp.asarray(0), jnp.asarray(False),
-        optx.RESULTS.successful, jnp.full((max_steps,), jnp.nan, dtype), jnp.zeros((), dtype), jnp.zeros((), dtype),
+        cast(optx.RESULTS, optx.RESULTS.successful),  # an item; its stub says str
+        jnp.full((max_steps,), jnp.nan, dtype), jnp.zeros((), dtype), jnp.zeros((), dtype),
     )
     body = lambda s: _lm_step(graph, info, method, state_tol, cost_rtol, cost_atol, max_steps, s)  # noqa: E731
     s = jax.lax.while_loop(lambda s: ~s.done, body, init)
