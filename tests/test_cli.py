@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import json
+import pathlib
 
 import equinox as eqx
 import numpy as np
@@ -106,7 +107,7 @@ def test_run_warns_on_capacity_and_visibility(scenario_path, tmp_path, capsys, m
 
 
 def test_malformed_scenario_is_one_line_error(scenario_path, tmp_path, capsys):
-    obj = json.loads(open(scenario_path).read())
+    obj = json.loads(pathlib.Path(scenario_path).read_text())
     del obj["geometric_cov"]
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps(obj))

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import pathlib
 
 import pytest
 
@@ -13,7 +14,7 @@ from hybridslam.driver import run_estimator
 from hybridslam.io.result import result_to_json
 
 GOLDEN = os.path.join(os.path.dirname(__file__), "data", "golden")
-CASES = json.load(open(os.path.join(GOLDEN, "cases.json"), encoding="utf-8"))
+CASES = json.loads(pathlib.Path(GOLDEN, "cases.json").read_text(encoding="utf-8"))
 
 
 @pytest.mark.parametrize("name", sorted(CASES))

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import pathlib
 
 import equinox as eqx
 import jax
@@ -103,7 +104,7 @@ def test_save_load_round_trip(fitted, model_file):
 
 
 def test_bad_files_are_named(model_file, tmp_path):
-    data = open(model_file, "rb").read()
+    data = pathlib.Path(model_file).read_bytes()
     cases = {
         "missing.eqx": None,
         "empty.eqx": b"",

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import pathlib
 import signal
 import subprocess
 import sys
@@ -73,7 +74,7 @@ def test_table_layout(tiny):
     keys = [(r["alpha"], r["track"], r["step"]) for r in rows]
     assert keys == [(a, t, k) for a in TINY["alphas"] for t in range(3) for k in (1, 2, 3)]
     assert {r["seed"] for r in rows} == {0, 1, 2}
-    records = [json.loads(line) for line in open(os.path.join(folder, study.RECORDS), encoding="utf-8")]
+    records = [json.loads(line) for line in pathlib.Path(folder, study.RECORDS).read_text(encoding="utf-8").splitlines()]
     assert records[0]["format"] == study.RECORD_FORMAT and len(records) == 1 + 3
     assert [r["cell"] for r in records[1:]] == [{"alpha": a, "model": "mirror"} for a in TINY["alphas"]]
 
@@ -137,7 +138,7 @@ def test_resume_after_kill_gives_the_same_table(tiny, tmp_path, cache_env):
                             capture_output=True, text=True, timeout=300)
     assert killed.returncode == -signal.SIGKILL, killed.stderr
     records = os.path.join(folder, study.RECORDS)
-    text = open(records, encoding="utf-8").read()
+    text = pathlib.Path(records).read_text(encoding="utf-8")
     assert text.count("\n") == 2 and not text.endswith("\n")  # header, one cell, half a line
     with open(os.path.join(folder, study.TABLE), encoding="utf-8") as f:
         assert f.read() == "\n".join(expected.splitlines()[:1 + 9]) + "\n"  # the finished cell's rows
@@ -147,7 +148,7 @@ def test_resume_after_kill_gives_the_same_table(tiny, tmp_path, cache_env):
     assert "resuming: 1 of 3 cells already recorded" in resumed.stdout
     with open(os.path.join(folder, study.TABLE), encoding="utf-8") as f:
         assert f.read() == expected
-    lines = open(records, encoding="utf-8").read().splitlines()
+    lines = pathlib.Path(records).read_text(encoding="utf-8").splitlines()
     assert len(lines) == 1 + 3 and all(json.loads(line) for line in lines)
 
 
@@ -160,7 +161,7 @@ def test_sharded_over_four_devices_equals_one(tiny, tmp_path, cache_env):
     out = subprocess.run(_sweep_cmd(folder), env=env, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert "4 device(s)" in out.stdout
-    records = [json.loads(line) for line in open(os.path.join(folder, study.RECORDS), encoding="utf-8")][1:]
+    records = [json.loads(line) for line in pathlib.Path(folder, study.RECORDS).read_text(encoding="utf-8").splitlines()][1:]
     assert all(r["devices"] == 4 for r in records)
     with open(os.path.join(folder, study.TABLE), encoding="utf-8") as f:
         got = f.read()
