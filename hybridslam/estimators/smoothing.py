@@ -263,6 +263,13 @@ def _sqrt_information(cov: np.ndarray) -> np.ndarray:
     return np.linalg.cholesky(np.linalg.inv(cov)).T
 
 
+def _sqrt_information_of(cov: Float[Array, "3 3"]) -> Float[Array, "3 3"]:
+    """``R = chol(Σ⁻¹)ᵀ`` (``RᵀR = Σ⁻¹``), the inverse from ``Σ``'s Cholesky factor: an LU inverse
+    would compile a pivoting loop into every step."""
+    chol = jnp.linalg.cholesky(cov)
+    return jnp.linalg.cholesky(jax.scipy.linalg.cho_solve((chol, True), jnp.eye(3, dtype=cov.dtype))).T
+
+
 def initial_trajectory(scenario: Scenario, max_steps: int) -> Float[Array, "T1 3"]:
     """``x_0`` at the prior mean, the poses not reached yet at the same place (inactive until reached)."""
     return jax.device_put(np.broadcast_to(np.asarray(scenario.robot_prior_mean, dtype=float), (max_steps + 1, 3)))
@@ -302,7 +309,7 @@ def graph(
     log_w = jnp.where(reached[:, None], flat(factors.log_weight), -jnp.inf)
     null = jnp.where(reached, flat(factors.null_log_weight), -jnp.inf)
     residual, data = _measurements(sensor, semantic, flat(log.geo), flat(log.scores), flat(factors.classes))
-    motion_sqrt = jnp.linalg.cholesky(jnp.linalg.inv(motion_cov)).T
+    motion_sqrt = _sqrt_information_of(motion_cov)
     return sm.FactorGraph(
         prior_mean=log.prior_mean, prior_sqrt_info=log.prior_sqrt_info,
         odometry=log.odometry, odometry_active=steps < k, motion_sqrt_info=motion_sqrt,
@@ -348,7 +355,7 @@ def window_graph(
     return sm.FactorGraph(
         prior_mean=prior.mean, prior_sqrt_info=None, prior_info=prior.info,
         odometry=jnp.take(log.odometry, jnp.clip(odo_rows, 0, t - 1), axis=0), odometry_active=odo_rows < k,
-        motion_sqrt_info=jnp.linalg.cholesky(jnp.linalg.inv(motion_cov)).T,
+        motion_sqrt_info=_sqrt_information_of(motion_cov),
         meas_pose=flat(jnp.broadcast_to(jnp.arange(length + 1)[:, None], (length + 1, dmax))),
         meas_objects=flat(take(factors.objects)), meas_log_weight=flat(log_w), meas_null_log_weight=flat(null),
         meas_data=data, pose_active=jnp.arange(length + 1) <= k - start,

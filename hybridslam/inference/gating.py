@@ -51,6 +51,12 @@ def _predicted(sensor: SensorModel, x: Float[Array, "3"], obj: Float[Array, "3"]
     return range_bearing(x, obj), jac_x, jac_o, jac @ block @ jac.T + sensor.geometric_cov
 
 
+def _mahalanobis2(r: Float[Array, "2"], s: Float[Array, "2 2"]) -> Float[Array, ""]:
+    """``rᵀ S⁻¹ r`` of a symmetric 2×2 ``S``, in closed form (an LU solve would compile a pivoting loop)."""
+    det = s[0, 0] * s[1, 1] - s[0, 1] * s[1, 0]
+    return (s[1, 1] * r[0] ** 2 - (s[0, 1] + s[1, 0]) * r[0] * r[1] + s[0, 0] * r[1] ** 2) / det
+
+
 def innovations(
     sensor: SensorModel, mean: Float[Array, " D"], cov: Float[Array, "D D"], detections: Detections
 ) -> Innovations:
@@ -64,7 +70,7 @@ def innovations(
 
     def pair(z, p, s_):
         r = geometric_residual(z, p)
-        return r, r @ jnp.linalg.solve(s_, r)
+        return r, _mahalanobis2(r, s_)
 
     r, d2 = jax.vmap(jax.vmap(pair, (None, 0, 0)), (0, None, None))(detections.geo, pred, s)
     return Innovations(r, jac_x, jac_o, jnp.where(jnp.isfinite(d2), d2, jnp.inf), s)
@@ -102,8 +108,7 @@ def contradicted(
 
     def slot_d2(z, o, i):  # d² of one detection against the object it names only, not every object
         pred, _, _, s = _predicted(sensor, x, o, cov[i][:, i])
-        r = geometric_residual(z, pred)
-        return r @ jnp.linalg.solve(s, r)
+        return _mahalanobis2(geometric_residual(z, pred), s)
 
     d2 = jax.vmap(slot_d2)(detections.geo, objs[obj], idx)
     named = detections.mask & (objects >= 0)
