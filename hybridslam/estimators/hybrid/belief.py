@@ -19,10 +19,11 @@ components are alive is traced (``log_weights > -inf``), so one compiled step se
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ...io.scenario import Scenario
@@ -111,27 +112,29 @@ def init_belief(priors: Priors, model: Model, capacity: int, max_steps: int, max
     n = priors.object_means.shape[0]
     if model.class_prior.shape[0] != n:
         raise ValueError(f"class_prior has {model.class_prior.shape[0]} rows for {n} objects")
-    dim = 3 + 3 * n
-    # Built in numpy and put on the device once: eager jnp ops (jnp.asarray too) would each compile
-    # a small program.
-    mean = np.concatenate([np.asarray(priors.robot_mean), np.asarray(priors.object_means).reshape(-1)])
-    cov = np.zeros((dim, dim), dtype=mean.dtype)
-    cov[:3, :3] = np.asarray(priors.robot_cov)
-    covs = np.asarray(priors.object_covs)
-    for i in range(n):  # n blocks, built once at init (not per component)
-        cov[3 + 3 * i : 6 + 3 * i, 3 + 3 * i : 6 + 3 * i] = covs[i]
-    k = capacity
-    log_weights = np.full((k,), -np.inf, dtype=mean.dtype)
-    log_weights[0] = 0.0
+    log_weights, mean, cov, classes, history, k = _initial_arrays(
+        priors.robot_mean, priors.robot_cov, priors.object_means, priors.object_covs, capacity, max_steps,
+        max_detections)
     return Belief(
-        # Explicit dtypes: a weakly typed initial belief would retrace the step after step 1.
-        log_weights=jax.device_put(log_weights),
-        mean=jax.device_put(np.broadcast_to(mean, (k, dim))),
-        cov=jax.device_put(np.broadcast_to(cov, (k, dim, dim))),
-        classes=jax.device_put(np.full((k, n), -1, dtype=np.int32)),
-        history=jax.device_put(np.full((k, max_steps, max_detections), -1, dtype=np.int32)),
-        k=jax.device_put(np.zeros((), dtype=np.int32)),
-        model=model,
-        num_created=None if model.discovery is None else jax.device_put(np.full(
-            (k,), n if priors.num_known is None else priors.num_known, dtype=np.int32)),
+        log_weights=log_weights, mean=mean, cov=cov, classes=classes, history=history, k=k, model=model,
+        num_created=None if model.discovery is None else jnp.full(
+            (capacity,), n if priors.num_known is None else priors.num_known, dtype=jnp.int32),
     )
+
+
+# One program per shape (traced through when the priors are, e.g. under jax.grad): run eagerly, each
+# of these array operations would compile a small program of its own in a fresh process.
+@functools.partial(jax.jit, static_argnums=(4, 5, 6))
+def _initial_arrays(robot_mean, robot_cov, object_means, object_covs, capacity: int, max_steps: int,
+                    max_detections: int):
+    n = object_means.shape[0]
+    dim = 3 + 3 * n
+    mean = jnp.concatenate([robot_mean, object_means.reshape(-1)])
+    cov = jnp.zeros((dim, dim), dtype=mean.dtype).at[:3, :3].set(robot_cov)
+    for i in range(n):  # n blocks, built once at init (not per component)
+        cov = cov.at[3 + 3 * i : 6 + 3 * i, 3 + 3 * i : 6 + 3 * i].set(object_covs[i])
+    k = capacity
+    # Explicit dtypes: a weakly typed initial belief would retrace the step after step 1.
+    return (jnp.full((k,), -jnp.inf, dtype=mean.dtype).at[0].set(0.0), jnp.broadcast_to(mean, (k, dim)),
+            jnp.broadcast_to(cov, (k, dim, dim)), jnp.full((k, n), -1, dtype=jnp.int32),
+            jnp.full((k, max_steps, max_detections), -1, dtype=jnp.int32), jnp.zeros((), dtype=jnp.int32))
