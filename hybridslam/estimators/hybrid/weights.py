@@ -492,10 +492,10 @@ def laplace_is_children(
     one = partial(_child_evidence, sensor, detections, eps, max_steps)
     live = top > -jnp.inf
     p = parent[flat]
-    # One candidate per chunk: unbatched, each mode search's loop runs for its own iterations only, and
-    # the program traces and compiles 0.3-0.7 s faster than four to a chunk (paper setup, 4 detections:
-    # the steps as fast or faster, 2026-11-26).
-    *packed, converged = map_live(one, live, mean[p], cov[p], measured[flat], slot_class[flat], chunk=1,
+    # Four candidates per chunk. One per chunk (unbatched) traces and compiles 0.3-0.5 s faster, but a
+    # step with many live candidates then runs their mode searches one after another: every slot of
+    # a capacity-16 belief alive, 10 ms -> 30-34 ms per step (scripts/bench_step.py, 2026-11-26).
+    *packed, converged = map_live(one, live, mean[p], cov[p], measured[flat], slot_class[flat], chunk=4,
                                   axis_name=axis_name)
     fill = (-jnp.inf, -jnp.inf, 0.0, True)
     return tuple(  # type: ignore[return-value]  # four arrays
