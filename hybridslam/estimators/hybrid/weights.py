@@ -63,6 +63,7 @@ from ...models.model import NewObjects
 from ...models.unrolled import cholesky_whiten, gaussian_terms, sum_last
 from .hypotheses import EMPTY, NEW, Children, HypothesisTable
 
+CHUNK = 4  # parents per chunk of sampled tables (sampled_children)
 ROW_CHUNK = 16  # hypothesis-table rows per chunk of linearized children (see linearized_log_likelihood)
 
 
@@ -189,31 +190,28 @@ def sampled_children(
         samples = m[None, :] + eps @ jnp.linalg.cholesky(c).T
         return jax.vmap(log_likelihood_table, (None, 0, None))(sensor, samples, detections)  # (S,Dmax,N,M), (S,N)
 
-    def one(lik, log_view, p, objs, classes):
+    def terms(lik, log_view, p, objs, classes):
+        """Child's per-sample log likelihood with and without the visibility term, (S,) each."""
         occ = objs >= 0
         o = jnp.maximum(objs, 0)
         slots = jnp.arange(objs.shape[0])
-        terms = jnp.where(occ[None, :], lik[p][:, slots, o, classes], 0.0)  # (S, Dmax)
-        view = jnp.where(occ[None, :], log_view[p][:, o], 0.0)
-        free = jnp.sum(terms, axis=-1)
-        with_view = free + jnp.sum(view, axis=-1)
-        log_psi, log_psi_free = _log_mean(with_view), _log_mean(free)
-        ess = jnp.where(log_psi > -jnp.inf, jnp.exp(2.0 * log_psi - _log_mean(2.0 * with_view)), 0.0)
-        return log_psi, log_psi_free, ess
+        free = jnp.sum(jnp.where(occ[None, :], lik[p][:, slots, o, classes], 0.0), axis=-1)
+        return free + jnp.sum(jnp.where(occ[None, :], log_view[p][:, o], 0.0), axis=-1), free
 
-    # A chunk of parents' tables (S samples each) is reduced to its children's three numbers at once:
-    # the tables of every parent slot are never stacked (16 parents' would be 3 MB per track and step).
+    # Each live chunk of parents writes its tables into one buffer; a dead chunk writes nothing
+    # (map_live would stack a zero-filled chunk for it: 3 MB per track and step at n_s = 1000).
     def fold(acc, first, m, c):
-        lik, log_view = jax.vmap(parent_tables)(m, c)
-        local = parent - first
-        mine = (local >= 0) & (local < m.shape[0])
-        at = jnp.clip(local, 0, m.shape[0] - 1)
-        out = jax.vmap(one, (None, None, 0, 0, 0))(lik, log_view, at, measured, slot_class)
-        return tuple(jnp.where(mine, v, a) for v, a in zip(out, acc))
+        return jax.tree.map(lambda buf, t: jax.lax.dynamic_update_slice_in_dim(buf, t, first, axis=0), acc,
+                            jax.vmap(parent_tables)(m, c))
 
-    n = parent.shape[0]
-    init = (jnp.full(n, -jnp.inf, mean.dtype), jnp.full(n, -jnp.inf, mean.dtype), jnp.zeros(n, mean.dtype))
-    return fold_live(fold, init, alive, mean, cov, axis_name=axis_name)
+    shapes = jax.eval_shape(parent_tables, mean[0], cov[0])
+    size = -(-mean.shape[0] // CHUNK) * CHUNK
+    init = jax.tree.map(lambda a: jnp.zeros((size,) + a.shape, a.dtype), shapes)
+    lik, log_view = fold_live(fold, init, alive, mean, cov, chunk=CHUNK, axis_name=axis_name)
+    with_view, free = jax.vmap(terms, (None, None, 0, 0, 0))(lik, log_view, parent, measured, slot_class)
+    log_psi, log_psi_free = jax.vmap(_log_mean)(with_view), jax.vmap(_log_mean)(free)
+    ess = jnp.where(log_psi > -jnp.inf, jnp.exp(2.0 * log_psi - jax.vmap(_log_mean)(2.0 * with_view)), 0.0)
+    return log_psi, log_psi_free, ess
 
 
 def _log_mean(terms: Float[Array, " S"]) -> Float[Array, ""]:
