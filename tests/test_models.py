@@ -24,6 +24,20 @@ def test_visibility_footprint():
     assert not geometry.visible(geometry.range_bearing(x, jnp.array([0.0, 3.0, 0.0])), 6.0, 2.0)
 
 
+@pytest.mark.parametrize("rb, var", [((5.5, 0.4), (0.25, 0.01)), ((3.0, -0.55), (0.04, 0.02)), ((6.4, 0.0), (0.09, 0.3))])
+def test_in_view_probability_of_a_gaussian_prediction_matches_monte_carlo(rb, var):
+    """``log_visibility_probability``: the 0/1 footprint averaged over ``N(rb, diag(var))``."""
+    from hybridslam.models.classifier import NoClassifier
+    from hybridslam.models.measurement import SensorModel, log_visibility_probability
+
+    sensor = SensorModel(jnp.eye(2) * 0.01, NoClassifier(2), jnp.asarray(6.0), jnp.asarray(1.2))
+    got = float(jnp.exp(log_visibility_probability(sensor, jnp.asarray(rb), jnp.asarray(var))))
+    draws = np.random.default_rng(0).normal(rb, np.sqrt(var), (400_000, 2))
+    want = np.mean((draws[:, 0] <= 6.0) & (np.abs(draws[:, 1]) <= 0.6))
+    assert 0.02 < want < 0.98
+    assert got == pytest.approx(want, abs=4e-3)
+
+
 def test_propagate_mean_and_covariance_match_monte_carlo():
     mean = jnp.array([1.0, -1.0, 0.3, 5.0, 5.0, 0.0])
     cov = jnp.diag(jnp.array([0.02, 0.03, 0.01, 0.05, 0.05, 1e-3]))

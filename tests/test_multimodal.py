@@ -266,9 +266,10 @@ def test_result_file_validates(discovery_run):
 # --------------------------------------------------------------------------- #
 
 
-def _crowded(objects=None, max_objects=6):
+def _crowded(objects=None, max_objects=6, fov=2 * math.pi):
     """Four correlated, uncertain objects in a row, a broad robot prior, three detections: the pose
-    and map correlations make each detection's conditional density depend on the earlier ones."""
+    and map correlations make each detection's conditional density depend on the earlier ones.
+    A ``fov`` of about 0.7 rad puts the outer objects near the footprint's edges."""
     objects = objects or [(2.0, -0.6, 0.0), (2.2, 0.0, 0.0), (2.0, 0.6, 0.0), (3.0, 0.2, 0.0)]
     dets = [{"range": 2.05, "bearing": -0.28, "scores": SEEN}, {"range": 2.18, "bearing": 0.02, "scores": SEEN},
             {"range": 2.1, "bearing": 0.3, "scores": SEEN}]
@@ -278,24 +279,26 @@ def _crowded(objects=None, max_objects=6):
         "robot": {"prior_mean": [0.0, 0.0, 0.0], "prior_cov": _diag(0.05, 0.05, 0.01)},
         "motion_cov": _diag(1e-4, 1e-4, 1e-6), "geometric_cov": GEO_COV.tolist(),
         "classifier": {"model": "mirror", "alpha": ALPHA, "K": K_SEM},
-        "sensor": {"max_range": 20.0, "fov": 2 * math.pi},
+        "sensor": {"max_range": 20.0, "fov": fov},
         "discovery": {"max_objects": max_objects, "new_object_log_density": -3.0, "new_object_orientation_var": 9.87},
         "steps": [{"odometry": [0, 0, 0], "detections": dets}],
     })
 
 
-def test_sequential_beam_screening_equals_the_exhaustive_joint_screening():
+@pytest.mark.parametrize("fov", [2 * math.pi, 0.7])
+def test_sequential_beam_screening_equals_the_exhaustive_joint_screening(fov):
     """The beam scores a partial assignment one detection at a time (a rank-2 downdate of the
     covariance per detection, :class:`Conditioned`); with room for every joint assignment
     (4³ = 64 rows) its children, screening scores and weights equal the exhaustive enumeration's,
-    which scores each row by the joint innovation density of all its detections at once."""
+    which scores each row by the joint innovation density of all its detections at once. With a
+    narrow footprint the in-view probabilities enter both screens alike."""
     import jax
 
     from hybridslam.driver import inputs_from_scenario
-    from hybridslam.estimators.multimodal import Multimodal, association_log_probabilities, screen_log_likelihood
+    from hybridslam.estimators.multimodal import Multimodal, association_log_probabilities
     from hybridslam.estimators.smoothing import Filter
 
-    scenario = _crowded()
+    scenario = _crowded(fov=fov)
     detections = jax.tree.map(lambda a: a[0], inputs_from_scenario(scenario, 3).detections)
     out = {}
     for name, width in (("beam", 64), ("exhaustive", None)):
@@ -310,6 +313,40 @@ def test_sequential_beam_screening_equals_the_exhaustive_joint_screening():
     for key, (lw, lp) in out["exhaustive"].items():
         assert out["beam"][key][0] == pytest.approx(lw, abs=1e-9)
         assert out["beam"][key][1] == pytest.approx(lp, abs=1e-9)
+
+
+def test_the_screen_weighs_each_named_object_by_its_in_view_probability():
+    """``screen_log_likelihood`` under a narrow footprint is the all-round sensor's screen plus
+    ``log P(in view)`` (``log_visibility_probability`` of the linearized predictive) of every
+    created object the assignment names; new objects and empty slots add nothing."""
+    import jax
+    import jax.numpy as jnp
+
+    from hybridslam.driver import inputs_from_scenario
+    from hybridslam.estimators import multimodal as mm
+    from hybridslam.estimators.smoothing import Filter
+    from hybridslam.models.geometry import range_bearing
+    from hybridslam.models.measurement import log_visibility_probability
+
+    screens = {}
+    for fov in (2 * math.pi, 0.7):
+        scenario = _crowded(fov=fov)
+        detections = jax.tree.map(lambda a: a[0], inputs_from_scenario(scenario, 3).detections)
+        est = mm.Multimodal(capacity=2, samples=8, max_detections=3, max_steps=2, smoother=Filter())
+        state = est.init(scenario)
+        m, c, sensor = state.mean[0], state.cov[0], state.model.sensor
+        pred = gating.innovations(sensor, m, c, detections)
+        objects, new = jnp.asarray([0, 3, -1]), jnp.asarray([False, False, True])
+        screens[fov] = float(mm.screen_log_likelihood(sensor, state.params, pred, m, c, state.class_log_probs[0],
+                                                      objects, new, detections))
+    in_view = 0.0
+    for n in (0, 3):
+        idx = np.r_[0:3, 3 + 3 * n:6 + 3 * n]
+        jac = np.concatenate(jax.jacfwd(range_bearing, argnums=(0, 1))(m[:3], m[3 + 3 * n:6 + 3 * n]), axis=1)
+        var = np.diagonal(jac @ np.asarray(c)[np.ix_(idx, idx)] @ jac.T)
+        in_view += float(log_visibility_probability(sensor, range_bearing(m[:3], m[3 + 3 * n:6 + 3 * n]), jnp.asarray(var)))
+    assert in_view < -0.1  # object 0 sits near the edge: the term matters
+    assert screens[0.7] == pytest.approx(screens[2 * math.pi] + in_view, abs=1e-9)
 
 
 def test_merge_keeps_the_mass_of_a_child_too_light_to_be_a_centre():

@@ -26,8 +26,8 @@ there, and separated modes stay separate components as long as there are at most
 A child more than ``RELEVANT_NATS`` (30 nats: relative weight below 1e-13) under the best child
 becomes no centre: its mass joins its nearest centre, so the belief carries no component it could
 not show.
-Only the ``children`` best children (a static count, ranked by the linearized likelihood below) get
-a Gauss-Newton update and a Monte Carlo weight: the linearized mass of the rest is reported in
+Only the ``children`` best children (a static count, ranked by the linearized likelihood below,
+each named object's in-view probability included) get a Gauss-Newton update and a Monte Carlo weight: the linearized mass of the rest is reported in
 ``StepInfo.dropped_mass`` and as a warning, never silently.
 
 Association probabilities (Eq. 5.9-5.10). ``L_ij`` integrates the joint likelihood of the step's
@@ -121,7 +121,7 @@ from ..inference.update import downdate, prior_gauss_newton_gain, support_of, wr
 from ..io.scenario import Scenario
 from ..models import geometry, motion
 from ..models.classifier import ClassifierModel
-from ..models.measurement import Detections, SensorModel, log_visibility
+from ..models.measurement import Detections, SensorModel, log_visibility, log_visibility_probability
 from ..models.model import Model, model_from_scenario
 from .. import __version__
 from ..inference.batching import map_live, smoothing_chunk
@@ -376,8 +376,9 @@ def screen_log_likelihood(
     clutter: Bool[Array, " Dmax"] | None = None,
 ) -> Float[Array, ""]:
     """Linearized ``log L_ij``: the joint innovation density ``N(r; 0, H Σ Hᵀ + Σ_v)`` of the detections
-    of created objects, plus the semantic and null terms at the mean. Used only to pick which
-    children get a Gauss-Newton update and an importance-sampled weight."""
+    of created objects, plus the semantic and null terms at the mean and each created object's
+    in-view probability (:func:`_log_in_view`). Used only to pick which children get a Gauss-Newton
+    update and an importance-sampled weight."""
     known = (objects >= 0) & ~new
     idx, dummy = _sub_indices(objects, known)
     _, sub_cov = sub_gaussian(mean, cov, idx, dummy)
@@ -402,7 +403,21 @@ def screen_log_likelihood(
     rest = joint_log_likelihood(sensor, params, x, objs[obj], jnp.zeros_like(known), new,
                                 class_log_probs[obj], detections, theta, clutter)
     known_sem = jax.vmap(partial(_known_semantic, sensor, x))(objs[obj], detections.scores, class_log_probs[obj])
+    known_sem = known_sem + _log_in_view(sensor, pred, x, objs, obj)
     return geo + rest + jnp.sum(jnp.where(known, known_sem, 0.0))
+
+
+def _log_in_view(sensor: SensorModel, pred: gating.Innovations, x: Float[Array, "3"], objs: Float[Array, "N 3"],
+                 ids: Int[Array, "*B"]) -> Float[Array, "*B"]:
+    """``log P(object ids[...] in view)`` under the linearized predictive of its range and bearing
+    (:func:`~hybridslam.models.measurement.log_visibility_probability`; ``H P Hᵀ`` is the innovation
+    covariance without the sensor noise). The screen's stand-in for the footprint factor that the
+    sampled weights (Eq. 5.10) apply at every draw: without it the screen keeps children whose
+    objects are out of view, and every one of them then weighs zero."""
+    flat = ids.reshape(-1)
+    rb = jax.vmap(geometry.range_bearing, (None, 0))(x, objs[flat])
+    var = jnp.maximum(jnp.diagonal(pred.cov[flat] - sensor.geometric_cov[None], axis1=-2, axis2=-1), 0.0)
+    return jax.vmap(log_visibility_probability, (None, 0, 0))(sensor, rb, var).reshape(ids.shape)
 
 
 class SlotTerms(eqx.Module):
@@ -412,7 +427,7 @@ class SlotTerms(eqx.Module):
     pred: gating.Innovations
     cov: Float[Array, "D D"]
     cand: Int[Array, "Dmax G"]
-    known: Float[Array, "Dmax G"]  # semantic term of a detection of each candidate, at the mean
+    known: Float[Array, "Dmax G"]  # semantic and in-view terms of a detection of each candidate, at the mean
     new: Float[Array, " Dmax"]  # null-hypothesis term of each detection (new object or clutter), at the mean (theta = 0)
 
 
@@ -425,6 +440,7 @@ def slot_terms(sensor: SensorModel, params: Params, pred: gating.Innovations, me
     cid = jnp.maximum(cand, 0)
     per_candidate = jax.vmap(partial(_known_semantic, sensor, x), (0, None, 0))
     known = jax.vmap(per_candidate)(objs[cid], detections.scores, class_log_probs[cid])
+    known = known + _log_in_view(sensor, pred, x, objs, cid)
     density = params.clutter_log_density if clutter else params.new_object_log_density
     new = jax.vmap(partial(_null_log_likelihood, sensor, density, x))(
         detections.geo, detections.scores, jnp.zeros(detections.mask.shape, mean.dtype))

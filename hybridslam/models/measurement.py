@@ -14,6 +14,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
+from jax.scipy.special import log_ndtr, ndtr
 from jaxtyping import Array, Bool, Float, Int
 
 from ..io.scenario import StackedSteps
@@ -121,6 +122,32 @@ def log_visibility(sensor: SensorModel, x: Float[Array, "3"], obj: Float[Array, 
     if sensor.visibility_temperature is None:
         return jnp.where(geometry.visible(rb, sensor.max_range, sensor.fov), 0.0, -jnp.inf)
     return geometry.log_smooth_visibility(rb, sensor.max_range, sensor.fov, sensor.visibility_temperature)
+
+def log_visibility_probability(
+    sensor: SensorModel, range_bearing_: Float[Array, "2"], variance: Float[Array, "2"]
+) -> Float[Array, ""]:
+    """``log P(object in view)`` when its range and bearing are ``N(range_bearing_, diag(variance))``:
+    the object observation model (Sec. IV-B) averaged over a linearized Gaussian predictive
+    (``variance = diag(H Σ Hᵀ)``, m² and rad², of the robot pose and the object; no sensor noise).
+
+    Finite wherever the mean is near the footprint, so screens and linearized weights rank a
+    prediction just outside it low rather than impossible; ``-inf`` only where the bearing
+    probability underflows. Range and bearing are taken as independent.
+    """
+    std = jnp.sqrt(variance + 1e-12)
+    if sensor.visibility_temperature is not None:
+        # Smooth footprint (geometry.log_smooth_visibility): σ(m/τ) ≈ Φ(m/(τ√(8/π))) (equal slope at 0),
+        # and E[Φ(m/s)] over m ~ N(m̄, v) is Φ(m̄/√(s² + v)): the hard formula with a wider spread.
+        # Both bearing edges share one Φ-difference (accurate while fov/2 ≫ τ_b).
+        tau = jnp.maximum(sensor.visibility_temperature, 0.0)
+        std = jnp.sqrt(std**2 + (8.0 / jnp.pi) * tau**2)
+    log_in_range = log_ndtr((sensor.max_range - range_bearing_[0]) / std[0])
+    half = 0.5 * sensor.fov
+    p_bearing = ndtr((half - range_bearing_[1]) / std[1]) - ndtr((-half - range_bearing_[1]) / std[1])
+    positive = p_bearing > 0.0
+    # Double where: log(0) = -inf must not turn into a NaN gradient.
+    return log_in_range + jnp.where(positive, jnp.log(jnp.where(positive, p_bearing, 1.0)), -jnp.inf)
+
 
 class Detections(eqx.Module):
     """The detections ``Z_k`` of one step, padded to a fixed number of slots ``Dmax`` (or of ``*T``

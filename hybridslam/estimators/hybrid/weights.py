@@ -45,7 +45,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jax.scipy.special import log_ndtr, logsumexp, ndtr
+from jax.scipy.special import logsumexp
 from jaxtyping import Array, Bool, Float, Int
 
 from ...inference.batching import fold_live, map_live
@@ -57,6 +57,7 @@ from ...models.measurement import (
     SensorModel,
     detection_residuals,
     log_visibility,
+    log_visibility_probability,
     slot_residuals,
 )
 from ...models.model import NewObjects
@@ -225,20 +226,7 @@ def _log_visibility_probability(sensor: SensorModel, local: Float[Array, "6"], l
     ``local = [x, object]`` and its covariance (range and bearing depend on nothing else)."""
     h = lambda s: range_bearing(s[:3], s[3:])  # noqa: E731
     jac = jax.jacfwd(h)(local)
-    rb = h(local)
-    std = jnp.sqrt(jnp.diagonal(jac @ local_cov @ jac.T) + 1e-12)
-    if sensor.visibility_temperature is not None:
-        # Smooth footprint (geometry.log_smooth_visibility): σ(m/τ) ≈ Φ(m/(τ√(8/π))) (equal slope at 0),
-        # and E[Φ(m/s)] over m ~ N(m̄, v) is Φ(m̄/√(s² + v)): the hard formula with a wider spread.
-        # Both bearing edges share one Φ-difference (accurate while fov/2 ≫ τ_b).
-        tau = jnp.maximum(sensor.visibility_temperature, 0.0)
-        std = jnp.sqrt(std**2 + (8.0 / jnp.pi) * tau**2)
-    log_in_range = log_ndtr((sensor.max_range - rb[0]) / std[0])
-    half = 0.5 * sensor.fov
-    p_bearing = ndtr((half - rb[1]) / std[1]) - ndtr((-half - rb[1]) / std[1])
-    positive = p_bearing > 0.0
-    # Double where: log(0) = -inf must not turn into a NaN gradient.
-    return log_in_range + jnp.where(positive, jnp.log(jnp.where(positive, p_bearing, 1.0)), -jnp.inf)
+    return log_visibility_probability(sensor, h(local), jnp.diagonal(jac @ local_cov @ jac.T))
 
 
 class LinearTables(NamedTuple):
