@@ -43,10 +43,7 @@ def map_live(fn: Callable, live: Bool[Array, " K"], *args, chunk: int = 4, axis_
     still skipped. Outside a vmap with that axis name, ``axis_name`` must be ``None``.
     """
     k = live.shape[0]
-    size = min(chunk, k)
-    pad = -k % size  # the last chunk is padded with dead copies of slot 0
-    live = jnp.concatenate([live, jnp.zeros(pad, bool)])
-    args = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[:1], pad, axis=0)]), args)
+    size, pad, live_chunks, arg_chunks = _chunks(live, args, chunk)
     # Jitted so that the trace eval_shape makes is cached and reused by the call in the cond below:
     # tracing fn once instead of twice halves the tracing time of a step (seconds for the hybrid belief).
     # Chunks of one slot call fn unbatched: a size-1 vmap batches every while loop inside fn (the
@@ -56,18 +53,14 @@ def map_live(fn: Callable, live: Bool[Array, " K"], *args, chunk: int = 4, axis_
         batched = jax.jit(lambda *a: jax.tree.map(lambda y: y[None], fn(*jax.tree.map(lambda x: x[0], a))))
     else:
         batched = jax.jit(jax.vmap(fn))
-    out_shape = jax.eval_shape(batched, *jax.tree.map(lambda x: x[:size], args))
+    out_shape = jax.eval_shape(batched, *jax.tree.map(lambda x: x[0], arg_chunks))
     zeros = lambda: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), out_shape)  # noqa: E731
-    split = lambda x: x.reshape((x.shape[0] // size, size) + x.shape[1:])  # noqa: E731
 
     def one_chunk(xs):
         live_c, args_c = xs
-        any_live = jnp.any(live_c)
-        if axis_name is not None:
-            any_live = jax.lax.psum(any_live.astype(jnp.int32), axis_name) > 0
-        return jax.lax.cond(any_live, lambda: batched(*args_c), zeros)
+        return jax.lax.cond(_any_live(live_c, axis_name), lambda: batched(*args_c), zeros)
 
-    out = jax.lax.map(one_chunk, (split(live), jax.tree.map(split, args)))
+    out = jax.lax.map(one_chunk, (live_chunks, arg_chunks))
     return jax.tree.map(lambda x: x.reshape((k + pad,) + x.shape[2:])[:k], out)
 
 
@@ -76,26 +69,40 @@ def fold_live(fn: Callable, init: Any, live: Bool[Array, " K"], *args, chunk: in
     """``acc = fn(acc, first, *chunk_args)`` over chunks of ``chunk`` slots of the leading ``K`` axis
     (``first``: the chunk's first slot index), skipping chunks with no live slot, as :func:`map_live`
     does; ``fn`` sees its chunk batched (``chunk`` leading; the last chunk padded with copies of slot
-    0, at indices ``K`` and above) and returns an accumulator of ``init``'s structure. For work whose per-slot outputs are large but consumed at once (e.g. per-sample tables
-    reduced to a few numbers): nothing per slot is stacked, and dead chunks write nothing.
+    0, at indices ``K`` and above) and returns an accumulator of ``init``'s structure. For work
+    whose per-slot outputs are large but consumed at once (e.g. per-sample tables reduced to a few
+    numbers): nothing per slot is stacked, and dead chunks write nothing.
     ``axis_name``: as in :func:`map_live`."""
+    size, pad, live_chunks, arg_chunks = _chunks(live, args, chunk)
+
+    def one_chunk(acc, xs):
+        first, live_c, args_c = xs
+        return jax.lax.cond(_any_live(live_c, axis_name), lambda: fn(acc, first, *args_c), lambda: acc), None
+
+    firsts = jnp.arange(0, live.shape[0] + pad, size)
+    acc, _ = jax.lax.scan(one_chunk, init, (firsts, live_chunks, arg_chunks))
+    return acc
+
+
+def _chunks(live: Bool[Array, " K"], args: tuple, chunk: int):
+    """``(size, pad, live, args)``: the chunk size, the padding of the last chunk (copies of slot 0,
+    dead), and ``live`` and every leaf of ``args`` reshaped to ``(chunks, size, ...)``."""
     k = live.shape[0]
     size = min(chunk, k)
     pad = -k % size
     live = jnp.concatenate([live, jnp.zeros(pad, bool)])
     args = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[:1], pad, axis=0)]), args)
     split = lambda x: x.reshape((x.shape[0] // size, size) + x.shape[1:])  # noqa: E731
+    return size, pad, split(live), jax.tree.map(split, args)
 
-    def one_chunk(acc, xs):
-        first, live_c, args_c = xs
-        any_live = jnp.any(live_c)
-        if axis_name is not None:
-            any_live = jax.lax.psum(any_live.astype(jnp.int32), axis_name) > 0
-        return jax.lax.cond(any_live, lambda: fn(acc, first, *args_c), lambda: acc), None
 
-    firsts = jnp.arange(0, k + pad, size)
-    acc, _ = jax.lax.scan(one_chunk, init, (firsts, split(live), jax.tree.map(split, args)))
-    return acc
+def _any_live(live: Bool[Array, " size"], axis_name: str | None) -> Bool[Array, ""]:
+    """Whether a chunk has a live slot; under an outer vmap named ``axis_name``, in any track (a
+    ``psum``, so the predicate is unbatched and a ``lax.cond`` on it still skips work)."""
+    any_live = jnp.any(live)
+    if axis_name is not None:
+        any_live = jax.lax.psum(any_live.astype(jnp.int32), axis_name) > 0
+    return any_live
 
 
 def map_distinct(
