@@ -335,10 +335,10 @@ def test_the_screen_weighs_each_named_object_by_its_in_view_probability():
         est = mm.Multimodal(capacity=2, samples=8, max_detections=3, max_steps=2, smoother=Filter())
         state = est.init(scenario)
         m, c, sensor = state.mean[0], state.cov[0], state.model.sensor
-        pred = gating.innovations(sensor, m, c, detections)
+        pred = jax.jit(gating.innovations)(sensor, m, c, detections)
         objects, new = jnp.asarray([0, 3, -1]), jnp.asarray([False, False, True])
-        screens[fov] = float(mm.screen_log_likelihood(sensor, state.params, pred, m, c, state.class_log_probs[0],
-                                                      objects, new, detections))
+        screens[fov] = float(jax.jit(mm.screen_log_likelihood)(sensor, state.params, pred, m, c,
+                                                              state.class_log_probs[0], objects, new, detections))
     in_view = 0.0
     for n in (0, 3):
         idx = np.r_[0:3, 3 + 3 * n:6 + 3 * n]
