@@ -27,8 +27,9 @@ A child more than ``RELEVANT_NATS`` (30 nats: relative weight below 1e-13) under
 becomes no centre: its mass joins its nearest centre, so the belief carries no component it could
 not show.
 Only the ``children`` best children (a static count, ranked by the linearized likelihood below,
-each named object's in-view probability included) get a Gauss-Newton update and a Monte Carlo weight: the linearized mass of the rest is reported in
-``StepInfo.dropped_mass`` and as a warning, never silently.
+each named object's in-view probability included) get a Gauss-Newton update and a Monte Carlo
+weight: the linearized mass of the rest is reported in ``StepInfo.dropped_mass`` and as a warning,
+never silently.
 
 Association probabilities (Eq. 5.9-5.10). ``L_ij`` integrates the joint likelihood of the step's
 detections over the pose and the associated objects, ``y = [x_k, o_{d_1}, ...]``, by Monte Carlo:
