@@ -130,9 +130,9 @@ def _initial_arrays(robot_mean, robot_cov, object_means, object_covs, capacity: 
     n = object_means.shape[0]
     dim = 3 + 3 * n
     mean = jnp.concatenate([robot_mean, object_means.reshape(-1)])
+    block = 3 + 3 * jnp.arange(n)[:, None] + jnp.arange(3)[None, :]  # (n, 3): object i's rows
     cov = jnp.zeros((dim, dim), dtype=mean.dtype).at[:3, :3].set(robot_cov)
-    for i in range(n):  # n blocks, built once at init (not per component)
-        cov = cov.at[3 + 3 * i : 6 + 3 * i, 3 + 3 * i : 6 + 3 * i].set(object_covs[i])
+    cov = cov.at[block[:, :, None], block[:, None, :]].set(object_covs)  # every object's block at once
     k = capacity
     # Explicit dtypes: a weakly typed initial belief would retrace the step after step 1.
     return (jnp.full((k,), -jnp.inf, dtype=mean.dtype).at[0].set(0.0), jnp.broadcast_to(mean, (k, dim)),
