@@ -179,6 +179,7 @@ def test_linear_tables_equal_the_dense_jacobian_products():
     got = linear_tables(sensor, mean, cov, det, objs)
     m = sensor.classifier.num_classes
 
+    @jax.jit  # compiled once for the 16 (detection, object, class) checks below, not dispatched op by op
     def row(state, o, c, j):  # detection j's whitened residual and log normalizer, object o, class c
         return detection_residual(sensor, state[:3], state[3:].reshape(-1, 3)[o], det.geo[j], det.scores[j], c)
 
