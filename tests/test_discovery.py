@@ -110,6 +110,23 @@ def _as_dict(kids, log_psi, alive):
     }
 
 
+def test_full_object_slots_are_reported_not_silent(world):
+    """Two object slots for three landmarks: once the likely components have used both, the third
+    landmark can only go to an old object, and every step with detections says so (StepInfo.
+    object_overflow); before that, nothing is flagged. The belief stays a finite distribution."""
+    run = hs.run_estimator(world.replace(discovery=Discovery(2, -2.0, 9.87)), **RUN)
+    flags = [bool(i.object_overflow) for i in run.infos]
+    created = [len({o for a in st.components[0].associations for o in a if o >= 0}) for st in run.result.steps]
+    assert not flags[0] and created[0] < 2
+    has_detections = [len(s.detections) > 0 for s in world.steps]
+    # From the step after the top component reached 2 objects, while it keeps the lead.
+    first = created.index(2) + 1
+    assert flags[first:] == has_detections[first:] and any(flags)
+    assert all(any("object capacity full" in w for w in i.warnings()) for i, f in zip(run.infos, flags) if f)
+    weights = np.exp(np.asarray(run.belief.log_weights))
+    assert np.isfinite(np.asarray(run.belief.mean)).all() and weights.sum() == pytest.approx(1.0)
+
+
 def test_gating_with_all_objects_equals_exact_enumeration(world, exact):
     """G ≥ N candidates per detection keep every hypothesis of the exact enumeration, with the same
     weights; G = 1 keeps a subset that holds the best child (each detection: its nearest object or new)."""

@@ -316,7 +316,12 @@ def test_unknown_map_creates_each_true_object_once(discovery_scenario, estimator
     classes = run.result.steps[-1].components[0].classes
     by_truth = dict(pairs)
     assert [classes[by_truth[t]] for t in range(4)] == [c for _, c in discovery_scenario.true_objects]
-    assert not any(i.warnings() for i in run.infos)
+    # The 4 slots are exactly the 4 landmarks: once they exist, a re-detection can no longer be a new
+    # object, which is said at every such step and is the only warning.
+    before = [0] + [int(i.details.num_created) for i in run.infos[:-1]]
+    full = [b == 4 and len(s.detections) > 0 for b, s in zip(before, discovery_scenario.steps)]
+    assert any(full) and [bool(i.object_overflow) for i in run.infos] == full
+    assert all(": object capacity full" in w for i in run.infos for w in i.warnings())
 
 
 @pytest.mark.parametrize("estimator", ["ml", "gpda", "max-mixture"])
@@ -326,6 +331,7 @@ def test_no_free_slot_skips_the_detection_and_warns(estimator):
     run = _runs(sc, estimator)
     assert int(run.infos[0].skipped) + int(run.infos[0].rejected) == 1 and int(run.belief.num_created) == 4
     assert any(w in " ".join(run.infos[0].warnings()) for w in ("unassociated", "outlier"))
+    assert bool(run.infos[0].object_overflow) and "object capacity full" in " ".join(run.infos[0].warnings())
     assert np.isfinite(np.asarray(run.belief.mean)).all()
     # The result file says so: -1, not the detection's nearest object (SCENARIO_FORMAT.md).
     assert run.result.steps[0].components[0].associations == [[-1]]

@@ -326,6 +326,11 @@ def test_unknown_map(unknown, known):
     assert unknown.steps == known.steps and np.array_equal(unknown.motion_cov, known.motion_cov)
     custom = import_mrclam(DATA, 1, unknown_map=True, discovery_margin=0, new_object_log_density=-3.0)
     assert custom.discovery.max_objects == 15 and custom.discovery.new_object_log_density == -3.0
+    assert import_mrclam(DATA, 1, unknown_map=True, max_objects=40).discovery.max_objects == 40
+    with pytest.raises(MRCLAMError, match="max_objects: object slots are a setting of an unknown map"):
+        import_mrclam(DATA, 1, max_objects=40)
+    with pytest.raises(MRCLAMError, match="max_objects: expected an integer >= 2, got 1"):
+        import_mrclam(DATA, 1, unknown_map=True, max_objects=1)
 
 
 @pytest.mark.parametrize("variant", ["known", "unknown"])
@@ -445,14 +450,14 @@ def test_cli_writes_a_valid_file_and_a_summary(tmp_path, capsys, known):
     assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out), "--unknown-map",
                      "--start", "5", "--duration", "20", "--dt", "0.25", "--max-range", "5",
                      "--motion-cov", "1e-4,1e-4,1e-3", "--correct-range-bias", "--no-motion-compensation",
-                     "--odometry-delay", "0.17"]) == 0
+                     "--odometry-delay", "0.17", "--max-objects", "30"]) == 0
     s = hs.load_scenario(out)
     g = s.metadata["generator"]
-    assert s.discovery is not None and s.num_steps == 80 and s.max_range == 5.0
+    assert s.discovery is not None and s.discovery.max_objects == 30 and s.num_steps == 80 and s.max_range == 5.0
     assert g["odometry_delay_s"] == 0.17 and not g["motion_compensation"]
     assert g["calibration"]["range_bias_corrected"]
     np.testing.assert_array_equal(s.motion_cov, np.diag([1e-4, 1e-4, 1e-3]))
-    assert "unknown map of 15 landmarks" in capsys.readouterr().out
+    assert "unknown map of 15 landmarks (30 object slots: --max-objects)" in capsys.readouterr().out
 
 
 def _error(capsys) -> str:

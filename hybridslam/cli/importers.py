@@ -53,7 +53,8 @@ def mrclam_summary(path: str, s: Scenario) -> str:
     end = start + g["duration_s"]
     window = (f"wrote {path}: {g['dataset']} robot {g['robot']}, {start:g}-{end:g} s after "
               f"its first odometry record, {s.num_steps} steps of {g['dt_s']:g} s, {g['map']} map of "
-              f"{num_landmarks} landmarks")
+              f"{num_landmarks} landmarks"
+              + ("" if s.discovery is None else f" ({s.discovery.max_objects} object slots: --max-objects)"))
     detections = (f"detections: {sum(per_step)} of {len(seen)} landmarks, "
                   f"{np.mean(per_step):.2f} per step (max {max(per_step)}); dropped "
                   f"{counts['robot_robot']} robot-robot, {counts['unknown_barcode']} unknown barcode, "
@@ -95,7 +96,7 @@ def cmd_import_mrclam(args: argparse.Namespace) -> int:
             args.dataset, args.robot, start=args.start, duration=args.duration, dt=args.dt,
             unknown_map=args.unknown_map, max_range=args.max_range, fov=args.fov,
             correct_range_bias=args.correct_range_bias, motion_compensation=args.motion_compensation,
-            odometry_delay=args.odometry_delay, **covs)
+            odometry_delay=args.odometry_delay, max_objects=args.max_objects, **covs)
     except MRCLAMError as e:
         raise CLIError(str(e)) from None
     save_scenario(scenario, args.output)
@@ -124,6 +125,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     m.add_argument("--dt", type=float, default=0.5, help="seconds between steps (default 0.5)")
     m.add_argument("--unknown-map", action="store_true",
                    help="no prior objects: a discovery section, the landmarks under true_objects")
+    m.add_argument("--max-objects", type=int, default=None, metavar="N",
+                   help="with --unknown-map: object slots (default: the landmarks + 10); duplicates of a "
+                        "landmark take slots too, and the estimators warn when they are full")
     m.add_argument("--max-range", type=float, default=None,
                    help="sensor range in metres; farther detections are dropped (default: from the data)")
     m.add_argument("--fov", type=float, default=None,

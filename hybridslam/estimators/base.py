@@ -30,7 +30,7 @@ from typing import Any, ClassVar
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 
 from ..io.scenario import Scenario
 from ..models.measurement import Detections
@@ -68,6 +68,9 @@ class Mixture(eqx.Module):
 # --------------------------------------------------------------------------- #
 
 
+RELEVANT_NATS = 30.0  # e^-30 ≈ 1e-13: hypotheses further below the best do not raise warnings
+
+
 def _zero_int() -> Int[Array, ""]:
     return jnp.zeros((), jnp.int32)
 
@@ -92,7 +95,8 @@ class StepInfo(eqx.Module):
     min_ess: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.full((), jnp.nan))  # smallest normalized ESS
     skipped: Int[Array, ""] = eqx.field(default_factory=_zero_int)  # detections left unassociated
     rejected: Int[Array, ""] = eqx.field(default_factory=_zero_int)  # detections explained as clutter / null
-    object_overflow: Bool[Array, ""] = eqx.field(default_factory=lambda: jnp.zeros((), bool))  # no free object slot
+    # A likely component had no free object slot at a step with detections (lacks_object_slots).
+    object_overflow: Bool[Array, ""] = eqx.field(default_factory=lambda: jnp.zeros((), bool))
     log_overflow: Int[Array, ""] = eqx.field(default_factory=_zero_int)  # detections beyond the smoother's factor budget
     # Most detections of the step unexplained by the best component (gating.contradicted).
     inconsistent: Bool[Array, ""] = eqx.field(default_factory=lambda: jnp.zeros((), bool))
@@ -101,6 +105,17 @@ class StepInfo(eqx.Module):
     def warnings(self) -> list[str]:
         """One line per thing a user must hear about after this step (host-side)."""
         return [f"step {int(self.k)}: {line}" for line in messages(_totals(self), per_step=True)]
+
+
+def lacks_object_slots(mask: Bool[Array, " Dmax"], num_created: Int[Array, "*K"], max_objects: int,
+                       relevant: Bool[ArrayLike, "*K"] = True) -> Bool[Array, ""]:
+    """``StepInfo.object_overflow`` of an unknown map's step: a relevant component (``relevant``, e.g.
+    within ``RELEVANT_NATS`` of the best) has no free object slot at a step with detections, so the
+    capacity ruled out every new-object hypothesis of its children (thesis Sec. 3.2.1: a detection of
+    an unmapped landmark must then go to an old object or stay unassociated). ``num_created``:
+    objects that exist, per component. A component with a few free slots and more new landmarks in
+    view is flagged one step later, when its slots are full."""
+    return jnp.any(mask) & jnp.any(jnp.asarray(relevant) & (num_created >= max_objects))
 
 
 def _totals(info: StepInfo) -> dict[str, float]:
@@ -155,7 +170,9 @@ def messages(t: dict[str, float], per_step: bool) -> list[str]:
     if (n := int(t["rejected"])) > 0:
         out.append(f"{n} detection(s) explained as clutter by the null hypothesis (treated as outliers)")
     if int(t["object_overflow"]) > 0:
-        out.append("object capacity full: a detection could not create a new object (raise discovery.max_objects)")
+        out.append("object capacity full (a likely component has no free object slot"
+                   + ("" if per_step else f", at {int(t['object_overflow'])} step(s)") + "): a new landmark's "
+                   "detections could only go to old objects or stay unassociated (raise discovery.max_objects)")
     if (n := int(t["inconsistent"])) > 0:
         out.append("most detections the best hypothesis could not explain (left unassociated, or associated beyond "
                    "the 1e-6 tail of its prediction) " + ("at this step" if per_step else f"at {n} step(s)")

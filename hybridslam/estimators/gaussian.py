@@ -61,7 +61,7 @@ from ..models.measurement import Detections
 from ..models.model import Model, model_from_scenario
 from ..models.motion import propagate
 from ..models.classifier import ClassifierModel
-from .base import AbstractEstimator, Mixture, StepInfo, classifier_name, history_length
+from .base import AbstractEstimator, Mixture, StepInfo, classifier_name, history_length, lacks_object_slots
 from .smoothing import (DataLog, Factors, Filter, Full, Lag, Smoother, WindowPrior, data_log, factor_budget,
                         initial_trajectory, initial_window, new_overflow, smooth_step)
 
@@ -512,6 +512,9 @@ def commit(est: SingleGaussian, state: GaussianState, mean, cov, class_log_post,
         dropped_budget=info.get("dropped", zero).astype(jnp.int32),
         solver_failures=(result != optx.RESULTS.successful).astype(jnp.int32),
         log_overflow=new_overflow(state.log, log),
+        # Before the step: a detection beyond the free slots is skipped, not made a new object.
+        object_overflow=(lacks_object_slots(detections.mask, state.num_created, state.max_objects)
+                         if state.structure.discovery else jnp.zeros((), bool)),
         details=GaussianDetails(num_created, result),
     )
     return new_state, step_info

@@ -126,7 +126,8 @@ from ..models.measurement import Detections, SensorModel, log_visibility, log_vi
 from ..models.model import Model, model_from_scenario
 from .. import __version__
 from ..inference.batching import map_live, smoothing_chunk
-from .base import AbstractEstimator, Mixture, StepInfo, classifier_name, history_length
+from .base import (RELEVANT_NATS, AbstractEstimator, Mixture, StepInfo, classifier_name, history_length,
+                   lacks_object_slots)
 from .smoothing import (DataLog, Filter, Full, Lag, Smoother, WindowPrior, data_log, factor_budget,
                         history_factors, initial_trajectory, initial_window, new_overflow, smooth_step)
 
@@ -137,7 +138,6 @@ DEFAULT_CANDIDATES = 3
 DEFAULT_MERGE_THRESHOLD = 4.0
 ASSOCIATION_PRIORS = ("mc", "uniform")
 PROPOSALS = ("posterior", "prior")
-RELEVANT_NATS = 30.0  # e^-30 ≈ 1e-13: hypotheses further below the best do not raise warnings
 # jaxlib 0.10.2 on CPU splits a large batched LAPACK call (Cholesky, triangular solve, QR) across
 # XLA's intra-op thread pool and blocks a pool thread waiting for it; two such calls running at once
 # on a small pool deadlock (seen here: 128 Cholesky factors of 21×21 on 2 cores). Batches of D×D
@@ -1070,7 +1070,7 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
     m_cov = 0.5 * (m_cov + jnp.swapaxes(m_cov, 1, 2))
     # Warnings concern hypotheses within RELEVANT_NATS of the best; the rest carry no visible mass.
     relevant = relevant_children(state.log_weights)
-    no_room = cfg.discovery & jnp.any(detections.mask) & jnp.any(relevant & (state.num_created >= cfg.max_objects))
+    no_room = cfg.discovery & lacks_object_slots(detections.mask, state.num_created, cfg.max_objects, relevant)
     # No child explains the step (e.g. no room for a new object, or no feasible joint assignment): the
     # step's detections are skipped, and counted, and every component stays, propagated, with its
     # weight and no association for this step, rather than the belief lost.

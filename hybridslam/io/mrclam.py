@@ -547,6 +547,7 @@ def import_mrclam(
     landmark_heading_var: float = math.pi**2,
     discovery_margin: int = 10,
     new_object_log_density: float | None = None,
+    max_objects: int | None = None,
 ) -> Scenario:
     """Robot ``robot``'s log in the MRCLAM dataset folder ``dataset_dir`` as a ``hybridslam-scenario/1``.
 
@@ -555,7 +556,9 @@ def import_mrclam(
     * ``start`` [s] after the robot's first odometry record, ``duration`` [s] (default: to the end
       of the data), one step every ``dt`` [s]: ``T = floor(duration / dt)`` steps.
     * ``unknown_map``: no prior objects, a ``discovery`` section with ``max_objects`` = the number
-      of landmarks + ``discovery_margin`` and ``new_object_log_density`` (default
+      of landmarks + ``discovery_margin`` (or ``max_objects``, when given: every duplicate of a
+      landmark takes a slot too, and a full map's new landmarks can only go to old objects, which
+      the estimators warn about) and ``new_object_log_density`` (default
       ``−log(max_range · fov)``: a new object's detection uniform over the sensor footprint in
       ``[range, bearing]`` coordinates, the space of the Gaussian ``N(z; h, Σ_v)`` it competes
       with, as in the hallway; ``−log(max_range² · fov / 2)`` would be a density per square
@@ -580,6 +583,11 @@ def import_mrclam(
         raise MRCLAMError(f"{folder}: not a dataset folder (no such directory)")
     _check_settings(max_range, fov, landmark_sd_floor, landmark_heading_var, discovery_margin,
                     new_object_log_density, odometry_delay)
+    if max_objects is not None:
+        if not unknown_map:
+            raise MRCLAMError("max_objects: object slots are a setting of an unknown map (unknown_map=True)")
+        if not isinstance(max_objects, int) or isinstance(max_objects, bool) or max_objects < 2:
+            raise MRCLAMError(f"max_objects: expected an integer >= 2, got {max_objects!r}")
     given = {"motion_cov": _covariance(motion_cov, 3, "motion_cov"),
              "geometric_cov": _covariance(geometric_cov, 2, "geometric_cov"),
              "robot_prior_cov": _covariance(robot_prior_cov, 3, "robot_prior_cov")}
@@ -612,7 +620,8 @@ def import_mrclam(
         return Scenario(
             object_prior_means=np.zeros((0, 3)), object_prior_covs=np.zeros((0, 3, 3)),
             class_prior=np.zeros((0, 1)),
-            discovery=Discovery(len(landmarks) + discovery_margin, float(density),
+            discovery=Discovery(len(landmarks) + discovery_margin if max_objects is None else max_objects,
+                                float(density),
                                 float(landmark_heading_var)),
             true_objects=tuple((p, 0) for p in poses), **common)
     return Scenario(

@@ -34,7 +34,7 @@ from ...inference.update import gauss_newton_update
 from ...models.measurement import Detections
 from ...models.model import NewObjects
 from ...models.motion import propagate
-from ..base import StepInfo
+from ..base import RELEVANT_NATS, StepInfo, lacks_object_slots
 from ..smoothing import Filter, Smoother, history_factors, new_overflow, smooth_step
 from .belief import Belief
 from .branching import Beam, Branching, beam_children
@@ -79,6 +79,14 @@ def _realize(classes: Int[Array, " N"], assign: Int[Array, " Dmax"], slot_class:
     """Write the classes of newly associated objects (Sec. IV-D); all others are unchanged."""
     target = jnp.where(new, assign, classes.shape[0])  # out of bounds -> dropped
     return classes.at[target].set(slot_class, mode="drop")
+
+
+def _lacks_object_slots(belief: Belief, detections: Detections) -> Bool[Array, ""]:
+    """Whether a parent within ``RELEVANT_NATS`` of the best lacked the object slots for some of its
+    children (:func:`~hybridslam.estimators.base.lacks_object_slots`)."""
+    relevant = belief.log_weights > jnp.max(belief.log_weights) - RELEVANT_NATS  # all -inf: none
+    assert belief.num_created is not None  # an unknown map's belief
+    return lacks_object_slots(detections.mask, belief.num_created, belief.num_objects, relevant)
 
 
 def _create_and_update(sensor, discovery, mean, cov, assign, creates, slot_class, detections: Detections, max_steps):
@@ -336,6 +344,7 @@ def hybrid_step(
         # The ESS of a visibility-ignored step is that of an estimate the step did not use.
         min_ess=jnp.where(visibility_ignored | ~jnp.any(alive), jnp.nan, jnp.min(jnp.where(alive, kept_ess, jnp.inf))),
         log_overflow=new_overflow(belief.log, log),
+        object_overflow=_lacks_object_slots(belief, detections) if discovery else jnp.zeros((), bool),
         details=HybridDetails(stats, parent, result, kept_ess, num_smoothed),
     )
     return new_belief, info
