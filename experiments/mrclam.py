@@ -56,7 +56,7 @@ Writes, under ``--output`` (default ``runs/mrclam``):
   per estimator, map and smoother.
 
     python experiments/mrclam.py --dataset /path/to/MRCLAM_Dataset7 [-o runs/mrclam] [--robots 1,2,3,4,5]
-        [--windows 20] [--duration 100] [--maps known,unknown] [--estimators ml,gpda,...]
+        [--windows 20] [--duration 100] [--maps known,unknown,unknown:N] [--estimators ml,gpda,...]
         [--smoothers full,filter,lag:L] [--figure-robot N] [--retry-errors] [--report-only]
 """
 
@@ -115,15 +115,30 @@ def estimator(name: str, smoother: str, max_detections: int | None = None) -> Ab
 # --------------------------------------------------------------------------- #
 
 
+def parse_map(text: str) -> tuple[bool, int | None]:
+    """``known``, ``unknown`` or ``unknown:N`` (an unknown map with ``N`` object slots; default the
+    landmarks + 10): whether the map is unknown, and its slots if given. Raises ``ValueError``."""
+    kind, _, slots = text.partition(":")
+    if kind not in MAPS or (slots and kind != "unknown"):
+        raise ValueError(f"{text!r}: expected known, unknown or unknown:N")
+    if not slots:
+        return kind == "unknown", None
+    if not slots.isdigit() or int(slots) < 2:
+        raise ValueError(f"{text!r}: N must be an integer >= 2 (object slots)")
+    return True, int(slots)
+
+
 def scenario_name(dataset: str, robot: int, start: float, duration: float, map_: str) -> str:
-    return f"{os.path.basename(os.path.normpath(dataset))}_robot{robot}_t{start:g}_d{duration:g}_{map_}.json"
+    kind = map_.replace(":", "_slots")  # unknown:50 -> unknown_slots50
+    return f"{os.path.basename(os.path.normpath(dataset))}_robot{robot}_t{start:g}_d{duration:g}_{kind}.json"
 
 
 def scenario(folder: str, dataset: str, robot: int, start: float, duration: float, map_: str) -> tuple[str, Scenario]:
     """The imported scenario (written under ``folder/scenarios`` the first time, read back after)."""
     path = os.path.join(folder, "scenarios", scenario_name(dataset, robot, start, duration, map_))
     if not os.path.exists(path):
-        s = import_mrclam(dataset, robot, start=start, duration=duration, dt=DT, unknown_map=map_ == "unknown")
+        unknown, slots = parse_map(map_)
+        s = import_mrclam(dataset, robot, start=start, duration=duration, dt=DT, unknown_map=unknown, max_objects=slots)
         os.makedirs(os.path.dirname(path), exist_ok=True)
         save_scenario(s, path)
     return path, load_scenario(path)
@@ -306,7 +321,7 @@ def summarize(records: list[dict]) -> list[dict]:
     for r in records:
         c = r["cell"]
         groups.setdefault((c["estimator"], c["map"], c["smoother"]), []).append(r)
-    head = (f"{'estimator':<12} {'map':<8} {'smoother':<8} {'cells':>5} {'APE':>7} {'APE sm':>7} {'RPE':>7} "
+    head = (f"{'estimator':<12} {'map':<10} {'smoother':<8} {'cells':>5} {'APE':>7} {'APE sm':>7} {'RPE':>7} "
             f"{'assoc':>6} {'assoc@k':>7} {'ms/step':>8} {'compile':>7} {'DR APE':>7}")
     print("\nmean over robots and windows: APE translation mean (m; online, smoothed), RPE translation mean "
           "(m per 0.5 s step, online),\nassociation accuracy (final best component; online), median ms per step, "
@@ -328,7 +343,7 @@ def summarize(records: list[dict]) -> list[dict]:
         }
         table.append(row)
         failed = f"  ({row['failed']} failed)" if row["failed"] else ""
-        print(f"{name:<12} {map_:<8} {smoother:<8} {row['cells']:>5} {row['ape']:>7.3f} {row['ape_smoothed']:>7.3f} "
+        print(f"{name:<12} {map_:<10} {smoother:<8} {row['cells']:>5} {row['ape']:>7.3f} {row['ape_smoothed']:>7.3f} "
               f"{row['rpe']:>7.4f} {row['assoc']:>6.3f} {row['assoc_online']:>7.3f} {row['ms']:>8.1f} "
               f"{row['compile']:>7.1f} {row['dr_ape']:>7.3f}{failed}")
     for r in records:
@@ -344,7 +359,7 @@ def plot_trajectories(folder: str, dataset: str, records: list[dict], robot: int
     mine = [r for r in records if r["cell"]["robot"] == robot and "error" not in r]
     if not mine:
         return None
-    maps = [m for m in MAPS if any(r["cell"]["map"] == m for r in mine)]
+    maps = list(dict.fromkeys(r["cell"]["map"] for r in sorted(mine, key=lambda r: r["cell"]["map"] != "known")))
     first = mine[0]["cell"]
     smoothers = list(dict.fromkeys(r["cell"]["smoother"] for r in mine))
     panels: dict[str, dict] = {}
@@ -384,11 +399,15 @@ def main(dataset: str, output: str = os.path.join("runs", "mrclam"), robots=(1, 
          duration: float = 100.0, maps=("known",), estimators=DEFAULT_ESTIMATORS, smoothers=("full",),
          figure_robot: int | None = None, retry_errors: bool = False, report_only: bool = False) -> list[dict]:
     estimators, maps, smoothers = list(estimators), list(maps), list(smoothers)
-    for option, given, known in (("--estimators", estimators, ESTIMATORS), ("--maps", maps, MAPS),
-                                 ("--smoothers", smoothers, SMOOTHERS)):
+    for option, given, known in (("--estimators", estimators, ESTIMATORS), ("--smoothers", smoothers, SMOOTHERS)):
         unknown = [n for n in given if n not in known and not (option == "--smoothers" and _is_lag(n))]
         if unknown:
             raise SystemExit(f"{option}: unknown {', '.join(unknown)} (known: {', '.join(known)}, lag:L)")
+    for map_ in maps:
+        try:
+            parse_map(map_)
+        except ValueError as e:
+            raise SystemExit(f"--maps: {e}") from None
     os.makedirs(output, exist_ok=True)
     data = [(robot, float(start), map_) for map_ in maps for robot in robots for start in windows]
     cells = [(robot, start, map_, name, smoother) for map_ in maps for smoother in smoothers
@@ -444,7 +463,9 @@ if __name__ == "__main__":
     parser.add_argument("--robots", default="1,2,3,4,5")
     parser.add_argument("--windows", default="20", help="window start times, s after each robot's first odometry")
     parser.add_argument("--duration", type=float, default=100.0, help="seconds per window (0.5 s steps)")
-    parser.add_argument("--maps", default="known", help="known, unknown or both (comma-separated)")
+    parser.add_argument("--maps", default="known",
+                        help="known, unknown, unknown:N (N object slots; default the landmarks + 10), "
+                             "comma-separated")
     parser.add_argument("--estimators", default=",".join(DEFAULT_ESTIMATORS))
     parser.add_argument("--smoothers", default="full", help="full, filter, lag:L (comma-separated)")
     parser.add_argument("--figure-robot", type=int, default=None, help="the robot drawn (default: the first)")
