@@ -355,7 +355,8 @@ def test_merge_keeps_the_mass_of_a_child_too_light_to_be_a_centre():
     weights still sum to the children's. A dead child (-inf) is nobody's member."""
     import jax.numpy as jnp
 
-    from hybridslam.estimators.multimodal import RELEVANT_NATS, cluster, relevant_children
+    from hybridslam.estimators.base import RELEVANT_NATS, relevant_children
+    from hybridslam.estimators.multimodal import cluster
 
     log_w = jnp.log(jnp.array([0.6, 0.4, 1e-20, 0.0]))
     mean = jnp.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [9.0, 0.0, 0.0], [5.0, 5.0, 0.0]])

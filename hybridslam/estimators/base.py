@@ -107,6 +107,12 @@ class StepInfo(eqx.Module):
         return [f"step {int(self.k)}: {line}" for line in messages(_totals(self), per_step=True)]
 
 
+def relevant_children(log_w: Float[Array, " C"]) -> Bool[Array, " C"]:
+    """The children (or components) within ``RELEVANT_NATS`` of the best: those whose trouble a
+    warning names (``multimodal``: with a smoother, the children smoothed)."""
+    return log_w > jnp.max(log_w) - RELEVANT_NATS  # all -inf: none
+
+
 def lacks_object_slots(mask: Bool[Array, " Dmax"], num_created: Int[Array, "*K"], max_objects: int,
                        relevant: Bool[ArrayLike, "*K"] = True) -> Bool[Array, ""]:
     """``StepInfo.object_overflow`` of an unknown map's step: a relevant component (``relevant``, e.g.

@@ -126,8 +126,8 @@ from ..models.measurement import Detections, SensorModel, log_visibility, log_vi
 from ..models.model import Model, model_from_scenario
 from .. import __version__
 from ..inference.batching import map_live, smoothing_chunk
-from .base import (RELEVANT_NATS, AbstractEstimator, Mixture, StepInfo, classifier_name, history_length,
-                   lacks_object_slots)
+from .base import (AbstractEstimator, Mixture, StepInfo, classifier_name, history_length, lacks_object_slots,
+                   relevant_children)
 from .smoothing import (DataLog, Filter, Full, Lag, Smoother, WindowPrior, data_log, factor_budget,
                         history_factors, initial_trajectory, initial_window, new_overflow, smooth_step)
 
@@ -757,12 +757,6 @@ def _mahalanobis2(chol: Float[Array, "D D"], centre: Float[Array, " D"], means: 
     diff = jax.vmap(wrap_angles)(means - centre[None, :])
     z = jsl.solve_triangular(chol, diff.T, lower=True)
     return jnp.sum(z**2, axis=0)
-
-
-def relevant_children(log_w: Float[Array, " C"]) -> Bool[Array, " C"]:
-    """The children (or components) within ``RELEVANT_NATS`` of the best: with a smoother, the
-    children smoothed."""
-    return log_w > jnp.max(log_w) - RELEVANT_NATS  # all -inf: none
 
 
 def cluster(

@@ -34,7 +34,7 @@ from ...inference.update import gauss_newton_update
 from ...models.measurement import Detections
 from ...models.model import NewObjects
 from ...models.motion import propagate
-from ..base import RELEVANT_NATS, StepInfo, lacks_object_slots
+from ..base import StepInfo, lacks_object_slots, relevant_children
 from ..smoothing import Filter, Smoother, history_factors, new_overflow, smooth_step
 from .belief import Belief
 from .branching import Beam, Branching, beam_children
@@ -82,11 +82,11 @@ def _realize(classes: Int[Array, " N"], assign: Int[Array, " Dmax"], slot_class:
 
 
 def _lacks_object_slots(belief: Belief, detections: Detections) -> Bool[Array, ""]:
-    """Whether a parent within ``RELEVANT_NATS`` of the best lacked the object slots for some of its
-    children (:func:`~hybridslam.estimators.base.lacks_object_slots`)."""
-    relevant = belief.log_weights > jnp.max(belief.log_weights) - RELEVANT_NATS  # all -inf: none
+    """Whether a parent within ``RELEVANT_NATS`` of the best had no free object slot at this step
+    (:func:`~hybridslam.estimators.base.lacks_object_slots`)."""
     assert belief.num_created is not None  # an unknown map's belief
-    return lacks_object_slots(detections.mask, belief.num_created, belief.num_objects, relevant)
+    return lacks_object_slots(detections.mask, belief.num_created, belief.num_objects,
+                              relevant_children(belief.log_weights))
 
 
 def _create_and_update(sensor, discovery, mean, cov, assign, creates, slot_class, detections: Detections, max_steps):
