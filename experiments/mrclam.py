@@ -138,7 +138,8 @@ def scenario(folder: str, dataset: str, robot: int, start: float, duration: floa
     path = os.path.join(folder, "scenarios", scenario_name(dataset, robot, start, duration, map_))
     if not os.path.exists(path):
         unknown, slots = parse_map(map_)
-        s = import_mrclam(dataset, robot, start=start, duration=duration, dt=DT, unknown_map=unknown, max_objects=slots)
+        s = import_mrclam(dataset, robot, start=start, duration=duration, dt=DT, unknown_map=unknown,
+                          max_objects=slots)
         os.makedirs(os.path.dirname(path), exist_ok=True)
         save_scenario(s, path)
     return path, load_scenario(path)

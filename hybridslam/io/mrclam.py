@@ -585,7 +585,8 @@ def import_mrclam(
                     new_object_log_density, odometry_delay)
     if max_objects is not None:
         if not unknown_map:
-            raise MRCLAMError("max_objects: object slots are a setting of an unknown map (unknown_map=True, --unknown-map)")
+            raise MRCLAMError("max_objects: object slots are a setting of an unknown map "
+                              "(unknown_map=True, --unknown-map)")
         if not isinstance(max_objects, int) or isinstance(max_objects, bool) or max_objects < 2:
             raise MRCLAMError(f"max_objects: expected an integer >= 2, got {max_objects!r}")
     given = {"motion_cov": _covariance(motion_cov, 3, "motion_cov"),
