@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import hybridslam as hs
+from hybridslam.estimators.base import summarize
 from hybridslam.estimators.hybrid.hypotheses import NEW, children, hypothesis_table
 from hybridslam.estimators.hybrid.weights import linearized_log_likelihood, sampled_log_likelihood
 from hybridslam.inference.discovery import back_project, create_object, create_objects
@@ -123,6 +124,8 @@ def test_full_object_slots_are_reported_not_silent(world):
     first = created.index(2) + 1
     assert flags[first:] == has_detections[first:] and any(flags)
     assert all(any("object capacity full" in w for w in i.warnings()) for i, f in zip(run.infos, flags) if f)
+    stacked = jax.tree.map(lambda *a: np.stack(a), *run.infos)  # a whole run's summary counts the steps
+    assert f"no free object slot, at {sum(flags)} step(s))" in " ".join(summarize(stacked))
     weights = np.exp(np.asarray(run.belief.log_weights))
     assert np.isfinite(np.asarray(run.belief.mean)).all() and weights.sum() == pytest.approx(1.0)
 
