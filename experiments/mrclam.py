@@ -360,7 +360,7 @@ def plot_trajectories(folder: str, dataset: str, records: list[dict], robot: int
     mine = [r for r in records if r["cell"]["robot"] == robot and "error" not in r]
     if not mine:
         return None
-    maps = list(dict.fromkeys(r["cell"]["map"] for r in sorted(mine, key=lambda r: r["cell"]["map"] != "known")))
+    maps = sorted({r["cell"]["map"] for r in mine}, key=lambda m: (m != "known", m))  # the known map first
     first = mine[0]["cell"]
     smoothers = list(dict.fromkeys(r["cell"]["smoother"] for r in mine))
     panels: dict[str, dict] = {}

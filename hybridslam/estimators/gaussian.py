@@ -512,7 +512,7 @@ def commit(est: SingleGaussian, state: GaussianState, mean, cov, class_log_post,
         dropped_budget=info.get("dropped", zero).astype(jnp.int32),
         solver_failures=(result != optx.RESULTS.successful).astype(jnp.int32),
         log_overflow=new_overflow(state.log, log),
-        # Before the step: a detection beyond the free slots is skipped, not made a new object.
+        # Before the step: with no free slot, a new landmark's detection is skipped (gaussian.fits).
         object_overflow=(lacks_object_slots(detections.mask, state.num_created, state.max_objects)
                          if state.structure.discovery else jnp.zeros((), bool)),
         details=GaussianDetails(num_created, result),

@@ -123,6 +123,7 @@ def log_visibility(sensor: SensorModel, x: Float[Array, "3"], obj: Float[Array, 
         return jnp.where(geometry.visible(rb, sensor.max_range, sensor.fov), 0.0, -jnp.inf)
     return geometry.log_smooth_visibility(rb, sensor.max_range, sensor.fov, sensor.visibility_temperature)
 
+
 def log_visibility_probability(
     sensor: SensorModel, range_bearing_: Float[Array, "2"], variance: Float[Array, "2"]
 ) -> Float[Array, ""]:
