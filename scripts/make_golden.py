@@ -31,7 +31,10 @@ from hybridslam.io.result import result_to_json
 jax.config.update("jax_disable_most_optimizations", True)  # the test suite's setting, before anything compiles
 use_elemental_emitters_everywhere()  # the test suite's XLA_FLAGS too (tests/conftest.py)
 
-GOLDEN = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests", "data", "golden")
+ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
+GOLDEN = os.path.join(ROOT, "tests", "data", "golden")
+sys.path.insert(0, ROOT)
+from tests.golden import differences  # noqa: E402  (the comparison tests/test_golden.py makes)
 
 
 def golden_json(folder: str, case: dict) -> dict:
@@ -80,12 +83,12 @@ def main(argv: list[str] | None = None) -> int:
             failed += 1
             continue
         want = json.loads(old)
-        if got["steps"] != want["steps"]:
+        if diff := differences(got["steps"], want["steps"]):
             failed += 1
-            verdict = "DIFFERENT steps (tests/test_golden.py fails)"
+            verdict = f"DIFFERENT steps (tests/test_golden.py fails): {len(diff)} difference(s), first {diff[0]}"
         elif text(got) != old:
             differ = [k for k in dict.fromkeys([*want, *got]) if text(got.get(k)) != text(want.get(k))]
-            notes = [f"{k} (equal numbers: the test passes; written differently, e.g. -0.0 for 0.0)"
+            notes = [f"{k} (the test passes: equal to its tolerance, tests/golden.py, but not bit for bit)"
                      if k == "steps" else k for k in differ]
             verdict = f"same steps as the test compares them; the file's bytes would change in {', '.join(notes)}"
         else:

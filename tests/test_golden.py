@@ -1,5 +1,6 @@
 """Behaviour is unchanged by restructuring: each case of ``tests/data/golden`` reruns to the same
-result file, number for number (``timing`` aside; see ``tests/data/golden/README.md``)."""
+result file (``timing`` aside; see ``tests/data/golden/README.md``): every association, class and
+count equal, every number to the last bits a CPU's machine code may move (``tests/golden.py``)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,8 @@ import pytest
 import hybridslam as hs
 from hybridslam.driver import run_estimator
 from hybridslam.io.result import result_to_json
+
+from .golden import differences
 
 GOLDEN = os.path.join(os.path.dirname(__file__), "data", "golden")
 CASES = json.loads(pathlib.Path(GOLDEN, "cases.json").read_text(encoding="utf-8"))
@@ -26,4 +29,23 @@ def test_result_file_is_unchanged(name):
     got.pop("timing", None)
     with open(os.path.join(GOLDEN, name + ".result.json"), encoding="utf-8") as f:
         want = json.load(f)
-    assert got["steps"] == want["steps"]
+    assert differences(got["steps"], want["steps"]) == []
+
+
+def test_the_comparison_allows_last_bits_and_tie_order_only():
+    """``differences`` accepts a 1e-13 relative change and two components in swapped order, and
+    names a changed association, class or count and a 1e-6 relative change."""
+    a = {"weight": 0.5, "associations": [[0, 1]], "classes": [0, 1], "pose_mean": [1.0, 2.0, 0.1]}
+    b = {"weight": 0.5, "associations": [[1, 0]], "classes": [1, 0], "pose_mean": [1.0, 2.0, 0.1]}
+    want = [{"k": 1, "components": [a, b], "metrics": {"num_components": 2, "entropy": 0.69}}]
+    assert differences(json.loads(json.dumps(want)), want) == []
+    close = json.loads(json.dumps(want))
+    close[0]["components"] = [b, {**a, "pose_mean": [1.0 + 1e-13, 2.0, 0.1]}]
+    assert differences(close, want) == []
+    for change in ({"associations": [[0, 2]]}, {"classes": [0, 0]}, {"pose_mean": [1.000001, 2.0, 0.1]}):
+        changed = json.loads(json.dumps(want))
+        changed[0]["components"][0].update(change)
+        assert differences(changed, want), change
+    changed = json.loads(json.dumps(want))
+    changed[0]["metrics"]["num_components"] = 3
+    assert differences(changed, want) == ["[0].metrics.num_components: 3 != 2"]
