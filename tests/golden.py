@@ -31,7 +31,8 @@ def differences(got: Any, want: Any, path: str = "") -> list[str]:
             return [f"{path}: length {len(got)} != {len(want)}"]
         return [d for i, (a, b) in enumerate(zip(got, want)) for d in differences(a, b, f"{path}[{i}]")]
     if isinstance(want, float) or isinstance(got, float):
-        if isinstance(got, (int, float)) and isinstance(want, (int, float)) and abs(got - want) <= ATOL + RTOL * abs(want):
+        numbers = isinstance(got, (int, float)) and isinstance(want, (int, float))
+        if numbers and abs(got - want) <= ATOL + RTOL * abs(want):
             return []
         return [f"{path}: {got!r} != {want!r}"]
     return [] if got == want else [f"{path}: {got!r} != {want!r}"]

@@ -4,6 +4,7 @@ One tiny scenario (three objects passed in a row, at most two detections per ste
 capacity of 5) and one compiled step per structure: the runs are module-scoped fixtures.
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -22,6 +23,8 @@ from hybridslam.sim.paper import PaperSetup, _between, _compose, observe
 TRUTH = np.array([[3.0, 1.5, 0.3], [5.5, -1.5, 2.0], [8.0, 1.5, -1.0]])
 CAPACITY = 5  # object slots
 RUN = {"capacity": 8, "max_detections": 2, "weights": "linearized", "smoother": "filter"}
+# One jitted step for the file: estimators of equal settings and beliefs of equal shapes share it.
+STEP = eqx.filter_jit(lambda estimator, belief, *inputs: estimator.step(belief, *inputs))
 
 
 def _world(steps: int = 8) -> hs.Scenario:
@@ -113,9 +116,13 @@ def _as_dict(kids, log_psi, alive):
 
 def test_full_object_slots_are_reported_not_silent(world):
     """Two object slots for three landmarks: once the likely components have used both, the third
-    landmark can only go to an old object, and every step with detections says so (StepInfo.
-    object_overflow); before that, nothing is flagged. The belief stays a finite distribution."""
+    landmark is an unmapped object (weighed as new, not stored), never an old object, and every step
+    with detections says so (StepInfo.object_overflow, StepInfo.unmapped); before that, nothing is
+    flagged. The belief stays a finite distribution."""
     run = hs.run_estimator(world.replace(discovery=Discovery(2, -2.0, 9.87)), **RUN)
+    third = [(k, j) for k, s in enumerate(world.steps) for j, d in enumerate(s.detections) if d.true_object == 2]
+    assert third and all(run.result.steps[k].components[0].associations[-1][j] == -1 for k, j in third)
+    assert [int(i.unmapped) for i in run.infos] == [sum(1 for kk, _ in third if kk == k) for k in range(len(run.infos))]
     flags = [bool(i.object_overflow) for i in run.infos]
     created = [len({o for a in st.components[0].associations for o in a if o >= 0}) for st in run.result.steps]
     assert not flags[0] and created[0] < 2
@@ -125,9 +132,69 @@ def test_full_object_slots_are_reported_not_silent(world):
     assert flags[first:] == has_detections[first:] and any(flags)
     assert all(any("object capacity full" in w for w in i.warnings()) for i, f in zip(run.infos, flags) if f)
     stacked = jax.tree.map(lambda *a: np.stack(a), *run.infos)  # a whole run's summary counts the steps
-    assert f"no free object slot, at {sum(flags)} step(s))" in " ".join(summarize(stacked))
+    lines = " ".join(summarize(stacked))
+    assert f"no free object slot, at {sum(flags)} step(s))" in lines
+    assert f"{len(third)} detection(s) of new objects with no free object slot were weighed" in lines
     weights = np.exp(np.asarray(run.belief.log_weights))
     assert np.isfinite(np.asarray(run.belief.mean)).all() and weights.sum() == pytest.approx(1.0)
+
+
+def _one_more_slot(belief):
+    """``belief`` with one more (uncreated) object slot: placeholder mean 0, covariance I, class open,
+    uniform class prior (as :func:`~hybridslam.estimators.hybrid.belief.priors_from_scenario`)."""
+    k, d = belief.mean.shape
+    cov = jnp.zeros((k, d + 3, d + 3)).at[:, :d, :d].set(belief.cov).at[:, d:, d:].set(jnp.eye(3))
+    m = belief.model.class_prior.shape[1]
+    prior = jnp.concatenate([belief.model.class_prior, jnp.full((1, m), 1.0 / m)])
+    return eqx.tree_at(lambda b: (b.mean, b.cov, b.classes, b.model.class_prior), belief,
+                       (jnp.concatenate([belief.mean, jnp.zeros((k, 3))], axis=1), cov,
+                        jnp.concatenate([belief.classes, jnp.full((k, 1), -1, belief.classes.dtype)], axis=1), prior))
+
+
+def _children_by_key(belief, drop_slot=None):
+    """``{(β_k, classes): summed weight}`` of a belief's live components; ``drop_slot``: that object
+    slot read as unassociated and its class dropped (the children that store it, summed)."""
+    hist, classes = np.asarray(belief.history[:, int(belief.k) - 1]), np.asarray(belief.classes)
+    out: dict = {}
+    for i in np.flatnonzero(np.asarray(belief.alive)):
+        h, c = hist[i], classes[i]
+        if drop_slot is not None:
+            h, c = np.where(h == drop_slot, -1, h), np.delete(c, drop_slot)
+        out[(tuple(h), tuple(c))] = out.get((tuple(h), tuple(c)), 0.0) + float(np.asarray(belief.weights)[i])
+    return out
+
+
+@pytest.mark.parametrize("branching", [{"exhaustive": True}, {"max_children": 512}])
+def test_an_unmapped_object_weighs_what_its_stored_classes_weigh(world, branching):
+    """A component with no free object slot (two slots, two objects) weighs a detection's new-object
+    hypothesis as an unmapped object: the same children and weights (to 1e-9) as the same component
+    with one more slot, where that hypothesis stores the object once per class and those children
+    are summed (the class marginal of Sec. IV-D). The exhaustive table and the beam agree."""
+    scenario = world.replace(discovery=Discovery(2, -2.0, 9.87))
+    estimator = hs.make_estimator("hybrid", classifier="mirror", capacity=16, max_detections=2, weights="linearized",
+                                  smoother="filter", prune_ratio=1e300, **branching)
+    belief = estimator.init(scenario)
+    slots = hs.stack_steps(scenario, 2)
+    inputs = [(jnp.asarray(slots.odometry[k]), hs.Detections(jnp.asarray(slots.geo[k]), jnp.asarray(slots.scores[k]),
+                                                            jnp.asarray(slots.mask[k]))) for k in range(3)]
+    key = jax.random.PRNGKey(0)
+    for k in range(2):  # objects 0 and 1 are created by steps 1-2 (see test_full_object_slots_...)
+        belief, _ = STEP(estimator, belief, *inputs[k], key)
+    top = int(jnp.argmax(belief.log_weights))  # one parent with both slots used
+    belief = eqx.tree_at(lambda b: b.log_weights, belief, jnp.full_like(belief.log_weights, -jnp.inf).at[top].set(0.0))
+    assert int(belief.num_created[top]) == 2 and int(inputs[2][1].mask.sum()) == 1
+    two = np.array(inputs[2][1].mask)
+    two[1] = True  # a second detection, a copy of the first, so that two new objects compete for one slot
+    det = hs.Detections(inputs[2][1].geo.at[1].set(inputs[2][1].geo[0]), inputs[2][1].scores.at[1].set(
+        inputs[2][1].scores[0]), jnp.asarray(two))
+    for detections in (inputs[2][1], det):
+        full, info = STEP(estimator, belief, inputs[2][0], detections, key)
+        roomy, _ = STEP(estimator, _one_more_slot(belief), inputs[2][0], detections, key)
+        want, got = _children_by_key(roomy, drop_slot=2), _children_by_key(full)
+        assert got.keys() == want.keys() and any(-1 in h for h, _ in got)
+        for child, weight in want.items():
+            np.testing.assert_allclose(got[child], weight, rtol=1e-9, atol=1e-12)
+        assert int(info.dropped_capacity) == 0
 
 
 def test_gating_with_all_objects_equals_exact_enumeration(world, exact):

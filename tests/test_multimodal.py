@@ -214,8 +214,9 @@ def test_joint_assignments_enumerate_every_choice():
 TRUE_OBJECTS = [((2.0, 1.0, 0.5), 0), ((3.5, -1.0, -1.0), 1), ((5.0, 1.0, 2.0), 0)]
 
 
-def _clean_sequence():
-    """Three objects, none mapped; the robot drives +x 1 m a step and sees what is within 3 m, ±60°."""
+def _clean_sequence(prior_objects=()):
+    """Three objects, none mapped (``prior_objects``: mapped ones, not seen); the robot drives +x 1 m
+    a step and sees what is within 3 m, ±60°."""
     poses = [np.array([float(k), 0.0, 0.0]) for k in range(6)]
     steps = []
     for pose in poses[1:]:
@@ -228,7 +229,7 @@ def _clean_sequence():
                 dets.append({"range": float(np.hypot(*d)), "bearing": bearing,
                              "scores": _mirror_mean(np.array(vp), c).tolist(), "true_object": i})
         steps.append({"odometry": [1.0, 0.0, 0.0], "detections": dets[:2]})
-    return _scenario([], (0.0, 0.0, 0.0), _diag(1e-4, 1e-4, 1e-6), steps, new_density=-4.0,
+    return _scenario(list(prior_objects), (0.0, 0.0, 0.0), _diag(1e-4, 1e-4, 1e-6), steps, new_density=-4.0,
                      true_objects=[{"pose": list(p), "class": c} for p, c in TRUE_OBJECTS],
                      )
 
@@ -252,6 +253,24 @@ def test_unknown_map_creates_each_object_once(discovery_run):
     assert len({next(iter(v)) for v in truth_to_estimate.values()}) == 3  # ... and no two share one
     assert sorted(c for c in best.classes if c >= 0) == [0, 0, 1]
     assert best.classes.count(-1) == 1  # the fourth slot is never created
+
+
+def test_an_object_beyond_the_slots_is_unmapped_never_an_old_one():
+    """Two mapped objects out of range leave 2 of the 4 slots for the 3 objects seen: the last one's
+    detections are unmapped (weighed as new objects, not stored: object -1), not named as an old
+    object, counted (``StepInfo.unmapped``) and warned. (The file's shapes: no new compile.)"""
+    scenario = _clean_sequence(prior_objects=[(-40.0, 0.0, 0.0), (-40.0, 6.0, 0.0)])
+    run = run_estimator(scenario, "multimodal", **SHAPES)
+    best = run.result.steps[-1].components[0]
+    pairs = [(d.true_object, o) for step, assoc in zip(scenario.steps, best.associations)
+             for d, o in zip(step.detections, assoc)]
+    unmapped = {t for t, o in pairs if o == -1}
+    assert len(unmapped) == 1  # one true object has no slot, and only its detections are unmapped
+    stored = {t: {o for tt, o in pairs if tt == t} for t in {t for t, _ in pairs} - unmapped}
+    assert sorted(o for v in stored.values() for o in v) == [2, 3]  # one new slot each, after the mapped two
+    assert sum(int(i.unmapped) for i in run.infos) == sum(1 for _, o in pairs if o == -1) > 0
+    assert any("weighed as new objects but not stored" in w for i in run.infos for w in i.warnings())
+    assert int(run.belief.num_created[0]) == 4
 
 
 def test_result_file_validates(discovery_run):

@@ -95,6 +95,8 @@ class StepInfo(eqx.Module):
     min_ess: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.full((), jnp.nan))  # smallest normalized ESS
     skipped: Int[Array, ""] = eqx.field(default_factory=_zero_int)  # detections left unassociated
     rejected: Int[Array, ""] = eqx.field(default_factory=_zero_int)  # detections explained as clutter / null
+    # Detections of new objects weighed but not stored: no free object slot (unmapped objects).
+    unmapped: Int[Array, ""] = eqx.field(default_factory=_zero_int)
     # A likely component had no free object slot at a step with detections (lacks_object_slots).
     object_overflow: Bool[Array, ""] = eqx.field(default_factory=lambda: jnp.zeros((), bool))
     log_overflow: Int[Array, ""] = eqx.field(default_factory=_zero_int)  # detections beyond the smoother's factor budget
@@ -117,8 +119,9 @@ def lacks_object_slots(mask: Bool[Array, " Dmax"], num_created: Int[Array, "*K"]
                        relevant: Bool[ArrayLike, "*K"] = True) -> Bool[Array, ""]:
     """``StepInfo.object_overflow`` of an unknown map's step: a relevant component (``relevant``, e.g.
     within ``RELEVANT_NATS`` of the best) has no free object slot at a step with detections, so the
-    capacity ruled out every new-object hypothesis of its children (thesis Sec. 3.2.1: a detection of
-    an unmapped landmark must then go to an old object or stay unassociated). ``num_created``:
+    capacity leaves no room for a new object (thesis Sec. 3.2.1: a detection of a new landmark is
+    then an unmapped object, weighed but not stored, in the hybrid belief and ``multimodal``, and
+    unassociated in the others). ``num_created``:
     objects that exist, per component. A component with a few free slots and more new landmarks in
     view is flagged one step later, when its slots are full."""
     return jnp.any(mask) & jnp.any(jnp.asarray(relevant) & (num_created >= max_objects))
@@ -128,7 +131,8 @@ def _totals(info: StepInfo) -> dict[str, float]:
     """Host-side totals of the counts of one info, or of a stack of them (any leading axes)."""
     a = {name: np.asarray(getattr(info, name)) for name in
          ("dropped_capacity", "dropped_budget", "dropped_mass", "visibility_ignored", "solver_failures",
-          "is_failures", "skipped", "rejected", "object_overflow", "log_overflow", "num_components", "inconsistent")}
+          "is_failures", "skipped", "rejected", "unmapped", "object_overflow", "log_overflow", "num_components",
+          "inconsistent")}
     ess = np.asarray(info.min_ess, dtype=float)
     out: dict[str, float] = {name: float(np.sum(v)) for name, v in a.items()}
     out["steps_dropped_capacity"] = float(np.sum(a["dropped_capacity"] > 0))
@@ -175,11 +179,15 @@ def messages(t: dict[str, float], per_step: bool) -> list[str]:
                    "object slot: raise discovery.max_objects)")
     if (n := int(t["rejected"])) > 0:
         out.append(f"{n} detection(s) explained as clutter by the null hypothesis (treated as outliers)")
+    if (n := int(t["unmapped"])) > 0:
+        out.append(f"{n} detection(s) of new objects with no free object slot were weighed as new objects but not "
+                   "stored (unmapped: later detections of them cannot be associated)")
     if int(t["object_overflow"]) > 0:
         out.append("object capacity full (a likely component has no free object slot"
-                   + ("" if per_step else f", at {int(t['object_overflow'])} step(s)") + "): a new landmark's "
-                   "detections could only go to old objects or stay unassociated (raise discovery.max_objects, "
-                   "e.g. import mrclam --max-objects; or let the hybrid belief call them clutter: --clutter)")
+                   + ("" if per_step else f", at {int(t['object_overflow'])} step(s)") + "): a new landmark is not "
+                   "stored (the hybrid belief and multimodal weigh its detections as unmapped new objects; ml, gpda "
+                   "and max-mixture leave them unassociated) (raise discovery.max_objects, e.g. import mrclam "
+                   "--max-objects)")
     if (n := int(t["inconsistent"])) > 0:
         out.append("most detections the best hypothesis could not explain (left unassociated, or associated beyond "
                    "the 1e-6 tail of its prediction) " + ("at this step" if per_step else f"at {n} step(s)")

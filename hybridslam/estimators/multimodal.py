@@ -41,7 +41,9 @@ semantic term marginalized over the object's class posterior, ``Σ_c P(z^s | c, 
 p(c | Z^-)`` (the bracket of Eq. 5.10; the viewpoint comes from the sample, so viewpoint-dependent
 classifiers are handled exactly). A "new object" choice scores ``new_object_log_density`` (the null
 hypothesis of Sec. 3.2.1) times the semantic term under a uniform class prior, the new object's
-unobserved orientation drawn from ``N(0, new_object_orientation_var)``. ``p_j`` (Eq. 5.9) is the
+unobserved orientation drawn from ``N(0, new_object_orientation_var)``; with the component's object
+slots all used it is an *unmapped* object (object ``-1``: weighed the same, not stored, counted in
+``StepInfo.unmapped``). ``p_j`` (Eq. 5.9) is the
 total mass ``Σ w_i L_ij`` of the children that name the same object tuple, normalized over the
 updated children (with one component and every assignment updated: ``L_j / Σ L``).
 
@@ -230,10 +232,12 @@ def assignment_objects(
     n_max: int,
     allow_new: bool,
 ) -> tuple[Int[Array, "A Dmax"], Bool[Array, "A Dmax"], Bool[Array, " A"]]:
-    """Object of every detection under every joint assignment, which detections create an object,
-    and which assignments are joint-compatible (injective, within the object capacity).
+    """Object of every detection under every joint assignment, which detections are new objects,
+    and which assignments are joint-compatible (injective).
 
-    Several "new" detections create their own slots in slot order: ``num_created, num_created+1, ...``.
+    Several "new" detections create their own slots in slot order: ``num_created, num_created+1, ...``;
+    those beyond the ``n_max`` slots are *unmapped* (object ``-1``, ``new`` set): scored as new
+    objects, not stored, counted in ``StepInfo.unmapped`` (as the hybrid belief does).
     Without ``allow_new`` (a known map) the null choice ``G`` leaves its detection unassociated
     (object ``-1``, no factor): :func:`skipped_detections` counts them, and only the assignments
     that skip the fewest are kept (:func:`hypotheses`).
@@ -244,12 +248,11 @@ def assignment_objects(
     new = (choices == g) & mask[None, :] & allow_new
     cand_id = cand[slots[None, :], jnp.minimum(choices, g - 1)]
     new_id = num_created + jnp.cumsum(new, axis=1) - 1
-    objects = jnp.where(known, cand_id, jnp.where(new, new_id, -1)).astype(jnp.int32)
+    objects = jnp.where(known, cand_id, jnp.where(new & (new_id < n_max), new_id, -1)).astype(jnp.int32)
     same = (objects[:, :, None] == objects[:, None, :]) & known[:, :, None] & known[:, None, :]
     distinct = ~jnp.any(same & ~jnp.eye(mask.shape[0], dtype=bool)[None], axis=(1, 2))
     padded_ok = jnp.all(mask[None, :] | (choices == g), axis=1)
-    fits = num_created + jnp.sum(new, axis=1) <= n_max
-    feasible = distinct & padded_ok & fits & ~jnp.any(known & (cand_id < 0), axis=1)
+    feasible = distinct & padded_ok & ~jnp.any(known & (cand_id < 0), axis=1)
     return objects, new, feasible
 
 
@@ -568,7 +571,7 @@ class Children(eqx.Module):
 
     parent: Int[Array, " C"]
     objects: Int[Array, "C Dmax"]  # object of each detection, -1 for an empty slot
-    new: Bool[Array, "C Dmax"]  # which detections create their object
+    new: Bool[Array, "C Dmax"]  # which detections are new objects (stored where objects >= 0, else unmapped)
     mean: Float[Array, "C D"]  # Gauss-Newton posterior (before new objects are written)
     gain: Float[Array, "C D m"]  # its covariance is the parent's, downdated (update.downdate; not carried: C × D × D)
     gain_js: Float[Array, "C m D"]
@@ -740,12 +743,14 @@ def finish_child(
     observed: Bool[Array, " Nmax"], num_created: Int[Array, ""], objects: Int[Array, " Dmax"],
     new: Bool[Array, " Dmax"], detections: Detections, theta: Float[Array, "S Dmax"],
 ):
-    """Write the child's new objects into their slots and update its class posteriors."""
+    """Write the child's new objects into their slots (its unmapped ones, object -1, nowhere) and update
+    its class posteriors."""
     sensor = state.model.sensor
-    mean, cov = discovery.create_objects(mean, cov, objects, new, detections.geo, sensor.geometric_cov,
+    stored = new & (objects >= 0)
+    mean, cov = discovery.create_objects(mean, cov, objects, stored, detections.geo, sensor.geometric_cov,
                                          state.params.orientation_var)
     class_log_probs, observed = _class_update(sensor, mean, class_log_probs, observed, objects, new, detections, theta)
-    return mean, cov, class_log_probs, observed, (num_created + jnp.sum(new)).astype(num_created.dtype)
+    return mean, cov, class_log_probs, observed, (num_created + jnp.sum(stored)).astype(num_created.dtype)
 
 
 # --------------------------------------------------------------------------- #
@@ -1006,7 +1011,8 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
 
     def child_full_cov(c):  # child c's covariance, its new objects written
         return discovery.create_objects(ch.mean[c], downdate(cov[ch.parent[c]], ch.gain[c], ch.gain_js[c]),
-                                        ch.objects[c], ch.new[c], detections.geo, state.model.sensor.geometric_cov,
+                                        ch.objects[c], ch.new[c] & (ch.objects[c] >= 0), detections.geo,
+                                        state.model.sensor.geometric_cov,
                                         state.params.orientation_var)[1]
 
     # Every child's covariance only where the filter moment-matches whole clusters; with a smoother
@@ -1074,12 +1080,13 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
     child_failed = centre_ok & (ch.result != optx.RESULTS.successful)
     member_failed = jnp.any((wn > 0) & child_failed[None, :], axis=1)
     best = centres[jnp.argmax(log_w)]  # the best merged component's centre (a child)
-    unassociated = jnp.sum(detections.mask & (ch.objects[best] < 0), dtype=jnp.int32)
-    # Its associations against its parent's prediction (objects it creates aside; clutter explains
-    # a detection, a skip does not).
+    unmapped = detections.mask & ch.new[best] & (ch.objects[best] < 0)  # new objects with no free slot
+    unassociated = jnp.sum(detections.mask & (ch.objects[best] < 0) & ~unmapped, dtype=jnp.int32)
+    # Its associations against its parent's prediction (objects it creates or leaves unmapped aside;
+    # clutter explains a detection, a skip does not).
     inconsistent = explained & gating.contradicted(state.model.sensor, mean[ch.parent[best]], cov[ch.parent[best]],
                                                    detections, jnp.where(ch.new[best], -1, ch.objects[best]),
-                                                   (ch.objects[best] < 0) & (not cfg.clutter))
+                                                   (ch.objects[best] < 0) & ~unmapped & (not cfg.clutter))
     info = StepInfo(
         k=(state.k + 1).astype(jnp.int32),
         num_components=jnp.where(explained, jnp.sum(log_w > -jnp.inf, dtype=jnp.int32),
@@ -1091,6 +1098,7 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
         # clutter hypothesis explains: rejected), or all of them when nothing explains the step.
         skipped=jnp.where(explained, 0 if cfg.clutter else unassociated, jnp.sum(detections.mask, dtype=jnp.int32)),
         rejected=jnp.where(explained & cfg.clutter, unassociated, 0),
+        unmapped=jnp.where(explained, jnp.sum(unmapped, dtype=jnp.int32), 0),
         object_overflow=no_room,
         log_overflow=new_overflow(state.log, log),
         inconsistent=inconsistent,

@@ -45,7 +45,8 @@ from .records import read_table as read_table
 TABLE = "table.csv"
 METRICS = ("entropy", "det_cov", "err_wmax", "err_wavg", "num_components")
 DIAGNOSTICS = ("num_components", "dropped_capacity", "dropped_budget", "dropped_mass", "visibility_ignored",
-               "solver_failures", "is_failures", "min_ess", "skipped", "rejected", "object_overflow", "inconsistent")
+               "solver_failures", "is_failures", "min_ess", "skipped", "rejected", "unmapped", "object_overflow",
+               "inconsistent")
 ALPHA_COLUMNS = ("alpha", "model", "track", "seed", "step", *METRICS)
 FILE_COLUMNS = ("scenario", "model", "track", "step", *METRICS)
 

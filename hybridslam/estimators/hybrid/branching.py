@@ -18,6 +18,12 @@
   within ``log(prune_ratio)`` of the best (children that could have survived pruning) are counted
   in ``StepInfo.dropped_budget``.
 
+  Unknown maps: a new object takes the parent's next free object slot. With none left the
+  hypothesis is not lost (nor is the detection forced onto an old object): it is an *unmapped*
+  object, weighed by the new-object term with its class marginalized
+  (:func:`~.weights.unmapped_object_log_likelihood`), its detection unassociated (``assign = -1``,
+  ``unmapped``) and counted in ``StepInfo.unmapped``. :mod:`.hypotheses` does the same.
+
   On a known map without a clutter hypothesis a step may have no child at all: more detections
   than objects, or gates that leave two detections only the same object (every detection must be
   of an object in the paper's model, and an assignment is injective). Rather than lose the whole
@@ -41,7 +47,8 @@ from ...inference.batching import map_live
 from ...inference.beam import beam_search
 from ...models.measurement import Detections, SensorModel
 from .belief import Belief
-from .weights import LinearTables, PartialChild, empty_child, extend_child, linear_tables
+from .weights import (LinearTables, PartialChild, empty_child, extend_child, linear_tables,
+                      unmapped_object_log_likelihood)
 
 # A child whose objects are (almost surely) out of view still ranks by its likelihood, this many
 # nats below any child in view (as the laplace-is screen does).
@@ -74,6 +81,7 @@ class FlatChildren(NamedTuple):
     parent: Int[Array, " C"]
     assign: Int[Array, "C Dmax"]  # β_k: object of each slot (created ones included), -1 = empty
     creates: Bool[Array, "C Dmax"]  # the slot's detection creates object assign[c, j]
+    unmapped: Bool[Array, "C Dmax"]  # the slot's detection is a new object with no free slot (assign -1)
     new: Bool[Array, "C Dmax"]  # the slot realizes its object's class here (Sec. IV-D)
     slot_class: Int[Array, "C Dmax"]  # class of the object each slot names (0 if empty)
     prior: Float[Array, " C"]  # parent log weight + class priors + new-object terms (no Gaussian factor)
@@ -125,6 +133,7 @@ def beam_children(
     choices = g + (1 if discovery else 0) + (1 if clutter else 0)  # the candidates, a new object, clutter / skip
     num_options = choices * classes_here
     created = belief.num_created if discovery else jnp.full((k,), n, jnp.int32)
+    unmapped_terms = unmapped_object_log_likelihood(new_terms) if discovery else None
 
     # Per parent: the residuals, Jacobian Gram matrix and in-view probability of every row a slot
     # may name (every object, or each slot's candidates).
@@ -144,14 +153,16 @@ def beam_children(
         occupied = detections.mask & considered
         choice, c = o // classes_here, o % classes_here
         named = occupied & (choice < g)
-        makes = occupied & (choice == g) if discovery else jnp.zeros(dmax, bool)
+        new_object = occupied & (choice == g) if discovery else jnp.zeros(dmax, bool)
         noise = occupied & (choice == choices - 1) if clutter else jnp.zeros(dmax, bool)
         obj = jnp.where(named, candidates[p, slots, jnp.minimum(choice, g - 1)] if gated else choice, 0)
-        made = created[p] + jnp.cumsum(makes, dtype=jnp.int32) - 1
+        made = created[p] + jnp.cumsum(new_object, dtype=jnp.int32) - 1
+        # A new object beyond the component's object slots is scored as one but not stored (unmapped).
+        makes, unmapped = new_object & (made < n), new_object & (made >= n)
         assign = jnp.where(named, obj, jnp.where(makes, made, -1))
-        ok = jnp.all(jnp.where(occupied, named | makes | noise, jnp.where(considered, o == 0, True)))
+        ok = jnp.all(jnp.where(occupied, named | new_object | noise, jnp.where(considered, o == 0, True)))
         twice = (obj[:, None] == obj[None, :]) & named[:, None] & named[None, :] & ~jnp.eye(dmax, dtype=bool)
-        ok &= ~jnp.any(twice) & jnp.all(~named | (obj < created[p])) & jnp.all(~makes | (made < n))
+        ok &= ~jnp.any(twice) & jnp.all(~named | (obj < created[p]))
         known = belief.classes[p, jnp.where(named, obj, 0)]
         first = named & (known < 0) & realize
         new = first | (makes & realize)
@@ -161,11 +172,12 @@ def beam_children(
         log_prior = belief.log_weights[p] + jnp.sum(jnp.where(new, jnp.log(model.class_prior[prior_obj, slot_class]), 0.0))
         if discovery:
             log_prior += jnp.sum(jnp.where(makes, new_terms[p, slots, slot_class], 0.0))
+            log_prior += jnp.sum(jnp.where(unmapped, unmapped_terms[p], 0.0))
         if clutter_terms is not None:
             log_prior += jnp.sum(jnp.where(noise, clutter_terms[p], 0.0))
         rows = jnp.where(named, slots * g + jnp.minimum(choice, g - 1) if gated else obj, -1)
         skipped = jnp.sum(noise, dtype=jnp.int32) if skip else jnp.zeros((), jnp.int32)
-        return ok, assign, makes, new, slot_class, log_prior, rows, named, skipped
+        return ok, assign, makes, unmapped, new, slot_class, log_prior, rows, named, skipped
 
     # The density of the detections a partial child names is carried per beam row in sequential
     # form (weights.PartialChild): an extension adds one slot's conditional term, and its row is
@@ -186,11 +198,11 @@ def beam_children(
     empty = jax.tree.map(lambda a: jnp.broadcast_to(a, (width,) + a.shape), empty_child(dmax, rdim, mean.dtype))
     found = beam_search(score, 1 + dmax, num_options, width, fill=0, keep_nats=keep, start=(first, first_score),
                         first_slot=1, carry=empty)
-    ok, assign, makes, new, slot_class, log_prior, *_ = jax.vmap(child, (0, None))(found.options, dmax - 1)
+    ok, assign, makes, unmapped, new, slot_class, log_prior, *_ = jax.vmap(child, (0, None))(found.options, dmax - 1)
     valid = ok & found.valid
     if skip:  # only the children that skip the fewest detections (the beam ranks them first)
         valid &= found.rank == jnp.min(jnp.where(valid, found.rank, jnp.iinfo(jnp.int32).max))
     lin_free = found.rows.log_lik
     lin = lin_free + found.rows.log_vis
-    return FlatChildren(found.options[:, 0], assign, makes, new, slot_class, log_prior, lin, lin_free, valid,
-                        found.dropped)
+    return FlatChildren(found.options[:, 0], assign, makes, unmapped, new, slot_class, log_prior, lin, lin_free,
+                        valid, found.dropped)

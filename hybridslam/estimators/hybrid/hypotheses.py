@@ -14,7 +14,8 @@ Children per parent: ``A · M^Dmax`` with ``A = Σ_n C(Dmax, n) · N!/(N−n)!``
 
 Unknown maps (SCENARIO_FORMAT.md, "Unknown maps"): a slot may also hold :data:`NEW`, the null /
 new-landmark hypothesis (thesis Sec. 3.2.1): the detection is an object not yet in the map. The
-new objects of a child take the parent's next uncreated slots, in slot order.
+new objects of a child take the parent's next uncreated slots, in slot order; those beyond the
+parent's last slot are *unmapped* (weighed as new objects, not stored: ``Children.unmapped``).
 
 Gating (``Config.gate_candidates = G``): the table then names *candidate ranks* ``0..G-1``
 instead of objects, ``(G + 2)^Dmax`` rows (each slot empty, a rank, or :data:`NEW`), and each
@@ -75,6 +76,7 @@ class Children(eqx.Module):
     log_prior: Float[Array, "*K A Mc"]  # Σ log P(c_n) over newly realized classes (Eq. 3)
     assign: Int[Array, "*K A Dmax"]  # β_k: the object of each slot (created ones included), -1 = empty
     creates: Bool[Array, "*K A Dmax"]  # the slot's detection creates object assign[a, j] (unknown maps)
+    unmapped: Bool[Array, "*K A Dmax"]  # the slot's detection is a new object with no free slot (assign -1)
     candidates: Int[Array, "*K Dmax G"] | None = None  # gated: the objects that rank r names, per slot
 
     @property
@@ -87,26 +89,28 @@ class Children(eqx.Module):
 def resolve(
     table: HypothesisTable, num_created: Int[Array, ""] | None, candidates: Int[Array, "Dmax G"] | None,
     num_objects: int,
-) -> tuple[Int[Array, "A Dmax"], Bool[Array, "A Dmax"], Bool[Array, " A"]]:
-    """The objects a parent's table rows name, which slots create one, and which rows are possible.
+) -> tuple[Int[Array, "A Dmax"], Bool[Array, "A Dmax"], Bool[Array, "A Dmax"], Bool[Array, " A"]]:
+    """The objects a parent's table rows name, which slots create one, which are unmapped, and which
+    rows are possible.
 
     Known slots name ``candidates[j, rank]`` (or the entry itself without gating); new ones take
-    the slots ``num_created, num_created + 1, ...`` in slot order. A row is possible when its
-    known objects exist and are distinct and its new ones fit in the ``num_objects`` slots.
+    the slots ``num_created, num_created + 1, ...`` in slot order, and those beyond the
+    ``num_objects`` slots are unmapped (``assign`` -1). A row is possible when its known objects
+    exist and are distinct.
     """
     rank = jnp.asarray(table.assign)
-    occupied, creates = rank != EMPTY, rank == NEW
-    named = occupied & ~creates
+    occupied, new_object = rank != EMPTY, rank == NEW
+    named = occupied & ~new_object
     safe = jnp.maximum(rank, 0)
     known = safe if candidates is None else candidates[jnp.arange(rank.shape[1])[None, :], safe]
     created = jnp.asarray(num_objects, rank.dtype) if num_created is None else num_created
-    obj = jnp.where(creates, created + jnp.cumsum(creates, axis=-1, dtype=rank.dtype) - 1, known)
-    assign = jnp.where(occupied, obj, EMPTY)
+    obj = jnp.where(new_object, created + jnp.cumsum(new_object, axis=-1, dtype=rank.dtype) - 1, known)
+    creates, unmapped = new_object & (obj < num_objects), new_object & (obj >= num_objects)
+    assign = jnp.where(occupied & ~unmapped, obj, EMPTY)
     same = (assign[:, :, None] == assign[:, None, :]) & named[:, :, None] & named[:, None, :]
     distinct = ~jnp.any(same & ~jnp.eye(rank.shape[1], dtype=bool)[None], axis=(1, 2))
     exists = jnp.all(~named | (known < created), axis=-1)
-    fits = created + jnp.sum(creates, axis=-1) <= num_objects
-    return assign, creates, distinct & exists & fits
+    return assign, creates, unmapped, distinct & exists
 
 
 def children(
@@ -132,8 +136,9 @@ def children(
     if num_created is None and candidates is None:  # known map, exact enumeration
         flat = jnp.asarray(table.assign)
         creates, possible = jnp.zeros(flat.shape, bool), True
+        unmapped = creates
     else:
-        flat, creates, feasible = resolve(table, num_created, candidates, parent_classes.shape[0])
+        flat, creates, unmapped, feasible = resolve(table, num_created, candidates, parent_classes.shape[0])
         possible = feasible[:, None]
     assign = flat[:, None, :]  # (A, 1, Dmax)
     combos = jnp.asarray(table.combos)[None, :, :]  # (1, Mc, Dmax)
@@ -143,9 +148,9 @@ def children(
     new = occupied & (known < 0) & realize_classes
     slot_class = jnp.where(new, combos, jnp.where(occupied, jnp.maximum(known, 0), 0))
     canonical = jnp.all(new | (combos == 0), axis=-1)  # unused combo entries must be 0
-    matches_mask = jnp.all(occupied == mask[None, None, :], axis=-1)  # (A, 1)
+    matches_mask = jnp.all((occupied | unmapped[:, None, :]) == mask[None, None, :], axis=-1)  # (A, 1)
     valid = canonical & matches_mask & possible
     log_prior = jnp.sum(jnp.where(new, jnp.log(class_prior[obj, slot_class]), 0.0), axis=-1)
     return Children(valid, jnp.broadcast_to(slot_class, valid.shape + (assign.shape[-1],)),
                     jnp.broadcast_to(new, valid.shape + (assign.shape[-1],)), log_prior,
-                    flat, creates, candidates)
+                    flat, creates, unmapped, candidates)

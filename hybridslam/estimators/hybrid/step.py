@@ -41,7 +41,7 @@ from .branching import Beam, Branching, beam_children
 from .hypotheses import Children, children, hypothesis_table
 from .prune import PruneStats, prune
 from .weighers import AbstractWeigher, Context
-from .weights import new_object_log_likelihood
+from .weights import new_object_log_likelihood, unmapped_object_log_likelihood
 
 
 @runtime_checkable
@@ -98,14 +98,16 @@ def _create_and_update(sensor, discovery, mean, cov, assign, creates, slot_class
 
 
 def _new_object_terms(belief: Belief, mean, cov, detections: Detections, kids: Children) -> Float[Array, "K A Mc"]:
-    """Σ over a child's creating slots of :func:`~hybridslam.weights.new_object_log_likelihood`."""
+    """Σ over a child's creating slots of :func:`~hybridslam.weights.new_object_log_likelihood`, and
+    over its unmapped ones of :func:`~.weights.unmapped_object_log_likelihood`."""
     sensor = belief.model.sensor
     lik = jax.vmap(new_object_log_likelihood, (None, 0, 0, None, None))(
         sensor, mean[:, :3], cov[:, :3, :3], detections, belief.model.discovery
     )  # (K, Dmax, M)
     pick = kids.slot_class[..., None] == jnp.arange(lik.shape[-1]).reshape(1, 1, 1, 1, -1)  # (K, A, Mc, Dmax, M)
     picked = jnp.sum(jnp.where(pick, lik[:, None, None], 0.0), axis=-1)
-    return jnp.sum(jnp.where(kids.creates[:, :, None, :], picked, 0.0), axis=-1)
+    unmapped = jnp.sum(jnp.where(kids.unmapped, unmapped_object_log_likelihood(lik)[:, None, :], 0.0), axis=-1)
+    return jnp.sum(jnp.where(kids.creates[:, :, None, :], picked, 0.0), axis=-1) + unmapped[:, :, None]
 
 
 
@@ -132,6 +134,7 @@ class _Scored(NamedTuple):
     parent: Int[Array, " C"]
     assign: Int[Array, "C Dmax"]
     creates: Bool[Array, "C Dmax"]
+    unmapped: Bool[Array, "C Dmax"]
     new: Bool[Array, "C Dmax"]
     slot_class: Int[Array, "C Dmax"]
     dropped: Int[Array, ""]
@@ -160,7 +163,7 @@ def _exhaustive(settings, belief: Belief, mean, cov, detections: Detections, can
     parent, a, m = (x.reshape(-1) for x in jnp.meshgrid(*(jnp.arange(d) for d in log_w.shape), indexing="ij"))
     flat = lambda x: x.reshape(-1)  # noqa: E731
     return _Scored(flat(log_w), flat(possible), flat(prior), flat(log_lik_free), flat(ess), flat(converged), parent,
-                   kids.assign[parent, a], kids.creates[parent, a], kids.new[parent, a, m],
+                   kids.assign[parent, a], kids.creates[parent, a], kids.unmapped[parent, a], kids.new[parent, a, m],
                    kids.slot_class[parent, a, m], jnp.zeros((), jnp.int32))
 
 
@@ -185,7 +188,7 @@ def _beam(settings, belief: Belief, mean, cov, detections: Detections, candidate
         model.sensor, belief.alive, mean, cov, detections, ch, settings.gn_max_steps, settings.batch_axis, key)
     log_w = jnp.where(ch.valid, ch.prior + log_lik, -jnp.inf)
     return _Scored(log_w, ch.valid, ch.prior, log_lik_free, ess, converged, ch.parent, ch.assign, ch.creates,
-                   ch.new, ch.slot_class, ch.dropped)
+                   ch.unmapped, ch.new, ch.slot_class, ch.dropped)
 
 
 def hybrid_step(
@@ -222,8 +225,8 @@ def hybrid_step(
     index, new_log_w, stats = prune(log_w, belief.capacity, model.prune_ratio)
     index = jnp.minimum(index, log_w.shape[0] - 1)  # fewer children than slots: prune pads with dead ones
     parent, assign, creates, slot_class = sc.parent[index], sc.assign[index], sc.creates[index], sc.slot_class[index]
-    new, ess, converged = sc.new[index], sc.ess[index], sc.converged[index]
-    # No child at all (more detections than objects that could explain them, a full object capacity):
+    new, unmapped, ess, converged = sc.new[index], sc.unmapped[index], sc.ess[index], sc.converged[index]
+    # No child at all (on a known map, more detections than objects that could explain them):
     # the step's detections are skipped, and counted, rather than the belief lost. Each parent stays,
     # propagated, with its weight and no association for this step.
     explained = jnp.any(new_log_w > -jnp.inf)
@@ -232,6 +235,7 @@ def hybrid_step(
     parent = jnp.where(explained, parent, slots_k)
     assign = jnp.where(explained, assign, -1)
     creates = creates & explained
+    unmapped = unmapped & explained
     new = new & explained
     slot_class = jnp.where(explained, slot_class, 0)
     ess = jnp.where(explained, ess, 1.0)
@@ -320,12 +324,14 @@ def hybrid_step(
     )
     kept_ess = jnp.where(alive, ess, jnp.nan)
     best = jnp.argmax(new_log_w)
-    unassociated = jnp.sum(detections.mask & (assign[best] < 0), dtype=jnp.int32)
-    # The best child's associations against its parent's prediction (objects it creates aside;
-    # clutter explains a detection, a skip does not).
+    # The best child's unmapped objects (no free slot) are not unassociated detections.
+    num_unmapped = jnp.sum(detections.mask & unmapped[best], dtype=jnp.int32)
+    unassociated = jnp.sum(detections.mask & (assign[best] < 0), dtype=jnp.int32) - num_unmapped
+    # The best child's associations against its parent's prediction (objects it creates or leaves
+    # unmapped aside; clutter explains a detection, a skip does not).
     inconsistent = explained & contradicted(model.sensor, mean[parent[best]], cov[parent[best]], detections,
                                             jnp.where(creates[best], -1, assign[best]),
-                                            (assign[best] < 0) & (settings.clutter is None))
+                                            (assign[best] < 0) & ~unmapped[best] & (settings.clutter is None))
     info = StepInfo(
         k=k + 1,
         num_components=jnp.sum(alive, dtype=jnp.int32),
@@ -337,6 +343,7 @@ def hybrid_step(
         skipped=jnp.where(explained, 0 if settings.clutter is not None else unassociated,
                           jnp.sum(detections.mask, dtype=jnp.int32)),
         rejected=unassociated if settings.clutter is not None else jnp.zeros((), jnp.int32),
+        unmapped=num_unmapped,
         visibility_ignored=visibility_ignored,
         inconsistent=inconsistent,
         solver_failures=jnp.sum(alive & (result != optx.RESULTS.successful), dtype=jnp.int32),
