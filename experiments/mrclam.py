@@ -33,11 +33,9 @@ Per cell (dataset, robot, window, map, estimator, smoother):
   merge (two landmarks in one object) against the minority's detections, but not a duplicate (one
   landmark split into two objects, both majority-mapped to it); ``num_objects`` and
   ``duplicate_objects`` (objects whose majority landmark another object also has) show those.
-  Unassociated detections (``-1``) count as wrong in both maps. Note that ``ml``, ``gpda`` and
-  ``max-mixture`` record a detection they skipped (no object in the gate, no free slot) or
-  explained as clutter under *its nearest object* in the result file (:func:`~hybridslam.estimators.
-  gaussian.commit`), not ``-1``, so the score counts it by that object; ``skipped`` and ``rejected``
-  (from the step infos) say how many detections that concerns.
+  Unassociated detections (``-1``: skipped, explained as clutter, or unmapped objects when the
+  object slots are full) count as wrong in both maps; ``skipped``, ``rejected`` and ``unmapped``
+  (from the step infos) say how many detections each concerns.
 - **Time**: median and mean ms per step (``timing["step_s"]``) and the compile seconds (0 when an
   equal program was compiled earlier in the same process: the robots of one map share shapes).
 
@@ -261,6 +259,7 @@ def run_cell(folder: str, dataset: str, robot: int, start: float, duration: floa
             "warnings": warnings[:5],
             "skipped": int(sum(int(i.skipped) for i in run.infos)),
             "rejected": int(sum(int(i.rejected) for i in run.infos)),
+            "unmapped": int(sum(int(i.unmapped) for i in run.infos)),
             "result": os.path.relpath(result_path, folder),
         }
     except Exception as e:  # noqa: BLE001 - a failing estimator (or window) is a result, not a crash
@@ -294,7 +293,8 @@ def _row(r: dict) -> dict:
         row[f"duplicate_objects{suffix}"] = a["duplicate_objects"]
     row.update(detections=r["detections"], num_steps=r["num_steps"], step_ms_median=r["step_ms_median"],
                step_ms_mean=r["step_ms_mean"], compile_s=r["compile_s"], wall_s=r["wall_s"],
-               num_warnings=r["num_warnings"], skipped=r["skipped"], rejected=r["rejected"])
+               num_warnings=r["num_warnings"], skipped=r["skipped"], rejected=r["rejected"],
+               unmapped=r.get("unmapped", ""))  # cells of studies before unmapped objects lack it
     return row
 
 

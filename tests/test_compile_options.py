@@ -49,3 +49,30 @@ def test_the_options_as_xla_flags():
     assert (driver._as_xla_flags(driver.CPU_COMPILER_OPTIONS)
             == "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=1")
     assert driver._as_xla_flags({"xla_a": True, "xla_b": 2}) == "--xla_a=true --xla_b=2"
+
+
+def test_the_garbage_collector_pauses_only_while_compiling(monkeypatch):
+    """``driver.compiled`` traces with the cyclic collector off and leaves it as it found it, also
+    when tracing raises."""
+    import gc
+
+    seen = []
+
+    def traced(x):
+        seen.append(gc.isenabled())
+        return _f(x)
+
+    def broken(x):
+        raise RuntimeError("no trace")
+
+    was = gc.isenabled()
+    try:
+        for enabled in (True, False):
+            gc.enable() if enabled else gc.disable()
+            driver.compiled(traced, jnp.arange(3.0 + enabled))  # a new shape each time: traced again
+            with pytest.raises(RuntimeError, match="no trace"):
+                driver.compiled(broken, jnp.arange(2.0))
+            assert gc.isenabled() == enabled
+        assert seen == [False, False]
+    finally:
+        gc.enable() if was else gc.disable()
