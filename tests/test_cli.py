@@ -190,3 +190,13 @@ def test_a_warning_repeated_at_many_steps_is_printed_three_times_then_counted(ca
     assert "step 1:" in capacity[0] and "step 3:" in capacity[2] and "not repeated" in capacity[2]
     assert capacity[3].startswith("WARNING: and at 4 more step(s): 5 hypotheses")
     assert sum("did not converge" in line for line in lines) == 1
+
+
+def test_the_command_line_starts_without_matplotlib():
+    """Only the commands that draw import matplotlib (0.3-0.5 s of every start-up otherwise)."""
+    import subprocess
+    import sys
+
+    code = "import sys, hybridslam.cli; print('matplotlib' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120)
+    assert out.stdout.strip() == "False"

@@ -11,7 +11,6 @@ import time
 
 from tqdm import tqdm
 
-from ..analysis import plot
 from ..driver import run
 from ..io.result import Result, StepRecord, save_result
 from ..io.scenario import save_scenario
@@ -91,6 +90,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
                     if track == 0:
                         posterior[model] = [result_run.result.steps[k - 1] for k in show]
                     bar.update(1)
+
+    from ..analysis import plot  # here: matplotlib costs every other command 0.3-0.5 s of start-up
 
     plot.plot_metrics(rows, os.path.join(out, "metrics.png"))
     plot.plot_posterior_panels(scenarios[0], posterior, os.path.join(out, "posterior.png"))

@@ -11,7 +11,6 @@ from typing import Any
 
 from tqdm import tqdm
 
-from ..analysis import plot
 from ..io.scenario import ScenarioError
 from ..studies import study
 from ..studies.batch import device_mesh
@@ -49,6 +48,9 @@ def _models(text: str | None) -> tuple[str, ...] | None:
 
 def draw(folder: str, rows: Sequence[dict]) -> list[str]:
     """The study's plots from its table rows; returns the files written."""
+    # Imported here: matplotlib costs every other command 0.3-0.5 s of start-up.
+    from ..analysis import plot
+
     if not rows:
         return []
     if "alpha" in rows[0]:

@@ -7,7 +7,6 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..analysis import plot
 from .common import fmt
 
 
@@ -50,6 +49,9 @@ def summary_table(rows: Sequence[dict], models: Sequence[str]) -> str:
 
 def alpha_summary(rows: Sequence[dict]) -> str:
     """Per (alpha, model): mean ± 95% half-width over tracks of each track's mean over its steps."""
+    # Imported here: matplotlib costs every other command 0.3-0.5 s of start-up.
+    from ..analysis import plot
+
     header = f"{'alpha':>6} {'model':<12} {'tracks':>6} {'H(w)':>15} {'det_cov':>11} {'err_wmax':>15} {'err_wavg':>15}"
     lines = [header, "-" * len(header)]
     curves = {m: plot.alpha_curves(rows, m) for m in ("entropy", "det_cov", "err_wmax", "err_wavg")}
