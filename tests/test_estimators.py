@@ -325,16 +325,38 @@ def test_unknown_map_creates_each_true_object_once(discovery_scenario, estimator
 
 
 @pytest.mark.parametrize("estimator", ["ml", "gpda", "max-mixture"])
-def test_no_free_slot_skips_the_detection_and_warns(estimator):
+def test_no_free_slot_leaves_the_new_object_unmapped_and_warns(estimator):
+    """A detection of a new landmark with every object slot used is an unmapped object: counted and
+    warned, written -1, nothing created, the belief finite."""
     full = [((3.0, 0.5 * i, 0.0), (0.01, 0.01, 0.1)) for i in range(4)]  # capacity 4 reached
     sc = _scenario(full, [[0.5, 0.5]] * 4, (0, 0, 0), (0.01, 0.01, 0.001), [_step((8.0, -1.0, (0.5, 0.5)))])
     run = _runs(sc, estimator)
-    assert int(run.infos[0].skipped) + int(run.infos[0].rejected) == 1 and int(run.belief.num_created) == 4
-    assert any(w in " ".join(run.infos[0].warnings()) for w in ("unassociated", "outlier"))
+    info = run.infos[0]
+    assert (int(info.unmapped), int(info.skipped), int(info.rejected)) == (1, 0, 0) and int(run.belief.num_created) == 4
+    assert "weighed as new objects but not stored" in " ".join(info.warnings()) and not bool(info.inconsistent)
     assert bool(run.infos[0].object_overflow) and "object capacity full" in " ".join(run.infos[0].warnings())
     assert np.isfinite(np.asarray(run.belief.mean)).all()
     # The result file says so: -1, not the detection's nearest object (SCENARIO_FORMAT.md).
     assert run.result.steps[0].components[0].associations == [[-1]]
+
+
+@pytest.mark.parametrize("estimator", ["ml", "gpda", "max-mixture"])
+def test_a_full_map_does_not_force_a_new_landmark_onto_an_old_object(estimator):
+    """A detection inside an old object's gate (d² ≈ 11.6 < 13.8) but likelier a new object (its log
+    density 1.0 against the object's about -0.7): with a free slot it creates one; with none it is
+    unmapped, not named as the old object (before, the null option with no slot counted as a skip,
+    ranked below every association)."""
+    ahead = [((3.0, 0.0, 0.0), (1e-4, 1e-4, 0.1))]
+    others = [((-3.0, 3.0 * i, 0.0), (1e-4, 1e-4, 0.1)) for i in range(3)]  # behind the robot: not candidates
+    det = _step((3.0, 0.068, (0.5, 0.5)))  # 0.2 m to the side: bearing d² ≈ (0.068 / 0.02)²
+    for objects, created in ((ahead, 2), (ahead + others, 4)):
+        sc = _scenario(objects, [[0.5, 0.5]] * len(objects), (0, 0, 0), (1e-6, 1e-6, 1e-7), [det], log_density=1.0)
+        run = _runs(sc, estimator)
+        assoc = run.result.steps[0].components[0].associations[0]
+        if created == 2:  # a free slot: the detection creates object 1
+            assert assoc == [1] and int(run.belief.num_created) == 2
+        else:
+            assert assoc == [-1] and int(run.infos[0].unmapped) == 1 and int(run.belief.num_created) == 4
 
 
 def test_result_files_and_cli(discovery_scenario, tmp_path, capsys):

@@ -120,8 +120,7 @@ def lacks_object_slots(mask: Bool[Array, " Dmax"], num_created: Int[Array, "*K"]
     """``StepInfo.object_overflow`` of an unknown map's step: a relevant component (``relevant``, e.g.
     within ``RELEVANT_NATS`` of the best) has no free object slot at a step with detections, so the
     capacity leaves no room for a new object (thesis Sec. 3.2.1: a detection of a new landmark is
-    then an unmapped object, weighed but not stored, in the hybrid belief and ``multimodal``, and
-    unassociated in the others). ``num_created``:
+    then an unmapped object, weighed but not stored). ``num_created``:
     objects that exist, per component. A component with a few free slots and more new landmarks in
     view is flagged one step later, when its slots are full."""
     return jnp.any(mask) & jnp.any(jnp.asarray(relevant) & (num_created >= max_objects))
@@ -175,8 +174,7 @@ def messages(t: dict[str, float], per_step: bool) -> list[str]:
                    "prefer --weights laplace-is or more --samples")
     if (n := int(t["skipped"])) > 0:
         out.append(f"{n} detection(s) left unassociated (no object inside the gate of a known map, more detections "
-                   "than objects that could explain them: spurious ones? --clutter with hybrid or multimodal; or no free "
-                   "object slot: raise discovery.max_objects)")
+                   "than objects that could explain them: spurious ones? --clutter with hybrid or multimodal)")
     if (n := int(t["rejected"])) > 0:
         out.append(f"{n} detection(s) explained as clutter by the null hypothesis (treated as outliers)")
     if (n := int(t["unmapped"])) > 0:
@@ -185,9 +183,8 @@ def messages(t: dict[str, float], per_step: bool) -> list[str]:
     if int(t["object_overflow"]) > 0:
         out.append("object capacity full (a likely component has no free object slot"
                    + ("" if per_step else f", at {int(t['object_overflow'])} step(s)") + "): a new landmark is not "
-                   "stored (the hybrid belief and multimodal weigh its detections as unmapped new objects; ml, gpda "
-                   "and max-mixture leave them unassociated) (raise discovery.max_objects, e.g. import mrclam "
-                   "--max-objects)")
+                   "stored (its detections are weighed as unmapped new objects) (raise discovery.max_objects, e.g. "
+                   "import mrclam --max-objects)")
     if (n := int(t["inconsistent"])) > 0:
         out.append("most detections the best hypothesis could not explain (left unassociated, or associated beyond "
                    "the 1e-6 tail of its prediction) " + ("at this step" if per_step else f"at {n} step(s)")

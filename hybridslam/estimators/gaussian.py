@@ -13,15 +13,16 @@ Association (:func:`associate`), thesis Sec. 3.2-3.3 and 4.2:
 * **Null hypothesis**: with a ``discovery`` section a detection may also be a new object (Sec. 3.2.1,
   the summary's Eq. 13), of log density ``new_object_log_density`` times the semantic evidence under
   the class prior. The ``i``-th new detection of an assignment (slot order) creates slot
-  ``num_created + i``; beyond the capacity ``Nmax`` it is left unassociated (*skipped*). Without
-  discovery a null entry is always a skip.
+  ``num_created + i``; beyond the capacity ``Nmax`` it is an *unmapped* object: weighed the same,
+  not stored, its detection unassociated (``StepInfo.unmapped``). Without discovery a null entry
+  is always a skip.
 * **Joint assignments**: every injective assignment of the occupied detection slots to their
   candidates or the null option, enumerated once in numpy (``(G+1)^Dmax`` rows, invalid ones masked).
   An assignment's log weight is the joint linearized marginal likelihood of its associated
   detections (Eq. 4.14-4.15, all of them at once: the shared robot pose correlates them, which is
   joint compatibility), times each one's semantic term ``Σ_c P(z^s | c) P(c | Z⁻)`` (Eq. 4.13 with
   Eq. 2.14), times the null terms. Only the assignments that skip the fewest detections compete
-  (a skip is a last resort: an empty gate, two detections of one object, no free slot).
+  (a skip, on a known map, is a last resort: an empty gate, two detections of one object).
   Normalized by logsumexp they are ``P(d_k | Z⁻)``; per-detection marginals are their sums.
 
 The semantic likelihood enters the association weights and the class posteriors only; the
@@ -124,7 +125,8 @@ class Association(eqx.Module):
     options: Int[Array, "R Dmax"]  # candidate index per slot, G = null (static table)
     log_prob: Float[Array, " R"]  # log P(d_k | Z⁻); -inf for invalid rows
     new: Bool[Array, "R Dmax"]  # the slot's null entry creates an object
-    skip: Bool[Array, "R Dmax"]  # the slot's null entry leaves the detection unassociated
+    unmapped: Bool[Array, "R Dmax"]  # ... is a new object with no free slot (weighed, not stored)
+    skip: Bool[Array, "R Dmax"]  # the slot's null entry leaves the detection unassociated (known map)
     marginals: Float[Array, "Dmax G1"]  # P(d_k^j = candidate g), last column the null option
     class_loglik: Float[Array, "Dmax Nmax M"]  # log P(z^s_j | c) seen from each object
     new_class_loglik: Float[Array, "Dmax M"]  # ... from the object the detection would create
@@ -326,7 +328,7 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
     null_w = params.new_object_log_density + logsumexp(params.new_class_log_prior[None] + new_class_loglik, axis=-1)
 
     def flags(opts, upto):
-        """Validity, objects and new / skipped slots of the assignment ``opts`` of slots ``0..upto``."""
+        """Validity, objects and new / unmapped / skipped slots of the assignment ``opts`` of slots ``0..upto``."""
         occupied = detections.mask & (slots <= upto)
         used = occupied & (opts < g)
         pick = jnp.minimum(opts, g - 1)
@@ -335,37 +337,38 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
         twice = (obj[:, None] == obj[None, :]) & used[:, None] & used[None, :] & ~jnp.eye(dmax, dtype=bool)
         ok &= ~jnp.any(twice)
         null = occupied & (opts == g)
-        order = jnp.cumsum(null) - 1
-        new = null & (state.num_created + order < n_max) if cfg.discovery else jnp.zeros_like(null)
-        return ok, used, pick, obj, new, null & ~new
+        if not cfg.discovery:
+            return ok, used, pick, obj, jnp.zeros_like(null), jnp.zeros_like(null), null
+        new = null & (state.num_created + jnp.cumsum(null) - 1 < n_max)
+        return ok, used, pick, obj, new, null & ~new, jnp.zeros_like(null)
 
     if width is None:  # every joint assignment: the exhaustive reference, (G+1)^Dmax rows
         def row(opts):
-            ok, used, pick, obj, new, skip = flags(opts, dmax - 1)
-            log_w = (_joint_log_likelihood(obj, used, inn, cov, gamma)
-                     + jnp.sum(jnp.where(used, sem_cand[slots, pick], 0.0)) + jnp.sum(jnp.where(new, null_w, 0.0)))
-            return ok, new, skip, log_w
+            ok, used, pick, obj, new, unmapped, skip = flags(opts, dmax - 1)
+            log_w = (_joint_log_likelihood(obj, used, inn, cov, gamma) + jnp.sum(jnp.where(used, sem_cand[slots, pick], 0.0))
+                     + jnp.sum(jnp.where(new | unmapped, null_w, 0.0)))
+            return ok, new, unmapped, skip, log_w
 
         options = jnp.asarray(gating.joint_options(g, dmax))
         dropped = jnp.zeros((), jnp.int32)
-        ok, new, skip, log_w = jax.vmap(row)(options)
+        ok, new, unmapped, skip, log_w = jax.vmap(row)(options)
     else:  # built one detection at a time, `width` kept (inference.beam); skips rank last
         def score(opts, upto, partial_row, parent):
             """The joint log weight, one detection's term at a time (inference.sequential)."""
-            ok, used, pick, obj, new, skip = flags(opts, upto)
+            ok, used, pick, obj, new, unmapped, skip = flags(opts, upto)
             term = jnp.where(used[upto],
                              sequential.innovation_log_density(inn, partial_row, upto, obj[upto]) + sem_cand[upto, pick[upto]],
-                             jnp.where(new[upto], null_w[upto], 0.0))
+                             jnp.where(new[upto] | unmapped[upto], null_w[upto], 0.0))
             return jnp.where(ok, parent + term, -jnp.inf), jnp.sum(skip)
 
         def advance(partial_row, opts, upto):
-            _, used, _, obj, _, _ = flags(opts, upto)
+            _, used, _, obj, *_ = flags(opts, upto)
             return sequential.condition(inn, cov, partial_row, upto, obj[upto], used[upto])
 
         found = beam_search(score, dmax, g + 1, width, fill=g, carry=sequential.start(width, mean.shape[0], dmax, mean.dtype),
                             advance=advance)
         options, dropped = found.options, found.dropped
-        ok, _, _, _, new, skip = jax.vmap(flags, (0, None))(options, dmax - 1)
+        ok, _, _, _, new, unmapped, skip = jax.vmap(flags, (0, None))(options, dmax - 1)
         ok &= found.valid  # a row the beam did not fill is no hypothesis (it may repeat another)
         log_w = found.score
     num_skip = jnp.sum(skip, axis=-1)
@@ -374,7 +377,7 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
     log_prob = log_w - logsumexp(log_w)
     onehot = options[:, :, None] == jnp.arange(g + 1)[None, None, :]  # (R, Dmax, G+1)
     marginals = jnp.einsum("r,rdo->do", jnp.exp(log_prob), onehot.astype(mean.dtype))
-    return Association(candidates, candidate_ok, options, log_prob, new, skip, marginals,
+    return Association(candidates, candidate_ok, options, log_prob, new, unmapped, skip, marginals,
                        class_loglik, new_class_loglik, dropped)
 
 
@@ -409,7 +412,7 @@ def create_likeliest_new(state: GaussianState, mean, cov, assoc: Association, de
 
     The soft strategies (``gpda``, ``max-mixture``) decide a detection's existence by its marginal
     (a new object cannot be created by a fraction). Returns the updated mean and covariance, the
-    new-detection mask and the slot each creates (-1 elsewhere).
+    new-detection mask, the slot each creates (-1 elsewhere) and the unmapped mask (new, no free slot).
     """
     best = jnp.argmax(assoc.marginals, axis=-1)
     wants_new = detections.mask & (best == assoc.num_candidates) if state.structure.discovery \
@@ -417,7 +420,7 @@ def create_likeliest_new(state: GaussianState, mean, cov, assoc: Association, de
     new = fits(state, wants_new)
     created = new_slots(state, new)
     mean, cov = create_objects(state, mean, cov, created, detections)
-    return mean, cov, new, created
+    return mean, cov, new, created, wants_new & ~new
 
 
 def geometric_residual(sensor, y, obj, geo):
@@ -507,12 +510,13 @@ def commit(est: SingleGaussian, state: GaussianState, mean, cov, class_log_post,
     step_info = StepInfo(
         k=(state.k + 1).astype(jnp.int32), num_components=jnp.ones((), jnp.int32),
         skipped=skipped, rejected=info.get("rejected", zero).astype(jnp.int32),
+        unmapped=info.get("unmapped", zero).astype(jnp.int32),
         # Associations pass the gate, so only skipped detections go unexplained (gating.contradicted).
         inconsistent=2 * skipped > jnp.sum(detections.mask),
         dropped_budget=info.get("dropped", zero).astype(jnp.int32),
         solver_failures=(result != optx.RESULTS.successful).astype(jnp.int32),
         log_overflow=new_overflow(state.log, log),
-        # Before the step: with no free slot, a new landmark's detection is skipped (gaussian.fits).
+        # Before the step: with no free slot, a new landmark's detection is unmapped (gaussian.fits).
         object_overflow=(lacks_object_slots(detections.mask, state.num_created, state.max_objects)
                          if state.structure.discovery else jnp.zeros((), bool)),
         details=GaussianDetails(num_created, result),

@@ -45,8 +45,10 @@ def _step(est: GPDA, state: GaussianState, odometry, detections: Detections) -> 
     mean, cov = gaussian.predict(state, odometry)
     assoc = gaussian.associate(state, mean, cov, detections, est.max_hypotheses)
     g = assoc.num_candidates
-    mean, cov, new, created = gaussian.create_likeliest_new(state, mean, cov, assoc, detections)
-    p = jnp.where(assoc.candidate_ok & ~new[:, None], assoc.marginals[:, :g], 0.0)  # (Dmax, G)
+    mean, cov, new, created, unmapped = gaussian.create_likeliest_new(state, mean, cov, assoc, detections)
+    # A detection whose likeliest option is a new object is that object's alone: created, or unmapped
+    # when no slot is free (as a creation, no soft update of the old candidates).
+    p = jnp.where(assoc.candidate_ok & ~(new | unmapped)[:, None], assoc.marginals[:, :g], 0.0)  # (Dmax, G)
     geo = jnp.broadcast_to(detections.geo[:, None, :], (*p.shape, 2))
     mean, cov, result = gaussian.weighted_update(state, mean, cov, assoc.candidates.reshape(-1),
                                                  geo.reshape(-1, 2), p.reshape(-1), est.gn_max_steps)
@@ -56,7 +58,7 @@ def _step(est: GPDA, state: GaussianState, odometry, detections: Detections) -> 
     used = jnp.any(p > 0, axis=-1)
     likeliest = assoc.candidates[jnp.arange(p.shape[0]), jnp.argmax(p, axis=-1)]
     assigned = jnp.where(new, created, likeliest)
-    skipped = jnp.sum(detections.mask & ~used & ~new)
+    skipped = jnp.sum(detections.mask & ~used & ~new & ~unmapped)
     # The smoother's factors: every candidate weighted by its association probability (Eq. 3.7);
     # a detection that created its object is that object's factor.
     factor_obj = jnp.where(new[:, None], jnp.maximum(created, 0)[:, None], assoc.candidates)
@@ -64,5 +66,6 @@ def _step(est: GPDA, state: GaussianState, odometry, detections: Detections) -> 
     first = jnp.arange(g) == 0
     factor_w = jnp.where(new[:, None], jnp.where(first[None, :], 0.0, -jnp.inf), log_p)
     return gaussian.commit(est, state, mean, cov, classes, assigned, used | new, detections, jnp.sum(new),
-                           {"skipped": skipped, "solver_result": result, "dropped": assoc.dropped}, odometry,
+                           {"skipped": skipped, "unmapped": jnp.sum(unmapped), "solver_result": result,
+                            "dropped": assoc.dropped}, odometry,
                            (factor_obj, factor_w, jnp.full(new.shape, -jnp.inf)))

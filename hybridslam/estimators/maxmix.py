@@ -88,7 +88,7 @@ def _step(est: MaxMixture, state: GaussianState, odometry, detections: Detection
     mean, cov = gaussian.predict(state, odometry)
     assoc = gaussian.associate(state, mean, cov, detections, est.max_hypotheses)
     g = assoc.num_candidates
-    mean, cov, new, created = gaussian.create_likeliest_new(state, mean, cov, assoc, detections)
+    mean, cov, new, created, unmapped = gaussian.create_likeliest_new(state, mean, cov, assoc, detections)
 
     w = assoc.marginals
     null_ok = jnp.full((w.shape[0], 1), state.structure.discovery)
@@ -115,8 +115,11 @@ def _step(est: MaxMixture, state: GaussianState, odometry, detections: Detection
     onehot = assoc.candidates[..., None] == jnp.arange(state.max_objects)[None, None, :]
     prob = jnp.einsum("dg,dgn->dn", p, onehot.astype(p.dtype))
     classes = gaussian.update_classes(state, assoc, prob, created)
-    info = {"skipped": jnp.sum(detections.mask & ~live & ~new),
-            "rejected": jnp.sum(live & ~on_object), "solver_result": result, "dropped": assoc.dropped}
+    # A detection whose likeliest option is a new object with no free slot, and whose mode picks the
+    # null component, is unmapped (not stored), not an outlier.
+    unmapped = unmapped & ~on_object
+    info = {"skipped": jnp.sum(detections.mask & ~live & ~new & ~unmapped), "unmapped": jnp.sum(unmapped),
+            "rejected": jnp.sum(live & ~on_object & ~unmapped), "solver_result": result, "dropped": assoc.dropped}
     # The smoother's factors: the same max-mixture (candidates with their weights, and the null
     # component's weight times its density), its active component re-chosen at every iterate over the
     # whole trajectory; a detection that created its object is that object's factor.

@@ -37,7 +37,7 @@ def _step(est: ML, state: GaussianState, odometry, detections: Detections) -> tu
     mean, cov = gaussian.predict(state, odometry)
     assoc = gaussian.associate(state, mean, cov, detections, est.max_hypotheses)
     best = jnp.argmax(assoc.log_prob)
-    opts, new, skip = assoc.options[best], assoc.new[best], assoc.skip[best]
+    opts, new, skip, unmapped = assoc.options[best], assoc.new[best], assoc.skip[best], assoc.unmapped[best]
     slots = jnp.arange(opts.shape[0])
     used = detections.mask & (opts < assoc.num_candidates)
     obj = jnp.where(used, assoc.candidates[slots, jnp.minimum(opts, assoc.num_candidates - 1)], -1)
@@ -53,5 +53,6 @@ def _step(est: ML, state: GaussianState, odometry, detections: Detections) -> tu
     factor_obj = jnp.zeros((slots.shape[0], g), jnp.int32).at[:, 0].set(jnp.maximum(assigned, 0).astype(jnp.int32))
     factor_w = jnp.full((slots.shape[0], g), -jnp.inf).at[:, 0].set(jnp.where(used | new, 0.0, -jnp.inf))
     return gaussian.commit(est, state, mean, cov, classes, assigned, used | new, detections, jnp.sum(new),
-                           {"skipped": jnp.sum(skip), "solver_result": result, "dropped": assoc.dropped}, odometry,
+                           {"skipped": jnp.sum(skip), "unmapped": jnp.sum(unmapped), "solver_result": result,
+                            "dropped": assoc.dropped}, odometry,
                            (factor_obj, factor_w, jnp.full(slots.shape, -jnp.inf)))
