@@ -557,9 +557,8 @@ def import_mrclam(
       of the data), one step every ``dt`` [s]: ``T = floor(duration / dt)`` steps.
     * ``unknown_map``: no prior objects, a ``discovery`` section with ``max_objects`` = the number
       of landmarks + ``discovery_margin`` (or ``max_objects``, when given: every duplicate of a
-      landmark takes a slot too, and once they are full a new landmark is not stored: the hybrid
-      belief weighs its detections as unmapped objects, the others leave them unassociated or
-      name old objects, and every estimator warns) and ``new_object_log_density`` (default
+      landmark takes a slot too, and once they are full a new landmark is not stored: every
+      estimator weighs its detections as unmapped objects, and warns) and ``new_object_log_density`` (default
       ``−log(max_range · fov)``: a new object's detection uniform over the sensor footprint in
       ``[range, bearing]`` coordinates, the space of the Gaussian ``N(z; h, Σ_v)`` it competes
       with, as in the hallway; ``−log(max_range² · fov / 2)`` would be a density per square

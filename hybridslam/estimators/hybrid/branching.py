@@ -21,7 +21,7 @@
   Unknown maps: a new object takes the parent's next free object slot. With none left the
   hypothesis is not lost (nor is the detection forced onto an old object): it is an *unmapped*
   object, weighed by the new-object term with its class marginalized
-  (:func:`~.weights.unmapped_object_log_likelihood`), its detection unassociated (``assign = -1``,
+  (:func:`~.weights.class_marginal`), its detection unassociated (``assign = -1``,
   ``unmapped``) and counted in ``StepInfo.unmapped``. :mod:`.hypotheses` does the same.
 
   On a known map without a clutter hypothesis a step may have no child at all: more detections
@@ -47,8 +47,7 @@ from ...inference.batching import map_live
 from ...inference.beam import beam_search
 from ...models.measurement import Detections, SensorModel
 from .belief import Belief
-from .weights import (LinearTables, PartialChild, empty_child, extend_child, linear_tables,
-                      unmapped_object_log_likelihood)
+from .weights import LinearTables, PartialChild, class_marginal, empty_child, extend_child, linear_tables
 
 # A child whose objects are (almost surely) out of view still ranks by its likelihood, this many
 # nats below any child in view (as the laplace-is screen does).
@@ -133,7 +132,7 @@ def beam_children(
     choices = g + (1 if discovery else 0) + (1 if clutter else 0)  # the candidates, a new object, clutter / skip
     num_options = choices * classes_here
     created = belief.num_created if discovery else jnp.full((k,), n, jnp.int32)
-    unmapped_terms = unmapped_object_log_likelihood(new_terms) if discovery else None
+    unmapped_terms = class_marginal(new_terms) if discovery else None
 
     # Per parent: the residuals, Jacobian Gram matrix and in-view probability of every row a slot
     # may name (every object, or each slot's candidates).

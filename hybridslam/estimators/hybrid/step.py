@@ -41,7 +41,7 @@ from .branching import Beam, Branching, beam_children
 from .hypotheses import Children, children, hypothesis_table
 from .prune import PruneStats, prune
 from .weighers import AbstractWeigher, Context
-from .weights import new_object_log_likelihood, unmapped_object_log_likelihood
+from .weights import class_marginal, new_object_log_likelihood
 
 
 @runtime_checkable
@@ -99,14 +99,14 @@ def _create_and_update(sensor, discovery, mean, cov, assign, creates, slot_class
 
 def _new_object_terms(belief: Belief, mean, cov, detections: Detections, kids: Children) -> Float[Array, "K A Mc"]:
     """Σ over a child's creating slots of :func:`~hybridslam.weights.new_object_log_likelihood`, and
-    over its unmapped ones of :func:`~.weights.unmapped_object_log_likelihood`."""
+    over its unmapped ones of the class marginal :func:`~.weights.class_marginal`."""
     sensor = belief.model.sensor
     lik = jax.vmap(new_object_log_likelihood, (None, 0, 0, None, None))(
         sensor, mean[:, :3], cov[:, :3, :3], detections, belief.model.discovery
     )  # (K, Dmax, M)
     pick = kids.slot_class[..., None] == jnp.arange(lik.shape[-1]).reshape(1, 1, 1, 1, -1)  # (K, A, Mc, Dmax, M)
     picked = jnp.sum(jnp.where(pick, lik[:, None, None], 0.0), axis=-1)
-    unmapped = jnp.sum(jnp.where(kids.unmapped, unmapped_object_log_likelihood(lik)[:, None, :], 0.0), axis=-1)
+    unmapped = jnp.sum(jnp.where(kids.unmapped, class_marginal(lik)[:, None, :], 0.0), axis=-1)
     return jnp.sum(jnp.where(kids.creates[:, :, None, :], picked, 0.0), axis=-1) + unmapped[:, :, None]
 
 
@@ -179,7 +179,7 @@ def _beam(settings, belief: Belief, mean, cov, detections: Detections, candidate
         clutter = NewObjects(jnp.asarray(settings.clutter, mean.dtype), jnp.asarray(jnp.pi**2, mean.dtype))
         per_class = jax.vmap(new_object_log_likelihood, (None, 0, 0, None, None))(
             model.sensor, mean[:, :3], cov[:, :3, :3], detections, clutter)  # (K, Dmax, M)
-        clutter_terms = logsumexp(per_class, axis=-1) - jnp.log(per_class.shape[-1])  # scores of no known class
+        clutter_terms = class_marginal(per_class)  # scores of no known class
     # Known map, no clutter hypothesis: a detection may be skipped where no child names them all.
     skip = settings.clutter is None and not discovery
     ch = beam_children(belief, mean, cov, detections, candidates, new_terms, realize, settings.branching.width,

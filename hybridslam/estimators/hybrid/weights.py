@@ -530,15 +530,16 @@ def new_object_log_likelihood(
     return new.log_density + logsumexp(ll + log_w[None, :, None], axis=1)
 
 
-def unmapped_object_log_likelihood(new_terms: Float[Array, "*K Dmax M"]) -> Float[Array, "*K Dmax"]:
-    """``log P(z_j | new object)`` with the new object's class marginalized: the weight term of a
-    detection of an *unmapped* object (the new-landmark hypothesis, thesis Sec. 3.2.1, when the
-    component has no free object slot to store it in).
+def class_marginal(per_class: Float[Array, "*K Dmax M"]) -> Float[Array, "*K Dmax"]:
+    """``log Σ_c P(c) P(z_j | c)`` under a uniform class prior, ``logsumexp_c per_class − log M``,
+    from :func:`new_object_log_likelihood`'s per-class terms. Two uses:
 
-    ``new_terms``: :func:`new_object_log_likelihood` per detection and class. A new object's class
-    prior is uniform (:func:`hybridslam.models.model.model_from_scenario`), so this is ``logsumexp_c
-    new_terms − log M``: the sum over classes of the children that would realize the class in a
-    free slot (Sec. IV-D). The hypothesis keeps its weight; only the object is not stored, so its
-    later detections are not associated with it (each is again a new or unmapped object).
+    * an *unmapped* object (the new-landmark hypothesis, thesis Sec. 3.2.1, when the component has
+      no free object slot to store it in): a new object's class prior is uniform
+      (:func:`hybridslam.models.model.model_from_scenario`), so this is the sum over classes of the
+      children that would realize the class in a free slot (Sec. IV-D). The hypothesis keeps its
+      weight; only the object is not stored, so its later detections are not associated with it
+      (each is again a new or unmapped object);
+    * clutter: a detection of no known class, scored with the clutter density.
     """
-    return logsumexp(new_terms, axis=-1) - math.log(new_terms.shape[-1])
+    return logsumexp(per_class, axis=-1) - math.log(per_class.shape[-1])
