@@ -272,6 +272,32 @@ def test_noise_is_calibrated_from_the_ground_truth(known):
     assert log.odometry.rows.shape[0] > 0
 
 
+def test_measurement_noise_is_what_the_written_detections_show(known):
+    """geometric_cov is the robust mean square of the detections as written against the true pose
+    at their step (default), or of the raw measurements at their own times ("raw")."""
+    landmarks = mrclam.read_landmarks(DATA).rows
+    rows = [(det.range, det.bearing, *landmarks[det.true_object, 1:3], *pose)
+            for pose, step in zip(known.true_robot_poses[1:], known.steps) for det in step.detections]
+    a = np.array(rows)
+    residuals = mrclam.measurement_residuals(a[:, :2], a[:, 4:7], a[:, 2:4])
+    np.testing.assert_allclose(np.diag(known.geometric_cov),
+                               mrclam.robust_variance(residuals, mrclam.GEOMETRIC_SD_FLOOR), rtol=1e-9)
+    cal = known.metadata["generator"]["calibration"]
+    assert cal["measurement_noise_from"] == "written"
+    assert cal["measurement_residuals"] == cal["written_detection_residuals"]
+    raw = import_mrclam(DATA, 1, measurement_noise_from="raw")
+    rcal = raw.metadata["generator"]["calibration"]
+    assert rcal["measurement_noise_from"] == "raw"
+    assert rcal["measurement_residuals"] == rcal["raw_measurement_residuals"] == cal["raw_measurement_residuals"]
+    median, scale = (np.array(rcal["raw_measurement_residuals"][k]) for k in ("median", "scale"))
+    np.testing.assert_allclose(np.diag(raw.geometric_cov), scale**2 + median**2, rtol=1e-6)
+    assert not np.allclose(raw.geometric_cov, known.geometric_cov)
+    # Only the covariance differs: the detections written are the same.
+    assert [d.range for st in raw.steps for d in st.detections] == list(a[:, 0])
+    with pytest.raises(MRCLAMError, match="measurement_noise_from: expected one of written, raw"):
+        import_mrclam(DATA, 1, measurement_noise_from="truth")
+
+
 def test_overrides_and_range_bias_correction(known):
     s = import_mrclam(DATA, 1, motion_cov=[1e-4, 2e-4, 3e-4], geometric_cov=np.diag([0.01, 0.002]),
                       robot_prior_cov=[1.0, 1.0, 0.1], correct_range_bias=True)
@@ -443,19 +469,19 @@ def test_cli_writes_a_valid_file_and_a_summary(tmp_path, capsys, known):
     assert hs.load_scenario(out) == known
     assert stdout.startswith(f"wrote {out}: mrclam robot 1, 0-45 s after its first odometry record, 90 steps")
     for text in ("197 of 8 landmarks", "2.19 per step (max 8)", "12 robot-robot",
-                 "motion_cov (calibrated): sd",
+                 "motion_cov (calibrated): sd", "geometric_cov (calibrated from the detections as written)",
                  "range bias +0.058 m (not corrected", "dead reckoning at the end of the window: 0.438 m"):
         assert text in stdout, text
     out = tmp_path / "unknown.json"
     assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out), "--unknown-map",
                      "--start", "5", "--duration", "20", "--dt", "0.25", "--max-range", "5",
                      "--motion-cov", "1e-4,1e-4,1e-3", "--correct-range-bias", "--no-motion-compensation",
-                     "--odometry-delay", "0.17", "--max-objects", "30"]) == 0
+                     "--odometry-delay", "0.17", "--max-objects", "30", "--measurement-noise-from", "raw"]) == 0
     s = hs.load_scenario(out)
     g = s.metadata["generator"]
     assert s.discovery is not None and s.discovery.max_objects == 30 and s.num_steps == 80 and s.max_range == 5.0
     assert g["odometry_delay_s"] == 0.17 and not g["motion_compensation"]
-    assert g["calibration"]["range_bias_corrected"]
+    assert g["calibration"]["range_bias_corrected"] and g["calibration"]["measurement_noise_from"] == "raw"
     np.testing.assert_array_equal(s.motion_cov, np.diag([1e-4, 1e-4, 1e-3]))
     assert "unknown map of 15 landmarks (30 object slots: --max-objects)" in capsys.readouterr().out
 

@@ -3,6 +3,7 @@
     hybridslam import mrclam DATASET_DIR --robot N -o FILE [--start S] [--duration D] [--dt 0.5]
         [--unknown-map] [--max-range R] [--fov F] [--motion-cov a,b,c] [--geometric-cov a,b]
         [--robot-prior-cov a,b,c] [--correct-range-bias] [--no-motion-compensation] [--odometry-delay S]
+        [--measurement-noise-from {written,raw}]
 
 :func:`register` adds the ``import`` command to the ``hybridslam`` parser; its errors are
 :class:`~hybridslam.cli.CLIError` (one line, exit status 2) like every other command's.
@@ -16,12 +17,13 @@ from typing import Any
 
 import numpy as np
 
-from ..io.mrclam import MRCLAMError, import_mrclam
+from ..io.mrclam import NOISE_SOURCES, MRCLAMError, import_mrclam
 from ..io.scenario import Scenario, save_scenario
 from .common import CLIError, check_writable
 
 _GAP_NOTE_S = 0.5  # a longer stretch without odometry or ground truth is worth a line
-_DRIFT_NOTE = 2.0  # block-sum sd / calibrated sd above this is worth a line
+_DRIFT_NOTE = 2.0
+_NOISE_FROM = {"written": "detections as written", "raw": "raw measurements"}  # block-sum sd / calibrated sd above this is worth a line
 
 
 def _variances(text: str | None, n: int, option: str) -> np.ndarray | None:
@@ -60,7 +62,9 @@ def mrclam_summary(path: str, s: Scenario) -> str:
                   f"{counts['robot_robot']} robot-robot, {counts['unknown_barcode']} unknown barcode, "
                   f"{counts['beyond_sensor']} beyond the sensor, {counts['superseded']} superseded "
                   "(same landmark, same step)")
-    geometric = (f"geometric_cov ({cal['geometric_cov']}): sd {_sds(s.geometric_cov)} (m, rad); "
+    source = ("" if cal["geometric_cov"] == "given"
+              else f" from the {_NOISE_FROM[cal['measurement_noise_from']]}")
+    geometric = (f"geometric_cov ({cal['geometric_cov']}{source}): sd {_sds(s.geometric_cov)} (m, rad); "
                  f"range bias {bias:+.3f} m ({corrected})")
     dead_reckoning = (f"dead reckoning at the end of the window: {dr['final_position_error_m']:.3f} m, "
                       f"{dr['final_heading_error_rad']:+.3f} rad off the ground truth "
@@ -96,7 +100,8 @@ def cmd_import_mrclam(args: argparse.Namespace) -> int:
             args.dataset, args.robot, start=args.start, duration=args.duration, dt=args.dt,
             unknown_map=args.unknown_map, max_range=args.max_range, fov=args.fov,
             correct_range_bias=args.correct_range_bias, motion_compensation=args.motion_compensation,
-            odometry_delay=args.odometry_delay, max_objects=args.max_objects, **covs)
+            odometry_delay=args.odometry_delay, max_objects=args.max_objects,
+            measurement_noise_from=args.measurement_noise_from, **covs)
     except MRCLAMError as e:
         raise CLIError(str(e)) from None
     save_scenario(scenario, args.output)
@@ -145,4 +150,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     m.add_argument("--odometry-delay", type=float, default=0.0,
                    help="seconds added to the odometry times (its velocity commands lead the ground truth "
                         "by ~0.17 s); default 0")
+    m.add_argument("--measurement-noise-from", choices=NOISE_SOURCES, default="written",
+                   help="calibrate geometric_cov from the detections as written, at their step times "
+                        "(default), or from the raw measurements at their own times")
     m.set_defaults(func=cmd_import_mrclam)
