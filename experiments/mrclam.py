@@ -32,7 +32,8 @@ Per cell (dataset, robot, window, map, estimator, smoother):
   object's majority landmark is its ``true_object``. This is a purity score: it counts a wrong
   merge (two landmarks in one object) against the minority's detections, but not a duplicate (one
   landmark split into two objects, both majority-mapped to it); ``num_objects`` and
-  ``duplicate_objects`` (objects whose majority landmark another object also has) show those.
+  ``duplicate_objects`` (objects whose majority landmark another object also has) show those, and
+  ``mixed_objects`` (objects holding detections of two or more landmarks) the merges.
   Unassociated detections (``-1``: skipped, explained as clutter, or unmapped objects when the
   object slots are full) count as wrong in both maps; ``skipped``, ``rejected`` and ``unmapped``
   (from the step infos) say how many detections each concerns.
@@ -162,11 +163,11 @@ def _score(pairs: list[tuple[int, int]], known_map: bool) -> dict:
     n = len(pairs)
     if not n:
         return {"accuracy": float("nan"), "detections": 0, "unassociated": 0, "num_objects": 0,
-                "duplicate_objects": 0}
+                "duplicate_objects": 0, "mixed_objects": 0}
     unassociated = sum(o < 0 for o, _ in pairs)
     if known_map:
         right = sum(o == t for o, t in pairs)
-        objects, duplicates = len({o for o, _ in pairs if o >= 0}), 0
+        objects, duplicates, mixed = len({o for o, _ in pairs if o >= 0}), 0, 0
     else:
         votes: dict[int, Counter] = {}
         for o, t in pairs:
@@ -177,8 +178,9 @@ def _score(pairs: list[tuple[int, int]], known_map: bool) -> dict:
         right = sum(o >= 0 and majority[o] == t for o, t in pairs)
         objects = len(majority)
         duplicates = objects - len(set(majority.values()))
+        mixed = sum(len(c) > 1 for c in votes.values())
     return {"accuracy": right / n, "detections": n, "unassociated": unassociated, "num_objects": objects,
-            "duplicate_objects": duplicates}
+            "duplicate_objects": duplicates, "mixed_objects": mixed}
 
 
 def association_accuracy(s: Scenario, result: Result) -> dict:
@@ -291,6 +293,7 @@ def _row(r: dict) -> dict:
         row[f"assoc_unassociated{suffix}"] = a["unassociated"]
         row[f"num_objects{suffix}"] = a["num_objects"]
         row[f"duplicate_objects{suffix}"] = a["duplicate_objects"]
+        row[f"mixed_objects{suffix}"] = a.get("mixed_objects", "")  # studies before 2026-11-26 lack it
     row.update(detections=r["detections"], num_steps=r["num_steps"], step_ms_median=r["step_ms_median"],
                step_ms_mean=r["step_ms_mean"], compile_s=r["compile_s"], wall_s=r["wall_s"],
                num_warnings=r["num_warnings"], skipped=r["skipped"], rejected=r["rejected"],
