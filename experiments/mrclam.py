@@ -56,7 +56,8 @@ Writes, under ``--output`` (default ``runs/mrclam``):
 
     python experiments/mrclam.py --dataset /path/to/MRCLAM_Dataset7 [-o runs/mrclam] [--robots 1,2,3,4,5]
         [--windows 20] [--duration 100] [--maps known,unknown,unknown:N] [--estimators ml,gpda,...]
-        [--smoothers full,filter,lag:L] [--figure-robot N] [--retry-errors] [--report-only]
+        [--smoothers full,filter,lag:L] [--motion-noise-from steps|drift] [--figure-robot N] [--retry-errors]
+        [--report-only]
 """
 
 from __future__ import annotations
@@ -127,18 +128,22 @@ def parse_map(text: str) -> tuple[bool, int | None]:
     return True, int(slots)
 
 
-def scenario_name(dataset: str, robot: int, start: float, duration: float, map_: str) -> str:
+def scenario_name(dataset: str, robot: int, start: float, duration: float, map_: str,
+                  motion_noise: str = "steps") -> str:
     kind = map_.replace(":", "_slots")  # unknown:50 -> unknown_slots50
-    return f"{os.path.basename(os.path.normpath(dataset))}_robot{robot}_t{start:g}_d{duration:g}_{kind}.json"
+    noise = "" if motion_noise == "steps" else f"_motion-{motion_noise}"
+    return f"{os.path.basename(os.path.normpath(dataset))}_robot{robot}_t{start:g}_d{duration:g}_{kind}{noise}.json"
 
 
-def scenario(folder: str, dataset: str, robot: int, start: float, duration: float, map_: str) -> tuple[str, Scenario]:
-    """The imported scenario (written under ``folder/scenarios`` the first time, read back after)."""
-    path = os.path.join(folder, "scenarios", scenario_name(dataset, robot, start, duration, map_))
+def scenario(folder: str, dataset: str, robot: int, start: float, duration: float, map_: str,
+             motion_noise: str = "steps") -> tuple[str, Scenario]:
+    """The imported scenario (written under ``folder/scenarios`` the first time, read back after);
+    ``motion_noise``: the importer's ``motion_noise_from``."""
+    path = os.path.join(folder, "scenarios", scenario_name(dataset, robot, start, duration, map_, motion_noise))
     if not os.path.exists(path):
         unknown, slots = parse_map(map_)
         s = import_mrclam(dataset, robot, start=start, duration=duration, dt=DT, unknown_map=unknown,
-                          max_objects=slots)
+                          max_objects=slots, motion_noise_from=motion_noise)
         os.makedirs(os.path.dirname(path), exist_ok=True)
         save_scenario(s, path)
     return path, load_scenario(path)
@@ -204,13 +209,16 @@ def association_accuracy(s: Scenario, result: Result) -> dict:
 # --------------------------------------------------------------------------- #
 
 
-def cell_key(dataset: str, robot: int, start: float, duration: float, map_: str, name: str, smoother: str) -> dict:
+def cell_key(dataset: str, robot: int, start: float, duration: float, map_: str, name: str, smoother: str,
+             motion_noise: str = "steps") -> dict:
     """A cell's key: where the data come from and the estimator's settings (``max_detections``, the
-    padding shared by every cell of a run, left out)."""
+    padding shared by every cell of a run, left out); ``motion_noise`` only when not the default
+    (so the records of studies before the option keep their keys)."""
     settings = {k: v for k, v in estimator(name, smoother).settings().items() if k != "max_detections"}
-    return {"dataset": os.path.basename(os.path.normpath(dataset)), "robot": robot, "start_s": start,
-            "duration_s": duration, "dt_s": DT, "map": map_, "estimator": name, "smoother": smoother,
-            "settings": settings}
+    key = {"dataset": os.path.basename(os.path.normpath(dataset)), "robot": robot, "start_s": start,
+           "duration_s": duration, "dt_s": DT, "map": map_, "estimator": name, "smoother": smoother,
+           "settings": settings}
+    return key if motion_noise == "steps" else {**key, "motion_noise_from": motion_noise}
 
 
 def _tum(folder: str, who: str, stem: str, poses: np.ndarray) -> None:
@@ -220,12 +228,12 @@ def _tum(folder: str, who: str, stem: str, poses: np.ndarray) -> None:
 
 
 def run_cell(folder: str, dataset: str, robot: int, start: float, duration: float, map_: str, name: str,
-             smoother: str, max_detections: int) -> dict:
+             smoother: str, max_detections: int, motion_noise: str = "steps") -> dict:
     """Run one estimator on one scenario; write its result and TUM files; return the cell's record."""
-    cell = cell_key(dataset, robot, start, duration, map_, name, smoother)
+    cell = cell_key(dataset, robot, start, duration, map_, name, smoother, motion_noise)
     t0 = time.perf_counter()
     try:
-        path, s = scenario(folder, dataset, robot, start, duration, map_)
+        path, s = scenario(folder, dataset, robot, start, duration, map_, motion_noise)
         stem = os.path.splitext(os.path.basename(path))[0]
         warnings: list[str] = []
         run = driver.run(estimator(name, smoother, max_detections), s,
@@ -378,7 +386,8 @@ def plot_trajectories(folder: str, dataset: str, records: list[dict], robot: int
         r = panels[name]
         c = r["cell"]
         s = load_scenario(os.path.join(folder, "scenarios",
-                                       scenario_name(dataset, robot, c["start_s"], c["duration_s"], c["map"])))
+                                       scenario_name(dataset, robot, c["start_s"], c["duration_s"], c["map"],
+                                                     c.get("motion_noise_from", "steps"))))
         result = load_result(os.path.join(folder, r["result"]))
         reckoned = np.concatenate([np.asarray(s.robot_prior_mean)[None], dead_reckoning(s)])
         ax.plot(reckoned[:, 0], reckoned[:, 1], ":", color="0.5", lw=1.2, label="dead reckoning")
@@ -401,7 +410,8 @@ def plot_trajectories(folder: str, dataset: str, records: list[dict], robot: int
 
 def main(dataset: str, output: str = os.path.join("runs", "mrclam"), robots=(1, 2, 3, 4, 5), windows=(20.0,),
          duration: float = 100.0, maps=("known",), estimators=DEFAULT_ESTIMATORS, smoothers=("full",),
-         figure_robot: int | None = None, retry_errors: bool = False, report_only: bool = False) -> list[dict]:
+         figure_robot: int | None = None, retry_errors: bool = False, report_only: bool = False,
+         motion_noise: str = "steps") -> list[dict]:
     estimators, maps, smoothers = list(estimators), list(maps), list(smoothers)
     for option, given, known in (("--estimators", estimators, ESTIMATORS), ("--smoothers", smoothers, SMOOTHERS)):
         unknown = [n for n in given if n not in known and not (option == "--smoothers" and _is_lag(n))]
@@ -418,7 +428,7 @@ def main(dataset: str, output: str = os.path.join("runs", "mrclam"), robots=(1, 
              for name in estimators for robot in robots for start in windows]
     with Records(output, {"study": "mrclam"}) as records:  # the folder is locked until the end
         def done(c):
-            key = cell_key(dataset, c[0], c[1], duration, c[2], c[3], c[4])
+            key = cell_key(dataset, c[0], c[1], duration, c[2], c[3], c[4], motion_noise)
             return key in records and not (retry_errors and "error" in records.done[json.dumps(key, sort_keys=True)])
 
         pending = [c for c in cells if not done(c)]
@@ -429,7 +439,7 @@ def main(dataset: str, output: str = os.path.join("runs", "mrclam"), robots=(1, 
         max_detections = 1
         for robot, start, map_ in data:
             try:
-                max_detections = max(max_detections, scenario(output, dataset, robot, start, duration, map_)[1]
+                max_detections = max(max_detections, scenario(output, dataset, robot, start, duration, map_, motion_noise)[1]
                                      .max_detections)
             except MRCLAMError as e:  # recorded per cell by run_cell
                 print(f"robot {robot}, {start:g} s, {map_} map: {e}", flush=True)
@@ -441,11 +451,13 @@ def main(dataset: str, output: str = os.path.join("runs", "mrclam"), robots=(1, 
             if (map_, name, smoother) != program:  # the cells of one program are consecutive
                 driver.clear_compiled()  # 30 kept programs would exhaust the memory maps (see its docstring)
                 program = (map_, name, smoother)
-            records.append(run_cell(output, dataset, robot, start, duration, map_, name, smoother, max_detections))
-        keys = {json.dumps(cell_key(dataset, c[0], c[1], duration, c[2], c[3], c[4]), sort_keys=True)
+            records.append(run_cell(output, dataset, robot, start, duration, map_, name, smoother, max_detections,
+                                    motion_noise))
+        keys = {json.dumps(cell_key(dataset, c[0], c[1], duration, c[2], c[3], c[4], motion_noise), sort_keys=True)
                 for c in cells}
         finished = [records.done[k] for k in keys if k in records.done]
-    order = {json.dumps(cell_key(dataset, *c[:2], duration, *c[2:]), sort_keys=True): i for i, c in enumerate(cells)}
+    order = {json.dumps(cell_key(dataset, *c[:2], duration, *c[2:], motion_noise), sort_keys=True): i
+             for i, c in enumerate(cells)}
     finished.sort(key=lambda r: order[json.dumps(r["cell"], sort_keys=True)])
     print(f"ran {len(todo)} cells in {time.perf_counter() - t0:.0f} s; wrote {write_csv(output, finished)}")
     summarize(finished)
@@ -473,6 +485,8 @@ if __name__ == "__main__":
     parser.add_argument("--estimators", default=",".join(DEFAULT_ESTIMATORS))
     parser.add_argument("--smoothers", default="full", help="full, filter, lag:L (comma-separated)")
     parser.add_argument("--figure-robot", type=int, default=None, help="the robot drawn (default: the first)")
+    parser.add_argument("--motion-noise-from", default="steps", choices=("steps", "drift"),
+                        help="the importer's motion_cov calibration (default steps; drift: from 5 s sums)")
     parser.add_argument("--retry-errors", action="store_true", help="run the cells that failed before again")
     parser.add_argument("--report-only", action="store_true",
                         help="run nothing: the table, errors.csv and figure of the finished cells of this grid")
@@ -481,4 +495,5 @@ if __name__ == "__main__":
 
     cache.enable()  # JAX's persistent compilation cache, as the hybridslam command uses
     main(a.dataset, a.output, _numbers(a.robots, int), _numbers(a.windows), a.duration, a.maps.split(","),
-         a.estimators.split(","), a.smoothers.split(","), a.figure_robot, a.retry_errors, a.report_only)
+         a.estimators.split(","), a.smoothers.split(","), a.figure_robot, a.retry_errors, a.report_only,
+         a.motion_noise_from)

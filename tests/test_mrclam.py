@@ -298,6 +298,22 @@ def test_measurement_noise_is_what_the_written_detections_show(known):
         import_mrclam(DATA, 1, measurement_noise_from="truth")
 
 
+def test_motion_noise_from_the_drift_grows_as_fast_as_dead_reckonings_error(known):
+    s = import_mrclam(DATA, 1, motion_noise_from="drift")
+    cal = s.metadata["generator"]["calibration"]
+    drift = np.array(cal["odometry_drift_sd_per_step"]["sd"])
+    np.testing.assert_allclose(np.diag(s.motion_cov), np.maximum(np.diag(known.motion_cov), drift**2), rtol=1e-6)
+    assert np.all(np.diag(s.motion_cov) >= np.diag(known.motion_cov)) and s.motion_cov[2, 2] > known.motion_cov[2, 2]
+    assert cal["motion_noise_from"] == "drift" and known.metadata["generator"]["calibration"]["motion_noise_from"] == "steps"
+    assert s.steps == known.steps and np.array_equal(s.geometric_cov, known.geometric_cov)
+    with pytest.raises(MRCLAMError, match="motion_noise_from drift needs 5 blocks of 5 s"):
+        import_mrclam(DATA, 1, duration=20.0, motion_noise_from="drift")
+    with pytest.raises(MRCLAMError, match="motion_noise_from: expected one of steps, drift"):
+        import_mrclam(DATA, 1, motion_noise_from="wheel")
+    given = import_mrclam(DATA, 1, motion_noise_from="drift", motion_cov=[1e-4, 1e-4, 1e-3])
+    np.testing.assert_array_equal(given.motion_cov, np.diag([1e-4, 1e-4, 1e-3]))  # a given one wins
+
+
 def test_overrides_and_range_bias_correction(known):
     s = import_mrclam(DATA, 1, motion_cov=[1e-4, 2e-4, 3e-4], geometric_cov=np.diag([0.01, 0.002]),
                       robot_prior_cov=[1.0, 1.0, 0.1], correct_range_bias=True)
@@ -476,14 +492,17 @@ def test_cli_writes_a_valid_file_and_a_summary(tmp_path, capsys, known):
     assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out), "--unknown-map",
                      "--start", "5", "--duration", "20", "--dt", "0.25", "--max-range", "5",
                      "--motion-cov", "1e-4,1e-4,1e-3", "--correct-range-bias", "--no-motion-compensation",
-                     "--odometry-delay", "0.17", "--max-objects", "30", "--measurement-noise-from", "raw"]) == 0
+                     "--odometry-delay", "0.17", "--max-objects", "30", "--measurement-noise-from", "raw",
+                     "--motion-noise-from", "drift"]) == 0
     s = hs.load_scenario(out)
     g = s.metadata["generator"]
     assert s.discovery is not None and s.discovery.max_objects == 30 and s.num_steps == 80 and s.max_range == 5.0
     assert g["odometry_delay_s"] == 0.17 and not g["motion_compensation"]
     assert g["calibration"]["range_bias_corrected"] and g["calibration"]["measurement_noise_from"] == "raw"
-    np.testing.assert_array_equal(s.motion_cov, np.diag([1e-4, 1e-4, 1e-3]))
+    np.testing.assert_array_equal(s.motion_cov, np.diag([1e-4, 1e-4, 1e-3]))  # given: drift ignored
     assert "unknown map of 15 landmarks (30 object slots: --max-objects)" in capsys.readouterr().out
+    assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out), "--motion-noise-from", "drift"]) == 0
+    assert "motion_cov (calibrated, from the 5 s drift): sd" in capsys.readouterr().out
 
 
 def _error(capsys) -> str:

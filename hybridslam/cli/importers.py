@@ -3,7 +3,7 @@
     hybridslam import mrclam DATASET_DIR --robot N -o FILE [--start S] [--duration D] [--dt 0.5]
         [--unknown-map] [--max-range R] [--fov F] [--motion-cov a,b,c] [--geometric-cov a,b]
         [--robot-prior-cov a,b,c] [--correct-range-bias] [--no-motion-compensation] [--odometry-delay S]
-        [--measurement-noise-from {written,raw}]
+        [--measurement-noise-from {written,raw}] [--motion-noise-from {steps,drift}]
 
 :func:`register` adds the ``import`` command to the ``hybridslam`` parser; its errors are
 :class:`~hybridslam.cli.CLIError` (one line, exit status 2) like every other command's.
@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from ..io.mrclam import NOISE_SOURCES, MRCLAMError, import_mrclam
+from ..io.mrclam import MOTION_NOISE_SOURCES, NOISE_SOURCES, MRCLAMError, import_mrclam
 from ..io.scenario import Scenario, save_scenario
 from .common import CLIError, check_writable
 
@@ -64,6 +64,8 @@ def mrclam_summary(path: str, s: Scenario) -> str:
                   "(same landmark, same step)")
     source = ("" if cal["geometric_cov"] == "given"
               else f" from the {_NOISE_FROM[cal['measurement_noise_from']]}")
+    drift_source = (", from the 5 s drift" if cal["motion_cov"] == "calibrated"
+                    and cal["motion_noise_from"] == "drift" else "")
     geometric = (f"geometric_cov ({cal['geometric_cov']}{source}): sd {_sds(s.geometric_cov)} (m, rad); "
                  f"range bias {bias:+.3f} m ({corrected})")
     dead_reckoning = (f"dead reckoning at the end of the window: {dr['final_position_error_m']:.3f} m, "
@@ -71,7 +73,7 @@ def mrclam_summary(path: str, s: Scenario) -> str:
                       f"(path {dr['path_length_m']:.2f} m)")
     lines = [
         window, detections, f"sensor: max_range {s.max_range:g} m, fov {s.fov:g} rad",
-        f"motion_cov ({cal['motion_cov']}): sd {_sds(s.motion_cov)} (m, m, rad per step)",
+        f"motion_cov ({cal['motion_cov']}{drift_source}): sd {_sds(s.motion_cov)} (m, m, rad per step)",
         geometric, dead_reckoning,
     ]
     gaps = [f"{name} {data[key]:.2f} s" for name, key in (("odometry", "odometry_max_gap_s"),
@@ -101,7 +103,8 @@ def cmd_import_mrclam(args: argparse.Namespace) -> int:
             unknown_map=args.unknown_map, max_range=args.max_range, fov=args.fov,
             correct_range_bias=args.correct_range_bias, motion_compensation=args.motion_compensation,
             odometry_delay=args.odometry_delay, max_objects=args.max_objects,
-            measurement_noise_from=args.measurement_noise_from, **covs)
+            measurement_noise_from=args.measurement_noise_from, motion_noise_from=args.motion_noise_from,
+            **covs)
     except MRCLAMError as e:
         raise CLIError(str(e)) from None
     save_scenario(scenario, args.output)
@@ -153,4 +156,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     m.add_argument("--measurement-noise-from", choices=NOISE_SOURCES, default="written",
                    help="calibrate geometric_cov from the detections as written, at their step times "
                         "(default), or from the raw measurements at their own times")
+    m.add_argument("--motion-noise-from", choices=MOTION_NOISE_SOURCES, default="steps",
+                   help="calibrate motion_cov from the per-step odometry errors (default) or from their "
+                        "sums over 5 s (drift: larger, as the errors are correlated in time)")
     m.set_defaults(func=cmd_import_mrclam)

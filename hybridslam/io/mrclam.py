@@ -59,7 +59,9 @@ What the data hold (datasets 6 and 7, all robots), and what the import does abou
   therefore correlated in time: summed over 5 s they grow 2.7-5.9× (forward) and 1.7-3.3×
   (heading) faster than the calibrated per-step sd (200 s windows), and dead reckoning drifts
   accordingly. ``generator.calibration.odometry_drift_sd_per_step``
-  reports it (give a larger ``motion_cov`` for a consistent filter over long windows).
+  reports it; ``motion_noise_from="drift"`` writes a ``motion_cov`` that grows as fast (on
+  dataset 7's unknown map it halves the duplicate landmarks; on the known map it costs accuracy:
+  README, Real data).
 * Odometry records have gaps of up to ~1 s (the last command is held) and duplicated times;
   the ground truth of some robots ends minutes before their odometry (dataset 6, robot 1).
   ``generator.data`` holds the longest gaps in the window.
@@ -82,6 +84,7 @@ from .scenario import Classifier, Detection, Discovery, Scenario, Step
 
 ROBOTS = (1, 2, 3, 4, 5)  # MRCLAM subjects 1-5 are robots
 NOISE_SOURCES = ("written", "raw")  # what geometric_cov is calibrated from (import_mrclam)
+MOTION_NOISE_SOURCES = ("steps", "drift")  # what motion_cov is calibrated from (import_mrclam)
 MAD_TO_SD = 1.4826  # 1 / Φ⁻¹(3/4): MAD · this is the sd of a Gaussian
 ROBOT_PRIOR_VAR = 1e-4  # x_0 is the ground truth: it anchors the world frame (m², m², rad²)
 MOTION_SD_FLOOR = 1e-4  # m, m, rad per step: keeps the calibrated covariance positive definite
@@ -484,8 +487,13 @@ def _stats(residuals: np.ndarray) -> dict[str, Any]:
     return {"count": len(residuals), "median": _floats(median), "scale": _floats(scale)}
 
 
+def _drift_block(dt: float) -> int:
+    """Steps of ``dt`` seconds in one drift block of :data:`DRIFT_BLOCK_S`."""
+    return max(1, round(DRIFT_BLOCK_S / dt))
+
+
 def _drift(residuals: np.ndarray, dt: float) -> dict[str, Any] | None:
-    block = max(1, round(DRIFT_BLOCK_S / dt))
+    block = _drift_block(dt)
     sd = drift_per_step(residuals, block)
     return None if sd is None else {"block_steps": block, "sd": _floats(sd)}
 
@@ -550,6 +558,7 @@ def import_mrclam(
     motion_compensation: bool = True,
     odometry_delay: float = 0.0,
     measurement_noise_from: str = "written",
+    motion_noise_from: str = "steps",
     landmark_sd_floor: float = 0.01,
     landmark_heading_var: float = math.pi**2,
     discovery_margin: int = 10,
@@ -583,6 +592,11 @@ def import_mrclam(
     * ``measurement_noise_from``: ``"written"`` (default) calibrates ``geometric_cov`` from the
       detections as written, at their step times; ``"raw"`` from the raw measurements at their
       own times (module docstring, Noise).
+    * ``motion_noise_from``: ``"steps"`` (default) calibrates ``motion_cov`` from the per-step
+      odometry residuals; ``"drift"`` takes per component the larger of that and the variance per
+      step that their sums over 5 s imply (``generator.calibration.odometry_drift_sd_per_step``), so
+      that dead reckoning's covariance grows as fast as its error does over seconds (the errors
+      are correlated in time: module docstring). Needs a window of at least 25 s.
 
     Everything the import measured (calibration, counts, dead-reckoning error, data gaps) is in
     ``scenario.metadata["generator"]``. Raises :class:`MRCLAMError` (one line naming the file and
@@ -593,6 +607,9 @@ def import_mrclam(
         raise MRCLAMError(f"{folder}: not a dataset folder (no such directory)")
     _check_settings(max_range, fov, landmark_sd_floor, landmark_heading_var, discovery_margin,
                     new_object_log_density, odometry_delay)
+    if motion_noise_from not in MOTION_NOISE_SOURCES:
+        raise MRCLAMError(f"motion_noise_from: expected one of {', '.join(MOTION_NOISE_SOURCES)}, "
+                          f"got {motion_noise_from!r}")
     if measurement_noise_from not in NOISE_SOURCES:
         raise MRCLAMError(f"measurement_noise_from: expected one of {', '.join(NOISE_SOURCES)}, "
                           f"got {measurement_noise_from!r}")
@@ -610,7 +627,8 @@ def import_mrclam(
     log_ = read_robot(folder, robot)
     window = make_window(log_, robot, start, duration, dt, odometry_delay)
     track = _track(log_, barcodes, landmarks, window, odometry_delay, motion_compensation, max_range, fov)
-    noise = _calibrate(track, log_, landmarks, given, robot, correct_range_bias, measurement_noise_from)
+    noise = _calibrate(track, log_, landmarks, given, robot, correct_range_bias, measurement_noise_from,
+                       motion_noise_from, window.dt)
     sd = np.sqrt(np.diag(noise.geometric))
     default = default_sensor(log_, barcodes, landmarks[:, 0], track.written[track.kept], sd)
     max_range = default[0] if max_range is None else float(max_range)
@@ -693,10 +711,12 @@ class Noise:
     raw_residuals: np.ndarray  # (m, 2) raw measurements against the ground truth at their times
     range_bias: float  # m, the median range residual (of ``source``) before any correction
     source: str  # "written" or "raw": which residuals ``sensor_residuals`` are
+    motion_source: str  # "steps" or "drift": what ``motion`` is calibrated from
 
 
 def _calibrate(track: Track, log: RobotLog, landmarks: np.ndarray, given: dict[str, np.ndarray | None],
-               robot: int, correct_range_bias: bool, source: str = "written") -> Noise:
+               robot: int, correct_range_bias: bool, source: str = "written", motion_source: str = "steps",
+               dt: float = 0.5) -> Noise:
     """The robust covariances (module docstring); corrects ``track.written`` ranges if asked."""
     meas, kept = track.measurements, track.kept
     if not len(kept) and (given["geometric_cov"] is None or correct_range_bias):
@@ -715,9 +735,16 @@ def _calibrate(track: Track, log: RobotLog, landmarks: np.ndarray, given: dict[s
     motion, geometric = given["motion_cov"], given["geometric_cov"]
     if motion is None:
         motion = np.diag(robust_variance(odometry, MOTION_SD_FLOOR))
+        if motion_source == "drift":
+            drift = drift_per_step(odometry, _drift_block(dt))
+            if drift is None:
+                raise MRCLAMError(f"robot {robot}: motion_noise_from drift needs {MIN_BLOCKS} blocks of "
+                                  f"{DRIFT_BLOCK_S:g} s of odometry in the window; give a longer window (duration) "
+                                  "or motion_noise_from 'steps'")
+            motion = np.diag(np.maximum(np.diag(motion), drift**2))
     if geometric is None:
         geometric = np.diag(robust_variance(sensor, GEOMETRIC_SD_FLOOR))
-    return Noise(motion, geometric, odometry, sensor, raw, range_bias, source)
+    return Noise(motion, geometric, odometry, sensor, raw, range_bias, source, motion_source)
 
 
 def _generator(folder: str, settings: dict[str, Any], window: Window, track: Track, noise: Noise,
@@ -749,6 +776,7 @@ def _generator(folder: str, settings: dict[str, Any], window: Window, track: Tra
                          "time" if noise.source == "written" else "raw, against the ground-truth pose "
                          "at the measurement time") + ", and the surveyed landmark)",
             "measurement_noise_from": noise.source,
+            "motion_noise_from": noise.motion_source,
             "motion_cov": "calibrated" if given["motion_cov"] is None else "given",
             "geometric_cov": "calibrated" if given["geometric_cov"] is None else "given",
             "odometry_residuals": _stats(noise.odometry_residuals),
