@@ -85,7 +85,7 @@ def mrclam_summary(path: str, s: Scenario) -> str:
         block = drift["block_steps"]
         lines.append(f"note: odometry errors are correlated in time: summed over {block} steps "
                      f"they grow like sd {sds} per step, more than {_DRIFT_NOTE:g}x motion_cov's; dead "
-                     "reckoning drifts faster than it says (--motion-cov)")
+                     "reckoning drifts faster than it says (--motion-noise-from drift, --motion-cov)")
     if gaps:
         lines.append(f"note: longest gap without records in the window: {', '.join(gaps)}")
     return "\n".join(lines)
