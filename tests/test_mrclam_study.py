@@ -1,0 +1,51 @@
+"""The MRCLAM study script's bookkeeping (``experiments/mrclam.py``): its association scores and the
+keys its resumable records are found by. Nothing here runs an estimator."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parent.parent / "experiments" / "mrclam.py"
+
+
+@pytest.fixture(scope="module")
+def study():
+    spec = importlib.util.spec_from_file_location("mrclam_study", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+# (estimated object, true landmark) per detection: object 0 holds landmarks 0, 0 and 1 (mixed),
+# objects 1 and 2 both hold landmark 1 (a duplicate), one detection is unassociated.
+PAIRS = [(0, 0), (0, 0), (0, 1), (1, 1), (2, 1), (-1, 2)]
+
+
+def test_unknown_map_scores_purity_duplicates_and_merges(study):
+    score = study._score(PAIRS, known_map=False)
+    assert score == {"accuracy": 4 / 6, "detections": 6, "unassociated": 1, "num_objects": 3,
+                     "duplicate_objects": 1, "mixed_objects": 1}
+
+
+def test_known_map_scores_the_object_index(study):
+    score = study._score(PAIRS, known_map=True)
+    assert score == {"accuracy": 3 / 6, "detections": 6, "unassociated": 1, "num_objects": 3,
+                     "duplicate_objects": 0, "mixed_objects": 0}
+    empty = study._score([], known_map=False)
+    assert math.isnan(empty["accuracy"]) and empty["mixed_objects"] == 0
+
+
+def test_the_drift_calibration_gets_its_own_files_and_keys(study):
+    plain = study.scenario_name("data/MRCLAM_Dataset7", 3, 20.0, 100.0, "unknown:50")
+    drift = study.scenario_name("data/MRCLAM_Dataset7", 3, 20.0, 100.0, "unknown:50", "drift")
+    assert plain == "MRCLAM_Dataset7_robot3_t20_d100_unknown_slots50.json"
+    assert drift == "MRCLAM_Dataset7_robot3_t20_d100_unknown_slots50_motion-drift.json"
+    key = study.cell_key("MRCLAM_Dataset7", 3, 20.0, 100.0, "unknown", "ml", "full")
+    # The default leaves the key as studies before the option wrote it, so they still resume.
+    assert "motion_noise_from" not in key
+    assert study.cell_key("MRCLAM_Dataset7", 3, 20.0, 100.0, "unknown", "ml", "full", "drift") == {
+        **key, "motion_noise_from": "drift"}
