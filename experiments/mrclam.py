@@ -92,6 +92,9 @@ SETTINGS: dict[str, dict] = {
     "hybrid": {"capacity": 16, "gate": 3, "weights": "linearized"},
 }
 MAPS = ("known", "unknown")
+# How the importer calibrates the noise (keys of its generator.calibration); part of every cell's key,
+# so that cells of files calibrated otherwise (older studies) are run again, not resumed.
+NOISE_CALIBRATION = {"measurement_noise_from": "written", "motion_noise_from": "steps"}
 SMOOTHERS = ("full", "filter")  # and lag:L (fixed-lag, L steps)
 
 
@@ -138,15 +141,26 @@ def scenario_name(dataset: str, robot: int, start: float, duration: float, map_:
 def scenario(folder: str, dataset: str, robot: int, start: float, duration: float, map_: str,
              motion_noise: str = "steps") -> tuple[str, Scenario]:
     """The imported scenario (written under ``folder/scenarios`` the first time, read back after);
-    ``motion_noise``: the importer's ``motion_noise_from``."""
+    ``motion_noise``: the importer's ``motion_noise_from``. A file written by an importer that
+    calibrated the noise otherwise (before 2026-11-26, thirteenth session, or with another
+    ``motion_noise``) is imported anew."""
     path = os.path.join(folder, "scenarios", scenario_name(dataset, robot, start, duration, map_, motion_noise))
-    if not os.path.exists(path):
-        unknown, slots = parse_map(map_)
-        s = import_mrclam(dataset, robot, start=start, duration=duration, dt=DT, unknown_map=unknown,
-                          max_objects=slots, motion_noise_from=motion_noise)
-        os.makedirs(os.path.dirname(path), exist_ok=True)
-        save_scenario(s, path)
+    if os.path.exists(path):
+        s = load_scenario(path)
+        if _calibration(s) == {**NOISE_CALIBRATION, "motion_noise_from": motion_noise}:
+            return path, s
+    unknown, slots = parse_map(map_)
+    s = import_mrclam(dataset, robot, start=start, duration=duration, dt=DT, unknown_map=unknown,
+                      max_objects=slots, motion_noise_from=motion_noise)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    save_scenario(s, path)
     return path, load_scenario(path)
+
+
+def _calibration(s: Scenario) -> dict:
+    """How the importer calibrated ``s``'s noise (empty for files of older importers)."""
+    calibration = ((s.metadata or {}).get("generator") or {}).get("calibration") or {}
+    return {k: calibration[k] for k in NOISE_CALIBRATION if k in calibration}
 
 
 def dead_reckoning(s: Scenario) -> np.ndarray:
@@ -212,13 +226,11 @@ def association_accuracy(s: Scenario, result: Result) -> dict:
 def cell_key(dataset: str, robot: int, start: float, duration: float, map_: str, name: str, smoother: str,
              motion_noise: str = "steps") -> dict:
     """A cell's key: where the data come from and the estimator's settings (``max_detections``, the
-    padding shared by every cell of a run, left out); ``motion_noise`` only when not the default
-    (so the records of studies before the option keep their keys)."""
+    padding shared by every cell of a run, left out) and the importer's noise calibration."""
     settings = {k: v for k, v in estimator(name, smoother).settings().items() if k != "max_detections"}
-    key = {"dataset": os.path.basename(os.path.normpath(dataset)), "robot": robot, "start_s": start,
-           "duration_s": duration, "dt_s": DT, "map": map_, "estimator": name, "smoother": smoother,
-           "settings": settings}
-    return key if motion_noise == "steps" else {**key, "motion_noise_from": motion_noise}
+    return {"dataset": os.path.basename(os.path.normpath(dataset)), "robot": robot, "start_s": start,
+            "duration_s": duration, "dt_s": DT, "map": map_, "estimator": name, "smoother": smoother,
+            "settings": settings, "noise": {**NOISE_CALIBRATION, "motion_noise_from": motion_noise}}
 
 
 def _tum(folder: str, who: str, stem: str, poses: np.ndarray) -> None:
@@ -387,7 +399,7 @@ def plot_trajectories(folder: str, dataset: str, records: list[dict], robot: int
         c = r["cell"]
         s = load_scenario(os.path.join(folder, "scenarios",
                                        scenario_name(dataset, robot, c["start_s"], c["duration_s"], c["map"],
-                                                     c.get("motion_noise_from", "steps"))))
+                                                     c.get("noise", {}).get("motion_noise_from", "steps"))))
         result = load_result(os.path.join(folder, r["result"]))
         reckoned = np.concatenate([np.asarray(s.robot_prior_mean)[None], dead_reckoning(s)])
         ax.plot(reckoned[:, 0], reckoned[:, 1], ":", color="0.5", lw=1.2, label="dead reckoning")

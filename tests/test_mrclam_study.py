@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+import hybridslam as hs
+
 SCRIPT = Path(__file__).resolve().parent.parent / "experiments" / "mrclam.py"
 
 
@@ -45,7 +47,19 @@ def test_the_drift_calibration_gets_its_own_files_and_keys(study):
     assert plain == "MRCLAM_Dataset7_robot3_t20_d100_unknown_slots50.json"
     assert drift == "MRCLAM_Dataset7_robot3_t20_d100_unknown_slots50_motion-drift.json"
     key = study.cell_key("MRCLAM_Dataset7", 3, 20.0, 100.0, "unknown", "ml", "full")
-    # The default leaves the key as studies before the option wrote it, so they still resume.
-    assert "motion_noise_from" not in key
+    # The importer's calibration is part of the key: cells of files calibrated otherwise rerun.
+    assert key["noise"] == {"measurement_noise_from": "written", "motion_noise_from": "steps"}
     assert study.cell_key("MRCLAM_Dataset7", 3, 20.0, 100.0, "unknown", "ml", "full", "drift") == {
-        **key, "motion_noise_from": "drift"}
+        **key, "noise": {"measurement_noise_from": "written", "motion_noise_from": "drift"}}
+
+
+def test_a_file_of_an_older_calibration_is_imported_anew(study, tmp_path):
+    data = Path(__file__).resolve().parent / "data" / "mrclam"
+    path, fresh = study.scenario(str(tmp_path), str(data), 1, 0.0, 40.0, "known")
+    assert study._calibration(fresh) == study.NOISE_CALIBRATION
+    metadata = {**fresh.metadata}
+    metadata["generator"] = {**metadata["generator"], "calibration": {
+        k: v for k, v in metadata["generator"]["calibration"].items() if k not in study.NOISE_CALIBRATION}}
+    hs.save_scenario(fresh.replace(metadata=metadata, geometric_cov=2 * fresh.geometric_cov), path)
+    again_path, again = study.scenario(str(tmp_path), str(data), 1, 0.0, 40.0, "known")
+    assert again_path == path and again == fresh and hs.load_scenario(path) == fresh
