@@ -286,6 +286,15 @@ class Run:
 # One small program (cached per estimator and shapes) rather than one eager op after another, each a
 # compile of its own in a fresh process.
 _trajectory = eqx.filter_jit(lambda estimator, state: estimator.trajectory(state))
+_objects = eqx.filter_jit(lambda estimator, state: estimator.objects(state))
+
+
+def object_poses(objects: Any, count: Any) -> np.ndarray:
+    """The result file's ``objects``: the first ``count`` rows of ``objects`` (N, 3) (the slots that
+    hold an object; later slots were never created), headings wrapped to [-π, π)."""
+    poses = np.array(objects, dtype=float)[: int(count)]
+    poses[:, 2] = (poses[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    return poses
 
 
 def _first(tree):
@@ -337,6 +346,7 @@ def run(
     if trajectory is not None:
         # x_0..x_T of this scenario: a history longer than the scenario (max_steps) holds padding after it.
         extra["trajectory"] = np.asarray(trajectory, dtype=float)[: scenario.num_steps + 1]
+        extra["objects"] = object_poses(*_objects(estimator, state))
     result = Result(estimator=f"{estimator.describe(scenario)}, seed={seed}", steps=records,
                     timing={"compile_s": compile_s, "step_s": step_s}, **extra)
     return Run(result, infos, state)

@@ -4,8 +4,8 @@ With the associations fixed (those in the run's own result file), the factor gra
 smoother is rebuilt here from the scenario file alone, with residuals written in numpy (prior on
 ``[x_0, objects]`` with wrapped headings, GTSAM's ``BetweenFactor<Pose2>`` odometry residual
 ``Log(u⁻¹ ∘ x_{k-1}⁻¹ ∘ x_k)``, range and bearing of the object's position), and solved from dead
-reckoning by scipy's Levenberg-Marquardt. The result file's ``trajectory`` must equal that
-solution to 1e-6 (issue 13 §4).
+reckoning by scipy's Levenberg-Marquardt. The result file's ``trajectory`` and ``objects`` must
+equal that solution to 1e-6 (issue 13 §4).
 
 The fixed-lag smoother (``smoother=Lag(L)``) on the same run: a window as long as the run is this
 smoother; a short one freezes the poses that left it and stays close to it (tests/test_lag.py
@@ -53,9 +53,10 @@ def _sqrt_info(cov):
     return np.linalg.cholesky(np.linalg.inv(cov)).T  # RᵀR = Σ⁻¹
 
 
-def _batch_solve(scenario, history) -> np.ndarray:
+def _batch_solve(scenario, history) -> tuple[np.ndarray, np.ndarray]:
     """The graph of ``scenario`` with the associations ``history`` (per step, per detection; −1: none),
-    solved from dead reckoning by scipy's Levenberg-Marquardt: the poses ``(T+1, 3)``."""
+    solved from dead reckoning by scipy's Levenberg-Marquardt: the poses ``(T+1, 3)`` and the
+    objects ``(N, 3)``."""
     t, n = scenario.num_steps, scenario.num_objects
     w_odo, w_geo = _sqrt_info(scenario.motion_cov), _sqrt_info(scenario.geometric_cov)
     prior_mean = np.concatenate([scenario.robot_prior_mean, scenario.object_prior_means.reshape(-1)])
@@ -92,14 +93,20 @@ def _batch_solve(scenario, history) -> np.ndarray:
     sol = least_squares(residuals, y0, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=10000)
     poses = sol.x[: 3 * (t + 1)].reshape(t + 1, 3)
     poses[:, 2] = _wrap(poses[:, 2])
-    return poses
+    return poses, sol.x[3 * (t + 1) :].reshape(n, 3)
 
 
-def _assert_trajectory_is(run, poses):
+def _assert_trajectory_is(run, solution):
+    poses, objects = solution
     smoothed = np.asarray(run.result.trajectory)
     assert smoothed.shape == poses.shape
     np.testing.assert_allclose(smoothed[:, :2], poses[:, :2], atol=1e-6)
     np.testing.assert_allclose(_wrap(smoothed[:, 2] - poses[:, 2]), 0.0, atol=1e-6)
+    # The result file's objects are that solution's too (headings: the prior's, unobserved).
+    mapped = np.asarray(run.result.objects)
+    assert mapped.shape == objects.shape
+    np.testing.assert_allclose(mapped[:, :2], objects[:, :2], atol=1e-6)
+    np.testing.assert_allclose(_wrap(mapped[:, 2] - objects[:, 2]), 0.0, atol=1e-6)
     # ... and it is the online estimate at the last step (the smoother's x_T).
     np.testing.assert_allclose(run.result.steps[-1].components[0].pose_mean, smoothed[-1], atol=1e-9)
 

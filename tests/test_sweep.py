@@ -217,7 +217,7 @@ def test_scenario_files_give_result_files_equal_to_single_runs(tiny, tmp_path):
 
 @pytest.mark.slow  # two smoother compiles (batched and single): the extended suite, CI
 def test_scenario_files_run_by_a_smoother_carry_its_trajectory(tmp_path):
-    """A smoother's result files from `--scenarios` carry the smoothed `trajectory` that `run` writes,
+    """A smoother's result files from `--scenarios` carry the smoothed `trajectory` and `objects` that `run` writes,
     cut to each file's own length (the shorter file ran padded)."""
     files = tmp_path / "logs"
     files.mkdir()
@@ -227,10 +227,12 @@ def test_scenario_files_run_by_a_smoother_carry_its_trajectory(tmp_path):
     ml = hs.make_estimator("ml", max_detections=2, max_steps=4)
     study.run_file_study(study.FileStudy(tuple(study.scenario_paths(str(files))), None, 0, ml), str(tmp_path / "out"))
     for name, s in scenarios.items():
-        got = hs.load_result(str(tmp_path / "out" / "results" / f"{name}.json")).trajectory
-        want = hs.run(ml, s).result.trajectory
-        assert got is not None and got.shape == (s.num_steps + 1, 3)
-        np.testing.assert_allclose(got, want, atol=1e-9)
+        got = hs.load_result(str(tmp_path / "out" / "results" / f"{name}.json"))
+        want = hs.run(ml, s).result
+        assert got.trajectory is not None and got.trajectory.shape == (s.num_steps + 1, 3)
+        np.testing.assert_allclose(got.trajectory, want.trajectory, atol=1e-9)
+        assert got.objects is not None and got.objects.shape == (s.num_objects, 3)  # and the objects
+        np.testing.assert_allclose(got.objects, want.objects, atol=1e-9)
 
 
 def test_files_are_grouped_by_shape_and_model():

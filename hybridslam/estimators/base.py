@@ -254,6 +254,12 @@ class AbstractEstimator(eqx.Module):
         """The smoothed ``x_0..x_T`` of the best component (smoothers), else ``None``."""
         return None
 
+    def objects(self, state: Any) -> tuple[Float[Array, "N 3"], Int[Array, ""]] | None:
+        """The smoothed object poses of the component :meth:`trajectory` belongs to (every slot,
+        indexed like its classes) and how many of the slots hold an object (the first ones);
+        ``None`` for filters. The result file's optional ``objects`` (SCENARIO_FORMAT.md)."""
+        return None
+
     @abc.abstractmethod
     def describe(self, scenario: Scenario | None = None) -> str:
         """The result file's ``estimator`` text: name, paper, every setting (the classifier the

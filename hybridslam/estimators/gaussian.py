@@ -242,6 +242,10 @@ class SingleGaussian(AbstractEstimator):
         """The smoothed ``x_0..x_T`` (``None`` without smoothing)."""
         return state.poses
 
+    def objects(self, state: GaussianState):
+        """The smoothed objects and how many exist (``None`` without smoothing)."""
+        return None if state.poses is None else (state.mean[3:].reshape(-1, 3), state.num_created)
+
     def view(self, state: GaussianState) -> Mixture:
         """A one-component :class:`~.base.Mixture` (classes: MAP of Eq. 4.17, -1 if unobserved)."""
         classes = jnp.where(state.observed, jnp.argmax(state.class_log_post, axis=-1), -1).astype(jnp.int32)

@@ -977,6 +977,13 @@ class Multimodal(AbstractEstimator):
         """The smoothed ``x_0..x_T`` of the best component (``None`` without smoothing)."""
         return None if state.poses is None else state.poses[jnp.argmax(state.log_weights)]
 
+    def objects(self, state: State):
+        """The best component's smoothed objects and their count (``None`` without smoothing)."""
+        if state.poses is None:
+            return None
+        best = jnp.argmax(state.log_weights)
+        return state.mean[best, 3:].reshape(-1, 3), state.num_created[best]
+
     def step(self, state: State, odometry: Float[Array, "3"], detections: Detections,
              key: jax.Array) -> tuple[State, StepInfo]:
         """Propagate (Eq. 5.7's odometry factor), weigh the (component, joint assignment) children by

@@ -56,11 +56,12 @@ class Batch(eqx.Module):
         return self.key.shape[0]
 
 
-def _run_batch(estimator: AbstractEstimator, batch: Batch) -> tuple[Trace, Float[Array, "B T1 3"] | None]:
-    """Every track's trace and, for smoothers, its final smoothed trajectory (``None`` for filters)."""
+def _run_batch(estimator: AbstractEstimator, batch: Batch) -> tuple[Trace, Float[Array, "B T1 3"] | None, Any]:
+    """Every track's trace and, for smoothers, its final smoothed trajectory and objects with their
+    count (:meth:`~hybridslam.estimators.base.AbstractEstimator.objects`; ``None`` for filters)."""
     def one(state, inputs, key):
         final, trace = scan(estimator, state, inputs, key)
-        return trace, estimator.trajectory(final)
+        return trace, estimator.trajectory(final), estimator.objects(final)
 
     return jax.vmap(one, axis_name=BATCH_AXIS)(batch.state, batch.inputs, batch.key)
 
@@ -80,6 +81,7 @@ class BatchRun:
     num_devices: int
     plan: BatchPlan | None = None  # how the batch was split to fit in memory
     trajectories: np.ndarray | None = None  # (B, T+1, 3): each track's final smoothed x_0..x_T (smoothers)
+    objects: tuple[np.ndarray, np.ndarray] | None = None  # (B, N, 3) smoothed objects, (B,) how many exist
 
 
 def batched(estimator: AbstractEstimator, scenarios: Sequence[Scenario]) -> AbstractEstimator:
@@ -216,8 +218,8 @@ def run_batch(estimator: AbstractEstimator, batch: Batch, mesh: Mesh | None = No
             _barrier(f"hybridslam-batch-{_next_barrier()}")
             out = multihost_utils.process_allgather(out, tiled=True)
         traces.append(jax.device_get(out))
-    trace, trajectories = jax.tree.map(lambda *xs: np.concatenate(xs)[:size], *traces)
-    return BatchRun(trace, compile_s, run_s, mesh.size, plan, trajectories)
+    trace, trajectories, objects = jax.tree.map(lambda *xs: np.concatenate(xs)[:size], *traces)
+    return BatchRun(trace, compile_s, run_s, mesh.size, plan, trajectories, objects)
 
 
 _BARRIERS = itertools.count()  # barrier names must be unique; every process counts the same calls

@@ -28,6 +28,7 @@ from collections.abc import Callable, Iterable, Sequence
 import jax.numpy as jnp
 import numpy as np
 
+from ..driver import object_poses
 from ..estimators.base import AbstractEstimator, StepInfo, summarize
 from ..estimators.hybrid.estimator import Hybrid
 from ..io.result import Result, save_result
@@ -317,5 +318,6 @@ def _write_results(study: FileStudy, cell: dict, group: Sequence[Scenario], run:
             timing={"compile_s": run.compile_s, "step_s": [per_step] * steps},
             # A file shorter than the batch's padded length: its poses after x_T are padding.
             trajectory=None if run.trajectories is None else run.trajectories[t][: steps + 1],
+            objects=None if run.objects is None else object_poses(run.objects[0][t], run.objects[1][t]),
         )
         save_result(result, os.path.join(folder, "results", _result_name(path, cell["model"])))

@@ -142,6 +142,14 @@ class Hybrid(AbstractEstimator):
             return None
         return state.poses[jnp.argmax(state.log_weights)]
 
+    def objects(self, state: Belief):
+        """The best component's smoothed objects and their count (``None`` without smoothing)."""
+        if state.poses is None:
+            return None
+        best = jnp.argmax(state.log_weights)
+        count = jnp.asarray(state.num_objects) if state.num_created is None else state.num_created[best]
+        return state.mean[best, 3:].reshape(-1, 3), count
+
     def describe(self, scenario: Scenario | None = None) -> str:
         return (
             f"hybridslam {__version__} hybrid belief ({self.reference}); "
