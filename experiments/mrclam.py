@@ -37,6 +37,9 @@ Per cell (dataset, robot, window, map, estimator, smoother):
   Unassociated detections (``-1``: skipped, explained as clutter, or unmapped objects when the
   object slots are full) count as wrong in both maps; ``skipped``, ``rejected`` and ``unmapped``
   (from the step infos) say how many detections each concerns.
+- **Map error** (smoothers): the distance from each estimated object that has a detection (the
+  result's ``objects``) to the landmark it stands for (the majority landmark on the unknown map),
+  mean and median over those objects (``map_error`` in the records).
 - **Time**: median and mean ms per step (``timing["step_s"]``) and the compile seconds (0 when an
   equal program was compiled earlier in the same process: the robots of one map share shapes).
 
@@ -202,6 +205,29 @@ def _score(pairs: list[tuple[int, int]], known_map: bool) -> dict:
             "duplicate_objects": duplicates, "mixed_objects": mixed}
 
 
+def map_error(s: Scenario, result: Result) -> dict:
+    """How far the final best component's estimated objects (the result's ``objects``) lie from the
+    landmarks they stand for: per object with a detection, the distance (m) from its position to
+    its true landmark's (known map: the object itself; unknown map: its majority landmark, as in
+    the purity score). Mean and median over those objects; empty for filters (no ``objects``)."""
+    if result.objects is None:
+        return {}
+    truth = s.object_prior_means if s.discovery is None else np.array([p for p, _ in s.true_objects or ()])
+    final = result.steps[-1].components[0].associations
+    votes: dict[int, Counter] = {}
+    for j, step in enumerate(s.steps):
+        for i, d in enumerate(step.detections):
+            o = int(final[j][i])
+            if o >= 0 and d.true_object is not None and d.true_object >= 0:
+                votes.setdefault(o, Counter())[int(d.true_object)] += 1
+    landmark = {o: (o if s.discovery is None else min(c.items(), key=lambda kv: (-kv[1], kv[0]))[0])
+                for o, c in votes.items()}
+    distances = [float(np.hypot(*(result.objects[o, :2] - truth[t, :2]))) for o, t in landmark.items()]
+    if not distances:
+        return {"objects": 0}
+    return {"objects": len(distances), "mean_m": float(np.mean(distances)), "median_m": float(np.median(distances))}
+
+
 def association_accuracy(s: Scenario, result: Result) -> dict:
     """``final`` (the last step's best component's history) and ``online`` (each step's best component,
     that step's associations) scores against ``true_object``."""
@@ -271,6 +297,7 @@ def run_cell(folder: str, dataset: str, robot: int, start: float, duration: floa
             "smoothed_errors": smoothed,
             "dead_reckoning": trajectory.trajectory_errors(reference, reckoned),
             "association": association_accuracy(s, run.result),
+            "map_error": map_error(s, run.result),
             "num_steps": s.num_steps,
             "detections": sum(len(st.detections) for st in s.steps),
             "compile_s": run.result.timing["compile_s"],
@@ -314,6 +341,8 @@ def _row(r: dict) -> dict:
         row[f"num_objects{suffix}"] = a["num_objects"]
         row[f"duplicate_objects{suffix}"] = a["duplicate_objects"]
         row[f"mixed_objects{suffix}"] = a.get("mixed_objects", "")  # studies before 2026-11-26 lack it
+    row["map_error_mean_m"] = r.get("map_error", {}).get("mean_m", "")  # (thirteenth session on)
+    row["map_error_median_m"] = r.get("map_error", {}).get("median_m", "")
     row.update(detections=r["detections"], num_steps=r["num_steps"], step_ms_median=r["step_ms_median"],
                step_ms_mean=r["step_ms_mean"], compile_s=r["compile_s"], wall_s=r["wall_s"],
                num_warnings=r["num_warnings"], skipped=r["skipped"], rejected=r["rejected"],
@@ -346,9 +375,10 @@ def summarize(records: list[dict]) -> list[dict]:
         c = r["cell"]
         groups.setdefault((c["estimator"], c["map"], c["smoother"]), []).append(r)
     head = (f"{'estimator':<12} {'map':<10} {'smoother':<8} {'cells':>5} {'APE':>7} {'APE sm':>7} {'RPE':>7} "
-            f"{'assoc':>6} {'assoc@k':>7} {'ms/step':>8} {'compile':>7} {'DR APE':>7}")
+            f"{'assoc':>6} {'assoc@k':>7} {'map':>6} {'ms/step':>8} {'compile':>7} {'DR APE':>7}")
     print("\nmean over robots and windows: APE translation mean (m; online, smoothed), RPE translation mean "
-          "(m per 0.5 s step, online),\nassociation accuracy (final best component; online), median ms per step, "
+          "(m per 0.5 s step, online),\nassociation accuracy (final best component; online), map error (m, mean; "
+          "smoothers), median ms per step, "
           "compile s (max), dead-reckoning APE (m)")
     print(head)
     table = []
@@ -361,6 +391,7 @@ def summarize(records: list[dict]) -> list[dict]:
             "rpe": _mean(r["errors"]["rpe_translation"]["mean"] for r in ok),
             "assoc": _mean(r["association"]["final"]["accuracy"] for r in ok),
             "assoc_online": _mean(r["association"]["online"]["accuracy"] for r in ok),
+            "map": _mean(r.get("map_error", {}).get("mean_m") for r in ok),
             "ms": float(np.median([r["step_ms_median"] for r in ok])) if ok else float("nan"),
             "compile": max((r["compile_s"] for r in ok), default=float("nan")),
             "dr_ape": _mean(r["dead_reckoning"]["ape_translation"]["mean"] for r in ok),
@@ -368,7 +399,7 @@ def summarize(records: list[dict]) -> list[dict]:
         table.append(row)
         failed = f"  ({row['failed']} failed)" if row["failed"] else ""
         print(f"{name:<12} {map_:<10} {smoother:<8} {row['cells']:>5} {row['ape']:>7.3f} {row['ape_smoothed']:>7.3f} "
-              f"{row['rpe']:>7.4f} {row['assoc']:>6.3f} {row['assoc_online']:>7.3f} {row['ms']:>8.1f} "
+              f"{row['rpe']:>7.4f} {row['assoc']:>6.3f} {row['assoc_online']:>7.3f} {row['map']:>6.3f} {row['ms']:>8.1f} "
               f"{row['compile']:>7.1f} {row['dr_ape']:>7.3f}{failed}")
     for r in records:
         if "error" in r:
