@@ -138,7 +138,8 @@ def scenario_name(dataset: str, robot: int, start: float, duration: float, map_:
                   motion_noise: str = "steps") -> str:
     kind = map_.replace(":", "_slots")  # unknown:50 -> unknown_slots50
     noise = "" if motion_noise == "steps" else f"_motion-{motion_noise}"
-    return f"{os.path.basename(os.path.normpath(dataset))}_robot{robot}_t{start:g}_d{duration:g}_{kind}{noise}.json"
+    stem = os.path.basename(os.path.normpath(dataset))
+    return f"{stem}_robot{robot}_t{start:g}_d{duration:g}_{kind}{noise}.json"
 
 
 def scenario(folder: str, dataset: str, robot: int, start: float, duration: float, map_: str,
@@ -147,7 +148,8 @@ def scenario(folder: str, dataset: str, robot: int, start: float, duration: floa
     ``motion_noise``: the importer's ``motion_noise_from``. A file written by an importer that
     calibrated the noise otherwise (before 2026-11-26, thirteenth session, or with another
     ``motion_noise``) is imported anew."""
-    path = os.path.join(folder, "scenarios", scenario_name(dataset, robot, start, duration, map_, motion_noise))
+    name = scenario_name(dataset, robot, start, duration, map_, motion_noise)
+    path = os.path.join(folder, "scenarios", name)
     if os.path.exists(path):
         s = load_scenario(path)
         if _calibration(s) == {**NOISE_CALIBRATION, "motion_noise_from": motion_noise}:
@@ -225,7 +227,8 @@ def map_error(s: Scenario, result: Result) -> dict:
     distances = [float(np.hypot(*(result.objects[o, :2] - truth[t, :2]))) for o, t in landmark.items()]
     if not distances:
         return {"objects": 0}
-    return {"objects": len(distances), "mean_m": float(np.mean(distances)), "median_m": float(np.median(distances))}
+    return {"objects": len(distances), "mean_m": float(np.mean(distances)),
+            "median_m": float(np.median(distances))}
 
 
 def association_accuracy(s: Scenario, result: Result) -> dict:
@@ -377,8 +380,8 @@ def summarize(records: list[dict]) -> list[dict]:
     head = (f"{'estimator':<12} {'map':<10} {'smoother':<8} {'cells':>5} {'APE':>7} {'APE sm':>7} {'RPE':>7} "
             f"{'assoc':>6} {'assoc@k':>7} {'map':>6} {'ms/step':>8} {'compile':>7} {'DR APE':>7}")
     print("\nmean over robots and windows: APE translation mean (m; online, smoothed), RPE translation mean "
-          "(m per 0.5 s step, online),\nassociation accuracy (final best component; online), map error (m, mean; "
-          "smoothers), median ms per step, "
+          "(m per 0.5 s step, online),\nassociation accuracy (final best component; online), "
+          "map error (m, mean; smoothers), median ms per step, "
           "compile s (max), dead-reckoning APE (m)")
     print(head)
     table = []

@@ -6,9 +6,7 @@ from its path.
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import pathlib
 
 import numpy as np
 import pytest
@@ -16,17 +14,13 @@ import pytest
 import hybridslam as hs
 from hybridslam.sim import hallway
 
+from .scripts import load_script
+
 pytest.importorskip("gtsam")
-
-_PATH = pathlib.Path(__file__).resolve().parents[1] / "scripts" / "isam2_baseline.py"
-
 
 @pytest.fixture(scope="module")
 def baseline():
-    spec = importlib.util.spec_from_file_location("isam2_baseline", _PATH)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("scripts/isam2_baseline.py", "isam2_baseline")
 
 
 def _run(baseline, tmp_path, scenario: hs.Scenario, *flags: str) -> tuple[hs.Result, dict]:

@@ -3,7 +3,6 @@ keys its resumable records are found by. Nothing here runs an estimator."""
 
 from __future__ import annotations
 
-import importlib.util
 import math
 from pathlib import Path
 
@@ -12,15 +11,12 @@ import pytest
 
 import hybridslam as hs
 
-SCRIPT = Path(__file__).resolve().parent.parent / "experiments" / "mrclam.py"
+from .scripts import load_script
 
 
 @pytest.fixture(scope="module")
 def study():
-    spec = importlib.util.spec_from_file_location("mrclam_study", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("experiments/mrclam.py", "mrclam_study")
 
 
 # (estimated object, true landmark) per detection: object 0 holds landmarks 0, 0 and 1 (mixed),
