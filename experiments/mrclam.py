@@ -78,6 +78,7 @@ from tqdm import tqdm
 
 from hybridslam import driver
 from hybridslam.analysis import trajectory
+from hybridslam.analysis.map_error import map_error
 from hybridslam.analysis.plot import plot_trajectory
 from hybridslam.estimators import ESTIMATORS, AbstractEstimator, make_estimator
 from hybridslam.estimators.smoothing import Lag, parse_smoother
@@ -207,30 +208,6 @@ def _score(pairs: list[tuple[int, int]], known_map: bool) -> dict:
             "duplicate_objects": duplicates, "mixed_objects": mixed}
 
 
-def map_error(s: Scenario, result: Result) -> dict:
-    """How far the final best component's estimated objects (the result's ``objects``) lie from the
-    landmarks they stand for: per object with a detection, the distance (m) from its position to
-    its true landmark's (known map: the object itself; unknown map: its majority landmark, as in
-    the purity score). Mean and median over those objects; empty for filters (no ``objects``)."""
-    if result.objects is None:
-        return {}
-    truth = s.object_prior_means if s.discovery is None else np.array([p for p, _ in s.true_objects or ()])
-    final = result.steps[-1].components[0].associations
-    votes: dict[int, Counter] = {}
-    for j, step in enumerate(s.steps):
-        for i, d in enumerate(step.detections):
-            o = int(final[j][i])
-            if o >= 0 and d.true_object is not None and d.true_object >= 0:
-                votes.setdefault(o, Counter())[int(d.true_object)] += 1
-    landmark = {o: (o if s.discovery is None else min(c.items(), key=lambda kv: (-kv[1], kv[0]))[0])
-                for o, c in votes.items()}
-    distances = [float(np.hypot(*(result.objects[o, :2] - truth[t, :2]))) for o, t in landmark.items()]
-    if not distances:
-        return {"objects": 0}
-    return {"objects": len(distances), "mean_m": float(np.mean(distances)),
-            "median_m": float(np.median(distances))}
-
-
 def association_accuracy(s: Scenario, result: Result) -> dict:
     """``final`` (the last step's best component's history) and ``online`` (each step's best component,
     that step's associations) scores against ``true_object``."""
@@ -300,7 +277,7 @@ def run_cell(folder: str, dataset: str, robot: int, start: float, duration: floa
             "smoothed_errors": smoothed,
             "dead_reckoning": trajectory.trajectory_errors(reference, reckoned),
             "association": association_accuracy(s, run.result),
-            "map_error": map_error(s, run.result),
+            "map_error": map_error(s, run.result),  # hybridslam.analysis.map_error
             "num_steps": s.num_steps,
             "detections": sum(len(st.detections) for st in s.steps),
             "compile_s": run.result.timing["compile_s"],

@@ -60,21 +60,3 @@ def test_a_file_of_an_older_calibration_is_imported_anew(study, tmp_path):
     hs.save_scenario(fresh.replace(metadata=metadata, geometric_cov=2 * fresh.geometric_cov), path)
     again_path, again = study.scenario(str(tmp_path), str(data), 1, 0.0, 40.0, "known")
     assert again_path == path and again == fresh and hs.load_scenario(path) == fresh
-
-
-def test_map_error_measures_each_detected_object_against_its_landmark(study):
-    from hybridslam.io.result import ComponentRecord, Result, StepRecord
-
-    s = hs.simulate(0, steps=3)  # a known map: object o stands for landmark o
-    truth = [[d.true_object for d in step.detections] for step in s.steps]
-    seen = sorted({o for step in truth for o in step})
-    shift = np.zeros((s.num_objects, 3))
-    shift[seen, 0] = 0.1 * (1 + np.arange(len(seen)))  # object seen[i] is 0.1 (i + 1) m off in x
-    top = ComponentRecord(1.0, truth, [0] * s.num_objects, np.zeros(3), np.eye(3))
-    steps = [StepRecord(k, [top], {"entropy": 0.0, "det_cov": 1.0, "num_components": 1})
-             for k in range(1, s.num_steps + 1)]
-    error = study.map_error(s, Result("test", steps, objects=s.object_prior_means + shift))
-    distances = 0.1 * (1 + np.arange(len(seen)))
-    assert error["objects"] == len(seen)
-    np.testing.assert_allclose([error["mean_m"], error["median_m"]], [distances.mean(), np.median(distances)])
-    assert study.map_error(s, Result("test", steps)) == {}  # a filter writes no objects

@@ -6,6 +6,7 @@ import argparse
 import re
 from collections import Counter
 
+from ..analysis.map_error import map_error
 from ..analysis.trajectory import error_summary
 from ..driver import run
 from ..estimators.base import StepInfo
@@ -99,6 +100,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         if "ape_smoothed" in errors:
             line += f"; smoothed APE {errors['ape_smoothed']:.3f}, RPE {errors.get('rpe_smoothed', float('nan')):.3f}"
         print(line + f"; last pose {errors['final']:.3f}")
+    mapped = map_error(scenario, result)
+    if mapped.get("objects"):
+        print(f"map error (m): {mapped['objects']} objects with detections, {mapped['mean_m']:.3f} from their "
+              f"true objects on average (median {mapped['median_m']:.3f})")
     save_result(result, args.output)
     print(f"wrote {args.output}")
     return 0
