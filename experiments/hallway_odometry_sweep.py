@@ -36,6 +36,7 @@ from tqdm import tqdm
 
 from hybridslam import driver
 from hybridslam.analysis import trajectory
+from hybridslam.analysis.map_error import map_error
 from hybridslam.analysis.plot import plot_trajectory
 from hybridslam.estimators import ESTIMATORS, AbstractEstimator, make_estimator
 from hybridslam.io.result import load_result, save_result
@@ -191,6 +192,26 @@ def summarize_final(folder: str, records: list[dict], estimators: list[str], lev
         print(f"{name:<12} " + " ".join(f"{m:>8.3f}" for m in means) + f" {np.mean(every):>8.3f}")
 
 
+def summarize_map(folder: str, records: list[dict], estimators: list[str], levels: list[float]) -> None:
+    """Print the mean map error per estimator and level (smoothers; read from the result files):
+    each estimated object with a detection against the true landmark most of its detections came
+    from (:func:`hybridslam.analysis.map_error.map_error`)."""
+    print("\nmap error: mean distance (m) of each object to its majority landmark, mean over seeds (smoothers)")
+    print(f"{'estimator':<12} " + " ".join(f"{t:>8.4f}" for t in levels) + f" {'all':>8}")
+    for name in estimators:
+        cells = [r for r in records if r["cell"]["estimator"] == name and r["cell"]["trace"] in levels]
+        err: dict[float, list[float]] = {t: [] for t in levels}
+        for r in cells:
+            _, scenario = _scenario(folder, r["cell"]["trace"], r["cell"]["seed"], None)
+            mapped = map_error(scenario, load_result(os.path.join(folder, r["result"])))
+            if "mean_m" in mapped:
+                err[r["cell"]["trace"]].append(mapped["mean_m"])
+        every = [e for t in levels for e in err[t]]
+        if every:
+            means = [float(np.mean(err[t])) if err[t] else float("nan") for t in levels]
+            print(f"{name:<12} " + " ".join(f"{m:>8.3f}" for m in means) + f" {np.mean(every):>8.3f}")
+
+
 def plot_errors(folder: str, records: list[dict], estimators: list[str], levels: list[float], lines: dict) -> str:
     fig = Figure(figsize=(6.5, 4.5), layout="constrained")
     ax = fig.subplots()
@@ -252,6 +273,7 @@ def main(output: str = os.path.join("runs", "hallway"), seeds: int = 3, estimato
     print(f"ran {len(todo)} cells in {time.perf_counter() - t0:.0f} s; wrote {_write_csv(output, done)}")
     lines = summarize(done, estimators, levels)
     summarize_final(output, done, estimators, levels)
+    summarize_map(output, done, estimators, levels)
     print(f"wrote {plot_errors(output, done, estimators, levels, lines)}")
     print(f"wrote {plot_examples(output, done, estimators)}")
     return done
