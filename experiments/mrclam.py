@@ -78,7 +78,7 @@ from tqdm import tqdm
 
 from hybridslam import driver
 from hybridslam.analysis import trajectory
-from hybridslam.analysis.map_error import map_error
+from hybridslam.analysis.map_error import map_error, majority
 from hybridslam.analysis.plot import plot_trajectory
 from hybridslam.estimators import ESTIMATORS, AbstractEstimator, make_estimator
 from hybridslam.estimators.smoothing import Lag, parse_smoother
@@ -198,11 +198,10 @@ def _score(pairs: list[tuple[int, int]], known_map: bool) -> dict:
         for o, t in pairs:
             if o >= 0:
                 votes.setdefault(o, Counter())[t] += 1
-        # majority landmark of each estimated object; ties to the lower landmark index
-        majority = {o: min(c.items(), key=lambda kv: (-kv[1], kv[0]))[0] for o, c in votes.items()}
-        right = sum(o >= 0 and majority[o] == t for o, t in pairs)
-        objects = len(majority)
-        duplicates = objects - len(set(majority.values()))
+        landmark = majority(votes)  # of each estimated object; ties to the lower landmark index
+        right = sum(o >= 0 and landmark[o] == t for o, t in pairs)
+        objects = len(landmark)
+        duplicates = objects - len(set(landmark.values()))
         mixed = sum(len(c) > 1 for c in votes.values())
     return {"accuracy": right / n, "detections": n, "unassociated": unassociated, "num_objects": objects,
             "duplicate_objects": duplicates, "mixed_objects": mixed}

@@ -285,8 +285,7 @@ class Run:
 
 # One small program (cached per estimator and shapes) rather than one eager op after another, each a
 # compile of its own in a fresh process.
-_trajectory = eqx.filter_jit(lambda estimator, state: estimator.trajectory(state))
-_objects = eqx.filter_jit(lambda estimator, state: estimator.objects(state))
+_smoothed = eqx.filter_jit(lambda estimator, state: (estimator.trajectory(state), estimator.objects(state)))
 
 
 def object_poses(objects: Any, count: Any) -> np.ndarray:
@@ -342,11 +341,11 @@ def run(
         if on_step is not None:
             on_step(records[-1], trace.info, step_s[-1])
     extra = {}
-    trajectory = _trajectory(estimator, state)
+    trajectory, objects = _smoothed(estimator, state)
     if trajectory is not None:
         # x_0..x_T of this scenario: a history longer than the scenario (max_steps) holds padding after it.
         extra["trajectory"] = np.asarray(trajectory, dtype=float)[: scenario.num_steps + 1]
-        extra["objects"] = object_poses(*_objects(estimator, state))
+        extra["objects"] = object_poses(*objects)
     result = Result(estimator=f"{estimator.describe(scenario)}, seed={seed}", steps=records,
                     timing={"compile_s": compile_s, "step_s": step_s}, **extra)
     return Run(result, infos, state)

@@ -26,6 +26,12 @@ def true_positions(scenario: Scenario) -> np.ndarray | None:
     return None if poses is None else np.asarray(poses, float)[:, :2]
 
 
+def majority(votes: dict[int, Counter]) -> dict[int, int]:
+    """Each estimated object's majority true object, from its detections' ``votes`` (true object →
+    count); ties go to the lower index."""
+    return {o: min(c.items(), key=lambda kv: (-kv[1], kv[0]))[0] for o, c in votes.items()}
+
+
 def object_landmarks(scenario: Scenario, result: Result) -> dict[int, int]:
     """Each estimated object of the final best component that a detection was associated with, and
     the true object it stands for (known map: itself; unknown map: its majority object, ties to the
@@ -38,7 +44,7 @@ def object_landmarks(scenario: Scenario, result: Result) -> dict[int, int]:
                 votes.setdefault(int(o), Counter())[int(detection.true_object)] += 1
     if scenario.discovery is None:
         return {o: o for o in votes}
-    return {o: min(c.items(), key=lambda kv: (-kv[1], kv[0]))[0] for o, c in votes.items()}
+    return majority(votes)
 
 
 def map_error(scenario: Scenario, result: Result) -> dict[str, float]:
