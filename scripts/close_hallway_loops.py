@@ -1,9 +1,11 @@
 """The loop-closure pass (:mod:`hybridslam.estimators.loop_closure`) over a finished hallway study.
 
 For every estimator of the study and every scenario: the smoothed trajectory's last-pose error and
-APE before and after :func:`~hybridslam.estimators.loop_closure.close_loops`, and how many of its
-merges join two objects whose detections are mostly of the same true landmark (right) or not
-(wrong). Then the means per estimator.
+APE and the map error (:func:`~hybridslam.analysis.map_error.map_error`: each object against the true
+landmark most of its detections are of) before and after
+:func:`~hybridslam.estimators.loop_closure.close_loops`, and how many of its merges join two objects
+whose detections are mostly of the same true landmark (right) or not (wrong). Then the means per
+estimator.
 
     python3 experiments/hallway_odometry_sweep.py -o runs/hallway_full --estimators ml,max-mixture
     python3 scripts/close_hallway_loops.py runs/hallway_full [--revisit-log-odds 5]
@@ -24,22 +26,13 @@ import jax
 import numpy as np
 
 from hybridslam.analysis import consistency
+from hybridslam.analysis.map_error import map_error, object_landmarks
 from hybridslam.analysis.trajectory import error_summary
 from hybridslam.estimators.loop_closure import LoopClosureSettings, close_loops
 from hybridslam.io.result import load_result
 from hybridslam.io.scenario import load_scenario
 
 jax.config.update("jax_enable_x64", True)
-
-
-def landmark_of(scenario, result) -> dict[int, int]:
-    """Per object of the result's final top component, the true landmark most of its detections are of."""
-    votes: dict[int, list[int]] = {}
-    top = result.steps[-1].components[0]
-    for j, step in enumerate(scenario.steps):
-        for i, d in enumerate(step.detections):
-            votes.setdefault(int(top.associations[j][i]), []).append(d.true_object)
-    return {s: max(set(v), key=v.count) for s, v in votes.items()}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -52,7 +45,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     settings = LoopClosureSettings(gap=args.gap, revisit_log_odds=args.revisit_log_odds)
     print(f"{'estimator':<12} {'scenario':<28} {'last before':>11} {'after':>6} {'APE before':>10} {'after':>6} "
-          f"{'right':>5} {'wrong':>5}")
+          f"{'map before':>10} {'after':>6} {'right':>5} {'wrong':>5}")
     scenarios = sorted(glob.glob(os.path.join(args.folder, "scenarios", "*.json")))
     estimators = ["gated-oracle"] if args.gated_oracle else sorted(os.listdir(os.path.join(args.folder, "results")))
     for est in estimators:
@@ -68,18 +61,20 @@ def main(argv: list[str] | None = None) -> None:
                 result, _ = close_loops(scenario, result, LoopClosureSettings(gap=args.gap, max_rounds=0))
             else:
                 result = load_result(result_path)
-                truth = landmark_of(scenario, result)
+                truth = object_landmarks(scenario, result)
             closed, report = close_loops(scenario, result, settings)
             right = sum(truth[a] == truth[b] for c in report.closures for a, b in c.merges)
             before, after = error_summary(result, scenario), error_summary(closed, scenario)
+            maps = [map_error(scenario, r).get("mean_m", np.nan) for r in (result, closed)]
             row = (before["final_smoothed"], after["final_smoothed"], before["ape_smoothed"], after["ape_smoothed"],
-                   right, report.merged - right)
+                   *maps, right, report.merged - right)
             rows.append(row)
             print(f"{est:<12} {os.path.basename(path):<28} {row[0]:11.2f} {row[1]:6.2f} {row[2]:10.2f} {row[3]:6.2f} "
-                  f"{row[4]:5d} {row[5]:5d}", flush=True)
+                  f"{row[4]:10.2f} {row[5]:6.2f} {row[6]:5d} {row[7]:5d}", flush=True)
         r = np.array(rows)
         print(f"{est:<12} {'mean over ' + str(len(rows)):<28} {r[:, 0].mean():11.2f} {r[:, 1].mean():6.2f} "
-              f"{r[:, 2].mean():10.2f} {r[:, 3].mean():6.2f} {int(r[:, 4].sum()):5d} {int(r[:, 5].sum()):5d}")
+              f"{r[:, 2].mean():10.2f} {r[:, 3].mean():6.2f} {r[:, 4].mean():10.2f} {r[:, 5].mean():6.2f} "
+              f"{int(r[:, 6].sum()):5d} {int(r[:, 7].sum()):5d}")
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -340,3 +341,67 @@ def test_functionals():
     jac = jax.jacrev(lambda *a: evaluate(*a)[0], argnums=(0, 1, 2))(belief.log_weights, at_truth, belief.cov)
     assert all(bool(jnp.all(jnp.isfinite(j))) for j in jac)
     assert not np.any(np.asarray(jac[0][3]))
+
+
+# --------------------------------------------------------------------------------------------
+# Through the smoothers (implicit differentiation of the Levenberg-Marquardt solution)
+# --------------------------------------------------------------------------------------------
+
+SMOOTHED = {"hybrid, full": ("hybrid", "full"), "hybrid, lag:1": ("hybrid", "lag:1"),
+            "ml, full": ("ml", "full")}
+
+
+@pytest.mark.slow  # one reverse-mode program per case, 15-25 s to compile
+@pytest.mark.parametrize("case", list(SMOOTHED))
+def test_gradients_through_the_smoothers_match_finite_differences(case):
+    """Reverse mode through two steps of a smoother estimator (the paper setup; every component
+    re-solves its trajectory by Levenberg-Marquardt each step) along random directions of the odometry,
+    Σ_v, Σ_w, alpha and K, against central differences: relative error ≤ 1e-3 (``RTOL``), with the
+    discrete choices (histories, parents) unchanged within ±h."""
+    name, smoother = SMOOTHED[case]
+    scenario = hs.simulate(0, steps=T)
+    options = dict(weights="linearized", capacity=4) if name == "hybrid" else {}
+    estimator = hs.make_estimator(name, smoother=smoother, **options)
+    state0 = estimator.init(scenario)
+    stacked = hs.stack_steps(scenario, int(estimator.view(state0).history.shape[-1]))
+    detections, truth = hs.stacked_detections(stacked), f64(scenario.true_robot_poses[T][:2])
+    model = lambda s: s.model  # noqa: E731
+    p = {"odometry": f64(stacked.odometry), "geometric_cov": model(state0).sensor.geometric_cov,
+         "motion_cov": model(state0).motion_cov, "alpha": model(state0).sensor.classifier.alpha,
+         "K": model(state0).sensor.classifier.K}
+
+    def functionals(p):
+        state = eqx.tree_at(lambda s: (model(s).sensor.geometric_cov, model(s).motion_cov,
+                                       model(s).sensor.classifier.alpha, model(s).sensor.classifier.K),
+                            state0, (p["geometric_cov"], p["motion_cov"], p["alpha"], p["K"]))
+        inputs = hs.Inputs(p["odometry"], detections, jnp.arange(T, dtype=jnp.int32),
+                           jnp.full((T, 3), jnp.nan), jnp.ones(T, bool))
+        state, trace = hs.scan(estimator, state, inputs, jax.random.PRNGKey(0))
+        view = estimator.view(state)
+        w = jax.nn.softmax(view.log_weights)
+        best = jnp.argmax(view.log_weights)
+        values = jnp.stack([jnp.sum(w * jnp.linalg.norm(view.mean[:, :2] - truth[None], axis=-1)),
+                            jnp.linalg.slogdet(view.cov[best])[1], jnp.sum(w * view.mean[:, 2])])
+        return values, (view.history, view.log_weights > -jnp.inf)
+
+    with _fast_compile():
+        value = jax.jit(functionals)
+        jacobian = jax.jit(jax.jacrev(functionals, has_aux=True))
+        jac, _ = jacobian(p)
+    values, choice = value(p)
+    assert np.all(np.isfinite(np.asarray(values)))
+    rng = np.random.default_rng(0)
+    for _ in range(4):
+        v = {k: rng.normal(size=np.shape(x)) * 0.1 * (np.abs(np.asarray(x)) + 0.01) for k, x in p.items()}
+        for k in ("geometric_cov", "motion_cov"):
+            v[k] = (v[k] + v[k].T) / 2
+        h = 1e-4
+        shifted = (jax.tree.map(lambda a, b: a + s * h * b, p, v) for s in (1, -1))
+        (plus, c_plus), (minus, c_minus) = (value(q) for q in shifted)
+        for a, b, c in zip(jax.tree.leaves(choice), jax.tree.leaves(c_plus), jax.tree.leaves(c_minus)):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(c))
+        fd = np.asarray(plus - minus) / (2 * h)
+        ad = sum(np.tensordot(np.asarray(jac[k]), v[k], np.ndim(v[k])) for k in p)
+        np.testing.assert_allclose(ad, fd, rtol=RTOL, atol=RTOL * np.max(np.abs(fd)), err_msg=case)
+        assert np.any(np.abs(fd) > 1e-6)

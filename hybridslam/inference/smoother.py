@@ -96,6 +96,22 @@ The hand-written ``lax.while_loop`` linearizes once per iteration, shares its bl
 **Inactive variables** (``pose_active``, ``object_active``; padded slots) carry no factors; their
 rows of ``H`` become the identity and their gradient zero, so they stay exactly at their initial
 value and every factorization stays finite.
+
+**Derivatives.** :func:`solve` is differentiable (``jax.grad``, ``jax.jacfwd``, ``jax.vmap`` of
+them) with respect to every floating-point input of the graph: odometry, measurements, noise
+square roots, prior, candidate weights. Not through the ``lax.while_loop`` (reverse mode cannot
+go through one, and the iterations are not the function): the solution ``y*`` satisfies
+``g(y*, θ) = Jᵀr = 0``, so by the implicit function theorem ``(∂g/∂y) ẏ = −(∂g/∂θ) θ̇``
+(a ``jax.custom_jvp`` rule, :func:`_solve_jvp`; optimistix's ``ImplicitAdjoint`` does the same for
+its own solvers). ``∂g/∂y`` is the exact Hessian, applied by forward-mode products, and the system
+is solved by conjugate gradients (``lineax``) preconditioned with the solution's own Gauss-Newton
+factorization, the same structured elimination as a step: the two differ only by the residuals'
+second-order terms, so a few iterations suffice. The solution's linearization, which
+:func:`marginal` turns into the covariance, is differentiated at ``(y*, θ)`` with ``ẏ``, so the
+smoothed marginals have exact derivatives too. Exact at the optimum; a solve stopped early (the
+estimators' loose tolerance before a scenario's last step) gives the derivative at the point it
+stopped. Discrete choices (the max-mixture's active components) are held fixed. Costs nothing
+unless differentiated.
 """
 
 from __future__ import annotations
@@ -109,6 +125,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
+import lineax as lx
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
@@ -126,6 +143,8 @@ SMALL_POSE_SYSTEM = 16  # poses; up to it a dense 3P pose system beats the tridi
 _DAMPING_RANGE = (1e-6, 1e32)  # Marquardt's diag(H), clipped like Ceres' min/max_lm_diagonal
 _LAMBDA_RANGE = (1e-15, 1e15)
 _DECREMENT_LAMBDA = 1e-3  # damping below which a step's model gain stands for Gauss-Newton's
+_IMPLICIT_MAXITER = 50  # conjugate-gradient iterations of a derivative (a few suffice: preconditioned)
+_IMPLICIT_RTOL, _IMPLICIT_ATOL = 1e-12, 1e-14  # its tolerance, per entry of the tangent
 
 
 # --------------------------------------------------------------------------------------------
@@ -945,17 +964,31 @@ def solve(
     start is good; a bad start costs a few rejected steps) are traced. Works under ``jax.jit`` and
     ``jax.vmap`` (the ``lax.while_loop`` runs until every member of a batch is done; finished
     members stay put). See the module docstring for the algorithm.
+
+    Differentiable in forward and reverse mode with respect to every floating-point input of
+    ``graph`` (and ``poses0``, ``objects0`` for the inactive slots, which keep them): by the implicit
+    function theorem at the solution, not through the iterations (module docstring, "Derivatives").
     """
     check_shapes(graph, poses0, objects0)
     if max_steps < 0:
         raise ValueError(f"max_steps: expected a non-negative int, got {max_steps}")
     dtype = jnp.result_type(float)
     poses0, objects0 = jnp.asarray(poses0, dtype), jnp.asarray(objects0, dtype)
-    info = prior_information(graph)
     if max_steps == 0:
-        lin = linearize(graph, poses0, objects0, info)
+        lin = linearize(graph, poses0, objects0, prior_information(graph))
         result = optx.RESULTS.where(jnp.isfinite(lin.cost), optx.RESULTS.successful, optx.RESULTS.nonfinite)
         return Solution(poses0, objects0, lin.cost, jnp.asarray(0), result, lin.active, jnp.zeros((0,), dtype), lin)
+    # The tolerances shape the iterations only: no derivative flows through them.
+    settings = jax.tree.map(jax.lax.stop_gradient, (state_tol, cost_rtol, cost_atol, lambda_init))
+    return _solve(graph, poses0, objects0, settings, max_steps=max_steps, method=method)
+
+
+@eqx.filter_custom_jvp
+def _solve(graph: FactorGraph, poses0, objects0, settings, *, max_steps: int, method: Method) -> Solution:
+    """:func:`solve`'s Levenberg-Marquardt loop (its derivative: :func:`_solve_jvp`)."""
+    state_tol, cost_rtol, cost_atol, lambda_init = settings
+    dtype = poses0.dtype
+    info = prior_information(graph)
     init = _LMState(
         jnp.asarray(False), poses0, objects0, _unlinearized(graph, poses0.shape[0], objects0.shape[0], dtype),
         jnp.asarray(lambda_init, dtype), jnp.asarray(2.0, dtype), jnp.asarray(0), jnp.asarray(False),
@@ -965,6 +998,63 @@ def solve(
     body = lambda s: _lm_step(graph, info, method, state_tol, cost_rtol, cost_atol, max_steps, s)  # noqa: E731
     s = jax.lax.while_loop(lambda s: ~s.done, body, init)
     return Solution(s.poses, s.objects, s.lin.cost, s.steps, s.result, s.lin.active, s.history, s.lin)
+
+
+def _stationarity(graph: FactorGraph, poses, objects) -> tuple[Float[Array, "P 3"], Float[Array, "N 3"]]:
+    """``g = Jᵀr`` at ``(poses, objects)``: zero at the solution (inactive rows: zero everywhere)."""
+    lin = linearize(graph, poses, objects, prior_information(graph))
+    return lin.grad_pose, lin.grad_object.reshape(objects.shape)
+
+
+def _zeros_for_none(tangent, like):
+    """A symbolic zero tangent (``None``) as an array of zeros."""
+    return jnp.zeros_like(like) if tangent is None else tangent
+
+
+@_solve.def_jvp
+def _solve_jvp(primals, tangents, *, max_steps: int, method: Method):
+    """The implicit function theorem at the solution ``y*`` of ``g(y, θ) = 0``: the tangent ``ẏ``
+    solves ``(∂g/∂y) ẏ = −(∂g/∂θ) θ̇`` on the active rows (``∂g/∂y`` the exact Hessian, by
+    forward-mode products; lineax's conjugate gradients, at most ``_IMPLICIT_MAXITER`` iterations,
+    preconditioned by the solution's own Gauss-Newton factorization, which differs from the Hessian
+    by the residuals' second-order terms only), and the inactive rows keep the start's tangent. The
+    solution's linearization (what :func:`marginal` reads) moves with ``(θ̇, ẏ)``. Linear in the
+    tangents, so reverse mode transposes it (lineax transposes its solve: the operator is symmetric)."""
+    graph, poses0, objects0, settings = primals
+    t_graph, t_poses0, t_objects0, _ = tangents
+    sol = _solve(graph, poses0, objects0, settings, max_steps=max_steps, method=method)
+    y = (sol.poses, sol.objects)
+    on = (graph.pose_active[:, None], graph.object_active[:, None])
+    mask = lambda v, other: tuple(jnp.where(m, a, b) for m, a, b in zip(on, v, other))  # noqa: E731
+    zero = tuple(jnp.zeros_like(a) for a in y)
+
+    _, g_dot = eqx.filter_jvp(lambda g: _stationarity(g, *y), (graph,), (t_graph,))
+    start_dot = (_zeros_for_none(t_poses0, sol.poses), _zeros_for_none(t_objects0, sol.objects))
+    rhs = mask(tuple(-_zeros_for_none(t, a) for t, a in zip(g_dot, y)), start_dot)
+
+    def hessian(v):
+        _, hv = jax.jvp(lambda p, o: _stationarity(graph, p, o), y, mask(v, zero))
+        return mask(hv, v)
+
+    def gauss_newton(v):
+        lin = eqx.tree_at(lambda s: (s.grad_pose, s.grad_object), sol.linearization,
+                          (-v[0], -v[1].reshape(-1)))
+        return mask(solve_normal(lin, method), v)  # solve_normal returns −H⁻¹g = H⁻¹v
+
+    structure = jax.eval_shape(lambda: rhs)
+    spd = (lx.symmetric_tag, lx.positive_semidefinite_tag)
+    y_dot = lx.linear_solve(
+        lx.FunctionLinearOperator(hessian, structure, spd), rhs,
+        lx.CG(rtol=_IMPLICIT_RTOL, atol=_IMPLICIT_ATOL, max_steps=_IMPLICIT_MAXITER),
+        options={"preconditioner": lx.FunctionLinearOperator(gauss_newton, structure, spd)}, throw=False,
+    ).value
+    _, lin_dot = eqx.filter_jvp(lambda g, p, o: linearize(g, p, o, prior_information(g)), (graph, *y),
+                                (t_graph, *y_dot))
+    # A Solution of tangents, None (zero) where there is none: unflattened, as its fields' types do not hold.
+    t_out = eqx.tree_at(lambda s: (s.poses, s.objects, s.cost, s.linearization),
+                        jax.tree.map(lambda _: None, sol), (*y_dot, lin_dot.cost, lin_dot),
+                        is_leaf=lambda x: x is None)
+    return sol, t_out
 
 
 # --------------------------------------------------------------------------------------------
