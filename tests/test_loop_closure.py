@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import re
 
 import numpy as np
 import pytest
@@ -136,13 +137,17 @@ def test_the_command_line_closes_the_loop_and_reports_bad_files(small_loop, tmp_
     from hybridslam.cli import main
     from hybridslam.io.scenario import save_scenario
 
-    scenario, result, _, _ = small_loop
+    scenario, result, truth_of, _ = small_loop
     save_scenario(scenario, tmp_path / "s.json")
     save_result(result, tmp_path / "r.json")
     assert main(["close-loops", str(tmp_path / "s.json"), str(tmp_path / "r.json"), "-o", str(tmp_path / "c.json"),
                  "--gap", str(GAP)]) == 0
     out = capsys.readouterr().out
     assert "6 objects merged" in out and "after: smoothed APE" in out
+    # The map error of the closed map: every object against the landmark its detections are of.
+    after = re.search(r"after: .*map error ([0-9.]+) m \((\d+) objects\)", out)
+    assert after is not None, out
+    assert float(after.group(1)) < 0.2 and int(after.group(2)) == len(set(truth_of.values()))
     assert load_result(tmp_path / "c.json").trajectory is not None
     save_scenario(hallway(0, 0.01, steps=28, known_map=True, setup=HallwaySetup(length=8.0, width=4.0)),
                   tmp_path / "known.json")

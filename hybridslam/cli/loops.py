@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 
+from ..analysis.map_error import map_error
 from ..analysis.trajectory import error_summary
 from ..estimators.loop_closure import LoopClosureSettings, close_loops
 from ..io.result import load_result, save_result
@@ -16,7 +17,11 @@ def _errors(label: str, result, scenario) -> str:
     e = error_summary(result, scenario)
     if not e or "ape_smoothed" not in e:
         return f"{label}: no ground truth or no smoothed trajectory"
-    return f"{label}: smoothed APE {e['ape_smoothed']:.3f} m, smoothed last pose {e['final_smoothed']:.3f} m"
+    line = f"{label}: smoothed APE {e['ape_smoothed']:.3f} m, smoothed last pose {e['final_smoothed']:.3f} m"
+    mapped = map_error(scenario, result)
+    if "mean_m" in mapped:
+        line += f", map error {mapped['mean_m']:.3f} m ({mapped['objects']} objects)"
+    return line
 
 
 def cmd_close_loops(args: argparse.Namespace) -> int:
