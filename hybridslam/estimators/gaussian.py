@@ -464,7 +464,11 @@ def update_classes(state: GaussianState, assoc: Association, prob: Float[Array, 
     lik = assoc.class_loglik - logsumexp(post[None] + assoc.class_loglik, axis=-1, keepdims=True)  # P(z|c)/P(z)
     p = prob[..., None]
     log_p = jnp.log(jnp.where(p > 0, p, 1.0))
-    factor = jnp.where(p > 0, jnp.logaddexp(log_p + lik, jnp.log1p(-jnp.minimum(p, 1.0))), 0.0)
+    # log(1 − p), −inf at p = 1 (a certain association) through a double where: log1p's derivative
+    # there is infinite, and times a zero cotangent it would make every gradient NaN.
+    certain = p >= 1.0
+    log_q = jnp.where(certain, -jnp.inf, jnp.log1p(-jnp.where(certain, 0.0, p)))
+    factor = jnp.where(p > 0, jnp.logaddexp(log_p + lik, log_q), 0.0)
     post = post + jnp.sum(factor, axis=0)
     fresh = state.params.new_class_log_prior[None] + assoc.new_class_loglik  # (Dmax, M)
     hit = created[:, None] == jnp.arange(state.max_objects)[None, :]  # (Dmax, Nmax)

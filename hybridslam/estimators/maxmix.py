@@ -59,7 +59,9 @@ def max_mixture_residual(sensor, y, obj, geo, log_w, valid, null_log_density):
     r = gaussian.geometric_residual(sensor, y, obj[jnp.minimum(active, g - 1)], geo)
     r = jnp.where(live & (active < g), r, 0.0)
     kappa_min = jnp.min(jnp.where(valid, kappa, jnp.inf))
-    extra = jnp.sqrt(jnp.maximum(2.0 * (kappa[active] - jnp.where(live, kappa_min, 0.0)), 0.0))
+    excess = 2.0 * (kappa[active] - jnp.where(live, kappa_min, 0.0))
+    positive = excess > 0  # √ at 0 has an infinite derivative: a NaN gradient without the double where
+    extra = jnp.where(positive, jnp.sqrt(jnp.where(positive, excess, 1.0)), 0.0)
     return jnp.concatenate([r, jnp.where(live, extra, 0.0)[None]]), active
 
 
