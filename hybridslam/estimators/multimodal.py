@@ -533,8 +533,11 @@ def sampled_log_likelihood(
         return joint_log_likelihood(sensor, params, ys[:3], ys[3:].reshape(-1, 3), known, new,
                                     class_log_probs, detections, th, clutter)
 
-    log_lik = jax.vmap(one)(y, theta)
-    return jax.nn.logsumexp(log_lik + log_ratio) - math.log(eps.shape[0])
+    log_lik = jax.vmap(one)(y, theta) + log_ratio
+    # No sample explains the detections: -inf, without logsumexp's NaN derivative there (double where).
+    some = jnp.any(log_lik > -jnp.inf)
+    total = jax.nn.logsumexp(jnp.where(some, log_lik, 0.0))
+    return jnp.where(some, total, -jnp.inf) - math.log(eps.shape[0])
 
 
 def draws(key: jax.Array, cfg: Structure, params: Params) -> tuple[Float[Array, "S P"], Float[Array, "S Dmax"]]:
@@ -556,9 +559,13 @@ def tuple_log_probs(objects: Int[Array, "C Dmax"], log_mass: Float[Array, " C"])
     bounds the objects or detection slots.
     """
     same = jnp.all(objects[:, None, :] == objects[None, :, :], axis=-1)  # (C, C): the same object tuple
-    shared = jax.nn.logsumexp(jnp.where(same, log_mass[None, :], -jnp.inf), axis=1)
+    # A child of zero mass has a row of -inf, whose logsumexp has a NaN derivative: it gets a row of
+    # zeros instead (its output is -inf below either way; the double where keeps gradients finite).
+    alive = log_mass > -jnp.inf
+    terms = jnp.where(same, log_mass[None, :], -jnp.inf)
+    shared = jax.nn.logsumexp(jnp.where(alive[:, None], terms, 0.0), axis=1)
     out = shared - jax.nn.logsumexp(log_mass)
-    return jnp.where(log_mass > -jnp.inf, out, -jnp.inf)
+    return jnp.where(alive, out, -jnp.inf)
 
 
 # --------------------------------------------------------------------------- #
@@ -692,8 +699,16 @@ def hypotheses(
         return sampled_log_likelihood(sensor, params, prior, proposal, class_lp[jnp.maximum(obj, 0)], obj, nw,
                                       detections, eps, theta, clutter)
 
-    log_lik = _chunked(weigh, parent, post_mean, gain, gain_js, state.class_log_probs[parent], objects, new)
-    log_lik = jnp.where(sel_w > -jnp.inf, log_lik, -jnp.inf)
+    # A child of weight -inf (top_k's filler) is weighed as associating nothing, on its parent's
+    # Gaussian: its weight is -inf either way, but a NaN in its likelihood, masked by the where below,
+    # made every reverse-mode gradient NaN (the double where).
+    valid = sel_w > -jnp.inf
+    log_lik = _chunked(weigh, parent, jnp.where(valid[:, None], post_mean, mean[parent]),
+                       jnp.where(valid[:, None, None], gain, 0.0),
+                       jnp.where(valid[:, None, None], gain_js, 0.0),
+                       state.class_log_probs[parent], jnp.where(valid[:, None], objects, -1),
+                       valid[:, None] & new)
+    log_lik = jnp.where(valid, log_lik, -jnp.inf)
     log_mass = state.log_weights[parent] + log_lik
     log_prob = tuple_log_probs(objects, log_mass)
     log_weight = log_mass + log_prob if cfg.association_prior == "mc" else log_mass
@@ -825,11 +840,18 @@ def clustered(
     left = (owner < 0) & live
     owner = jnp.where(left, nearest, owner)
     member = (owner[None, :] == jnp.arange(capacity)[:, None]) & live[None, :]  # (K, C)
-    log_weights = jax.nn.logsumexp(jnp.where(member, log_w[None, :], -jnp.inf), axis=1)
+    # An empty cluster weighs -inf; its logsumexp over nothing would have a NaN derivative (double where).
+    occupied = jnp.any(member, axis=1)
+    terms = jnp.where(member, log_w[None, :], -jnp.inf)
+    log_weights = jax.nn.logsumexp(jnp.where(occupied[:, None], terms, 0.0), axis=1)
+    log_weights = jnp.where(occupied, log_weights, -jnp.inf)
     moment = member & ~(left & ~has_full)[None, :]
     centre_hot = jnp.arange(log_w.shape[0])[None, :] == centres[:, None]
-    wn = jax.nn.softmax(jnp.where(moment, log_w[None, :], -jnp.inf), axis=1)
-    wn = jnp.where(jnp.any(moment, axis=1, keepdims=True), wn, centre_hot.astype(wn.dtype))
+    # A row with no member takes its centre alone; its softmax over nothing (NaN) is never formed, as
+    # a NaN masked by the where would make every reverse-mode gradient NaN (the double where).
+    has_member = jnp.any(moment, axis=1, keepdims=True)
+    wn = jax.nn.softmax(jnp.where(moment, log_w[None, :], jnp.where(has_member, -jnp.inf, 0.0)), axis=1)
+    wn = jnp.where(has_member, wn, centre_hot.astype(wn.dtype))
     return centres, log_weights, wn, centre_cov
 
 
@@ -1009,6 +1031,13 @@ class Multimodal(AbstractEstimator):
         )
 
 
+def _log_or_minus_inf(x):
+    """``log x`` with ``-inf`` (and a zero derivative, not an infinite one) where ``x = 0``: an unused
+    component's class probabilities (the double where: no NaN gradient)."""
+    positive = x > 0
+    return jnp.where(positive, jnp.log(jnp.where(positive, x, 1.0)), -jnp.inf)
+
+
 def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key: jax.Array,
           smoother: Smoother) -> tuple[State, StepInfo]:
     cfg = state.config
@@ -1117,7 +1146,8 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
         log_weights=keep(log_w - jax.nn.logsumexp(jnp.where(explained, log_w, 0.0)), state.log_weights),
         mean=keep(m_mean, mean),
         cov=keep(m_cov, cov),
-        class_log_probs=keep(jnp.log(jnp.einsum("kc,cnm->knm", wn, jnp.exp(c_class))), state.class_log_probs),
+        class_log_probs=keep(_log_or_minus_inf(jnp.einsum("kc,cnm->knm", wn, jnp.exp(c_class))),
+                             state.class_log_probs),
         observed=keep(jnp.any((wn > 0)[:, :, None] & c_obs[None, :, :], axis=1), state.observed),
         num_created=keep(c_created[centres], state.num_created),
         history=keep(c_hist[centres], state.history.at[:, state.k].set(-1)),
