@@ -367,14 +367,14 @@ def test_gradients_through_the_smoothers_match_finite_differences(case):
     state0 = estimator.init(scenario)
     stacked = hs.stack_steps(scenario, int(estimator.view(state0).history.shape[-1]))
     detections, truth = hs.stacked_detections(stacked), f64(scenario.true_robot_poses[T][:2])
-    model = lambda s: s.model  # noqa: E731
-    p = {"odometry": f64(stacked.odometry), "geometric_cov": model(state0).sensor.geometric_cov,
-         "motion_cov": model(state0).motion_cov, "alpha": model(state0).sensor.classifier.alpha,
-         "K": model(state0).sensor.classifier.K}
+    model = state0.model
+    p = {"odometry": f64(stacked.odometry), "geometric_cov": model.sensor.geometric_cov,
+         "motion_cov": model.motion_cov, "alpha": model.sensor.classifier.alpha,
+         "K": model.sensor.classifier.K}
 
     def functionals(p):
-        state = eqx.tree_at(lambda s: (model(s).sensor.geometric_cov, model(s).motion_cov,
-                                       model(s).sensor.classifier.alpha, model(s).sensor.classifier.K),
+        state = eqx.tree_at(lambda s: (s.model.sensor.geometric_cov, s.model.motion_cov,
+                                       s.model.sensor.classifier.alpha, s.model.sensor.classifier.K),
                             state0, (p["geometric_cov"], p["motion_cov"], p["alpha"], p["K"]))
         inputs = hs.Inputs(p["odometry"], detections, jnp.arange(T, dtype=jnp.int32),
                            jnp.full((T, 3), jnp.nan), jnp.ones(T, bool))

@@ -120,6 +120,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ..inference import discovery, gating, sequential
 from ..inference.beam import beam_search
+from ..inference.laplace import logsumexp_or_minus_inf
 from ..inference.update import downdate, prior_gauss_newton_gain, support_of, wrap_angles
 from ..io.scenario import Scenario
 from ..models import geometry, motion
@@ -533,11 +534,9 @@ def sampled_log_likelihood(
         return joint_log_likelihood(sensor, params, ys[:3], ys[3:].reshape(-1, 3), known, new,
                                     class_log_probs, detections, th, clutter)
 
-    log_lik = jax.vmap(one)(y, theta) + log_ratio
-    # No sample explains the detections: -inf, without logsumexp's NaN derivative there (double where).
-    some = jnp.any(log_lik > -jnp.inf)
-    total = jax.nn.logsumexp(jnp.where(some, log_lik, 0.0))
-    return jnp.where(some, total, -jnp.inf) - math.log(eps.shape[0])
+    log_lik = jax.vmap(one)(y, theta)
+    # -inf where no sample explains the detections (with a zero, not NaN, gradient).
+    return logsumexp_or_minus_inf(log_lik + log_ratio) - math.log(eps.shape[0])
 
 
 def draws(key: jax.Array, cfg: Structure, params: Params) -> tuple[Float[Array, "S P"], Float[Array, "S Dmax"]]:
@@ -559,13 +558,9 @@ def tuple_log_probs(objects: Int[Array, "C Dmax"], log_mass: Float[Array, " C"])
     bounds the objects or detection slots.
     """
     same = jnp.all(objects[:, None, :] == objects[None, :, :], axis=-1)  # (C, C): the same object tuple
-    # A child of zero mass has a row of -inf, whose logsumexp has a NaN derivative: it gets a row of
-    # zeros instead (its output is -inf below either way; the double where keeps gradients finite).
-    alive = log_mass > -jnp.inf
-    terms = jnp.where(same, log_mass[None, :], -jnp.inf)
-    shared = jax.nn.logsumexp(jnp.where(alive[:, None], terms, 0.0), axis=1)
+    shared = logsumexp_or_minus_inf(jnp.where(same, log_mass[None, :], -jnp.inf), axis=1)
     out = shared - jax.nn.logsumexp(log_mass)
-    return jnp.where(alive, out, -jnp.inf)
+    return jnp.where(log_mass > -jnp.inf, out, -jnp.inf)
 
 
 # --------------------------------------------------------------------------- #
@@ -840,11 +835,7 @@ def clustered(
     left = (owner < 0) & live
     owner = jnp.where(left, nearest, owner)
     member = (owner[None, :] == jnp.arange(capacity)[:, None]) & live[None, :]  # (K, C)
-    # An empty cluster weighs -inf; its logsumexp over nothing would have a NaN derivative (double where).
-    occupied = jnp.any(member, axis=1)
-    terms = jnp.where(member, log_w[None, :], -jnp.inf)
-    log_weights = jax.nn.logsumexp(jnp.where(occupied[:, None], terms, 0.0), axis=1)
-    log_weights = jnp.where(occupied, log_weights, -jnp.inf)
+    log_weights = logsumexp_or_minus_inf(jnp.where(member, log_w[None, :], -jnp.inf), axis=1)  # empty: -inf
     moment = member & ~(left & ~has_full)[None, :]
     centre_hot = jnp.arange(log_w.shape[0])[None, :] == centres[:, None]
     # A row with no member takes its centre alone; its softmax over nothing (NaN) is never formed, as

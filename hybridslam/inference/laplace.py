@@ -88,7 +88,15 @@ def laplace_is(
     return Evidence(log_ev, _log_mean_exp(free), ess, mode, post_cov, result)
 
 
+def logsumexp_or_minus_inf(terms: Float[Array, "*S"], axis: int | None = None) -> Float[Array, "*R"]:
+    """``logsumexp(terms, axis)``, ``-inf`` with a zero (not NaN) gradient where every term is ``-inf``
+    (a double ``where``: logsumexp's derivative there is NaN, and a ``where`` around it does not stop
+    a NaN cotangent)."""
+    some = jnp.any(terms > -jnp.inf, axis=axis, keepdims=True)
+    total = logsumexp(jnp.where(some, terms, 0.0), axis=axis, keepdims=True)
+    return jnp.squeeze(jnp.where(some, total, -jnp.inf), axis=axis)
+
+
 def _log_mean_exp(terms: Float[Array, " S"]) -> Float[Array, ""]:
     """``log mean exp(terms)``; ``-inf`` with a zero (not NaN) gradient when every term is ``-inf``."""
-    some = jnp.any(terms > -jnp.inf)
-    return jnp.where(some, logsumexp(jnp.where(some, terms, 0.0)) - math.log(terms.shape[0]), -jnp.inf)
+    return logsumexp_or_minus_inf(terms) - math.log(terms.shape[0])

@@ -1000,9 +1000,11 @@ def _solve(graph: FactorGraph, poses0, objects0, settings, *, max_steps: int, me
     return Solution(s.poses, s.objects, s.lin.cost, s.steps, s.result, s.lin.active, s.history, s.lin)
 
 
-def _stationarity(graph: FactorGraph, poses, objects) -> tuple[Float[Array, "P 3"], Float[Array, "N 3"]]:
-    """``g = Jᵀr`` at ``(poses, objects)``: zero at the solution (inactive rows: zero everywhere)."""
-    lin = linearize(graph, poses, objects, prior_information(graph))
+def _stationarity(graph: FactorGraph, poses, objects,
+                  info=None) -> tuple[Float[Array, "P 3"], Float[Array, "N 3"]]:
+    """``g = Jᵀr`` at ``(poses, objects)``: zero at the solution (inactive rows: zero everywhere).
+    ``info``: the graph's :func:`prior_information`, if formed already."""
+    lin = linearize(graph, poses, objects, prior_information(graph) if info is None else info)
     return lin.grad_pose, lin.grad_object.reshape(objects.shape)
 
 
@@ -1032,8 +1034,10 @@ def _solve_jvp(primals, tangents, *, max_steps: int, method: Method):
     start_dot = (_zeros_for_none(t_poses0, sol.poses), _zeros_for_none(t_objects0, sol.objects))
     rhs = mask(tuple(-_zeros_for_none(t, a) for t, a in zip(g_dot, y)), start_dot)
 
+    info = prior_information(graph)  # constant in y: formed once, not in every product
+
     def hessian(v):
-        _, hv = jax.jvp(lambda p, o: _stationarity(graph, p, o), y, mask(v, zero))
+        _, hv = jax.jvp(lambda p, o: _stationarity(graph, p, o, info), y, mask(v, zero))
         return mask(hv, v)
 
     def gauss_newton(v):
