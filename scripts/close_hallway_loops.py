@@ -13,7 +13,11 @@ estimator.
 ``--gated-oracle`` judges the back end apart from the front end: on each scenario of the study, the
 true associations except that landmarks re-detected after ``--gap`` steps are new objects
 (:func:`hybridslam.analysis.consistency.gated_oracle_result`, what a gated one-step association
-that made no other mistake leaves at the loop), then the same pass.
+that made no other mistake leaves at the loop), then the same pass. It also prints how the pass's
+model judges the *true* merge set (:func:`~hybridslam.estimators.loop_closure.score_merges`): its log
+posterior odds against no merge, whether its re-solved cost passes verification, and the score of the
+pass's own first choice, so that a search that missed the truth can be told from data that do not
+favour it.
 """
 
 from __future__ import annotations
@@ -28,7 +32,7 @@ import numpy as np
 from hybridslam.analysis import consistency
 from hybridslam.analysis.map_error import map_error, object_landmarks
 from hybridslam.analysis.trajectory import error_summary
-from hybridslam.estimators.loop_closure import LoopClosureSettings, close_loops
+from hybridslam.estimators.loop_closure import LoopClosureSettings, close_loops, score_merges
 from hybridslam.io.result import load_result
 from hybridslam.io.scenario import load_scenario
 
@@ -49,7 +53,7 @@ def main(argv: list[str] | None = None) -> None:
     scenarios = sorted(glob.glob(os.path.join(args.folder, "scenarios", "*.json")))
     estimators = ["gated-oracle"] if args.gated_oracle else sorted(os.listdir(os.path.join(args.folder, "results")))
     for est in estimators:
-        rows = []
+        rows, judged = [], []
         for path in scenarios:
             result_path = os.path.join(args.folder, "results", est, os.path.basename(path))
             if not (args.gated_oracle or os.path.exists(result_path)):
@@ -69,12 +73,36 @@ def main(argv: list[str] | None = None) -> None:
             row = (before["final_smoothed"], after["final_smoothed"], before["ape_smoothed"], after["ape_smoothed"],
                    *maps, right, report.merged - right)
             rows.append(row)
-            print(f"{est:<12} {os.path.basename(path):<28} {row[0]:11.2f} {row[1]:6.2f} {row[2]:10.2f} {row[3]:6.2f} "
-                  f"{row[4]:10.2f} {row[5]:6.2f} {row[6]:5d} {row[7]:5d}", flush=True)
+            line = (f"{est:<12} {os.path.basename(path):<28} {row[0]:11.2f} {row[1]:6.2f} {row[2]:10.2f} {row[3]:6.2f} "
+                    f"{row[4]:10.2f} {row[5]:6.2f} {row[6]:5d} {row[7]:5d}")
+            if args.gated_oracle:
+                judged.append(_judge_truth(scenario, result, truth, report, settings))
+                line += "  " + judged[-1][0]
+            print(line, flush=True)
         r = np.array(rows)
         print(f"{est:<12} {'mean over ' + str(len(rows)):<28} {r[:, 0].mean():11.2f} {r[:, 1].mean():6.2f} "
               f"{r[:, 2].mean():10.2f} {r[:, 3].mean():6.2f} {r[:, 4].mean():10.2f} {r[:, 5].mean():6.2f} "
               f"{int(r[:, 6].sum()):5d} {int(r[:, 7].sum()):5d}")
+        if judged:
+            odds = np.array([j[1] for j in judged])
+            print(f"the true merge set: more probable than no merge in {int(np.sum(odds[:, 0] > 0))} of {len(odds)} "
+                  f"files (log odds {np.median(odds[:, 0]):.2f} median, {odds[:, 0].min():.2f} to "
+                  f"{odds[:, 0].max():.2f}), verified in {int(odds[:, 1].sum())}, at least as probable as the "
+                  f"pass's first choice in {int(np.sum(odds[:, 0] >= odds[:, 2] - 1e-9))}")
+
+
+def _judge_truth(scenario, result, truth, report, settings) -> tuple[str, tuple[float, bool, float]]:
+    """The true merge set (each late object onto the first object of its landmark) as the pass scores it."""
+    first: dict[int, int] = {}
+    for s in sorted(truth):
+        first.setdefault(truth[s], s)
+    merges = [(s, first[truth[s]]) for s in sorted(truth) if first[truth[s]] != s]
+    score = score_merges(scenario, result, merges, settings)
+    chosen = report.closures[0].log_bayes_factor if report.closures else 0.0
+    text = (f"truth {len(merges)} merges: log odds {score.log_odds:6.2f} (Bayes factor {score.log_bayes_factor:6.2f}, "
+            f"negative information {score.negative_information:+6.2f}), cost +{score.cost_rise:.2f}"
+            f"{'' if score.verified else ' (fails verification)'}; first choice {chosen:6.2f}")
+    return text, (score.log_odds, score.verified, chosen)
 
 
 if __name__ == "__main__":

@@ -123,6 +123,25 @@ def test_a_small_loop_is_closed_onto_the_right_landmarks(small_loop, tmp_path):
     assert load_result(tmp_path / "closed.json") == closed
 
 
+def test_score_merges_gives_the_first_rounds_score_and_cost(small_loop):
+    scenario, result, truth_of, _ = small_loop
+    settings = lc.LoopClosureSettings(gap=GAP)
+    _, report = lc.close_loops(scenario, result, settings)
+    first = report.closures[0]
+    score = lc.score_merges(scenario, result, first.merges, settings)
+    assert score.verified and score.log_odds == pytest.approx(first.log_bayes_factor, abs=1e-9)
+    assert score.cost_rise == pytest.approx(first.cost_after - first.cost_before, abs=1e-9)
+    # a merge of two different landmarks: the Bayes factor says no and the re-solved cost rejects it
+    a, b = first.merges[0]
+    other = next(o for o in range(a) if truth_of[o] != truth_of[a] and o != b)
+    wrong = lc.score_merges(scenario, result, [(a, other)], settings)
+    assert wrong.log_bayes_factor < 0 < score.log_odds and not wrong.verified
+    with pytest.raises(ValueError, match="distinct objects"):
+        lc.score_merges(scenario, result, [(a, b), (a, other)], settings)
+    with pytest.raises(ValueError, match="distinct objects"):
+        lc.score_merges(scenario, result, [(a, 10_000)], settings)
+
+
 def test_bad_inputs_name_what_is_wrong(small_loop):
     scenario, result, _, _ = small_loop
     with pytest.raises(ValueError, match="known map"):

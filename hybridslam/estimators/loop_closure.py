@@ -321,6 +321,101 @@ def search(mean: np.ndarray, cov: np.ndarray, cands: dict[int, list[int]], new_l
     return [(m, lbf) for lbf, m in partial], dropped
 
 
+@dataclasses.dataclass(frozen=True)
+class MergeScore:
+    """How the pass judges one merge set (:func:`score_merges`): ``log_bayes_factor`` against no
+    merge (Laplace, from the unmerged graph; ``revisit_log_odds`` per merge included), the
+    ``negative_information`` term of the re-solved graph (log-likelihood change of the misses),
+    ``log_odds``, their sum (what :func:`close_loops` compares with ``threshold``), ``cost_rise``
+    (smoother cost after the merge minus before, re-solved) and whether it passes verification
+    (``verified``: converged, and ``2 · cost_rise`` within the chi-square ``verify_probability``
+    quantile)."""
+
+    log_bayes_factor: float
+    negative_information: float
+    cost_rise: float
+    verified: bool
+
+    @property
+    def log_odds(self) -> float:
+        return self.log_bayes_factor + self.negative_information
+
+
+@dataclasses.dataclass
+class _Solved:
+    """One solved graph of the pass: associations, the solution and its marginal of ``[x_T, objects]``."""
+
+    history: np.ndarray
+    classes: np.ndarray
+    num: int
+    poses: np.ndarray
+    objects: np.ndarray
+    cost: float
+    mean: np.ndarray
+    cov: np.ndarray
+
+
+def _start(scenario: Scenario, result: Result, settings: LoopClosureSettings, reopen: bool):
+    """The run's graph solved, before any merge: the problem, its solver, the solution, each
+    object's index in the run's own numbering, how many closures were re-opened, and convergence."""
+    if scenario.discovery is None:
+        raise ValueError("close_loops: the scenario has a known map (no discovery); there are no new objects to merge")
+    if len(result.steps) != scenario.num_steps or not result.steps:
+        raise ValueError(f"close_loops: the result has {len(result.steps)} steps, the scenario {scenario.num_steps}")
+    problem = _problem(scenario, result.steps[-1].components[0])
+    solver = _Solver(problem, settings.max_steps)
+    history, classes = problem.history, problem.classes
+    origin = np.arange(len(classes))  # each current object's index in the run's own numbering
+    reopened = 0
+    if reopen:
+        history, classes, origin, reopened = _reopen(history, classes, settings.gap)
+    poses = result.trajectory if result.trajectory is not None else _online_trajectory(scenario, result)
+    poses = np.asarray(poses, float)[: scenario.num_steps + 1]
+    num = int(history.max(initial=-1)) + 1
+    p, o, cost, mean, cov, ok = solver(history, poses, _initial_objects(problem, history, poses), num)
+    return problem, solver, _Solved(history, classes, num, p, o, float(cost), mean, cov), origin, reopened, ok
+
+
+def _merged(problem: _Problem, solver: _Solver, g: _Solved, merges: Sequence[tuple[int, int]], lbf: float,
+            settings: LoopClosureSettings, base_misses: int) -> tuple[MergeScore, _Solved, np.ndarray, bool]:
+    """``merges`` applied to ``g`` and re-solved (warm-started): the score, the solved graph, the
+    old index of each object, and convergence."""
+    h2, c2, used = _compact(g.history, g.classes, dict(merges))
+    p2, o2, cost2, mean2, cov2, ok = solver(h2, g.poses, _pad(g.objects[used], len(g.classes)), len(used))
+    verified = ok and 2.0 * (cost2 - g.cost) <= _chi2(2 * len(merges), settings.verify_probability)
+    neg = 0.0
+    if settings.detection_probability:
+        extra = _misses(problem.scenario, p2, o2, h2, len(used), settings) - base_misses
+        neg = extra * math.log1p(-settings.detection_probability)
+    return (MergeScore(lbf, neg, float(cost2 - g.cost), bool(verified)),
+            _Solved(h2, c2, len(used), p2, o2, float(cost2), mean2, cov2), used, ok)
+
+
+def _base_misses(problem: _Problem, g: _Solved, settings: LoopClosureSettings) -> int:
+    if not settings.detection_probability:
+        return 0
+    return _misses(problem.scenario, g.poses, g.objects, g.history, g.num, settings)
+
+
+def score_merges(scenario: Scenario, result: Result, merges: Sequence[tuple[int, int]],
+                 settings: LoopClosureSettings = LoopClosureSettings()) -> MergeScore:
+    """The score :func:`close_loops` gives the merge set ``merges`` (``(late, old)`` pairs of objects
+    of the result's final top component, as it is: the run's own closures are not re-opened) in its
+    first round: e.g. the true merges of a simulated run, to tell a search that missed them from a
+    model that does not favour them. Any pair may be given; the search would only consider gated
+    ones. Raises on an object index the component does not use or an object named twice."""
+    problem, solver, g, _, _, _ = _start(scenario, result, settings, reopen=False)
+    merges = tuple((int(a), int(b)) for a, b in merges)
+    named = [x for m in merges for x in m]
+    if any(not 0 <= x < g.num for x in named) or len(set(named)) != len(named):
+        raise ValueError(f"score_merges: merges {merges} must join distinct objects among the run's {g.num}")
+    assert scenario.discovery is not None  # checked by _start
+    ranges = _creating_ranges(problem.geo, g.history, g.num)
+    lbf = log_bayes_factor(g.mean, g.cov, merges, scenario.discovery.new_object_log_density, ranges)
+    lbf += settings.revisit_log_odds * len(merges)
+    return _merged(problem, solver, g, merges, lbf, settings, _base_misses(problem, g, settings))[0]
+
+
 def close_loops(scenario: Scenario, result: Result, settings: LoopClosureSettings = LoopClosureSettings(),
                 ) -> tuple[Result, LoopClosureReport]:
     """The run ``result`` of ``scenario`` with its loops closed (module docstring), and what was done.
@@ -332,63 +427,43 @@ def close_loops(scenario: Scenario, result: Result, settings: LoopClosureSetting
     it is (this pass's graph is geometric only, the run's may be richer); one without (a filter's)
     gets the re-solved trajectory and objects.
     """
-    if scenario.discovery is None:
-        raise ValueError("close_loops: the scenario has a known map (no discovery); there are no new objects to merge")
-    if len(result.steps) != scenario.num_steps or not result.steps:
-        raise ValueError(f"close_loops: the result has {len(result.steps)} steps, the scenario {scenario.num_steps}")
-    top = result.steps[-1].components[0]
-    problem = _problem(scenario, top)
-    solver = _Solver(problem, settings.max_steps)
-    history, classes = problem.history, problem.classes
-    origin = np.arange(len(classes))  # each current object's index in the run's own numbering
-    reopened = 0
-    if settings.reopen:
-        history, classes, origin, reopened = _reopen(history, classes, settings.gap)
+    problem, solver, g, origin, reopened, ok = _start(scenario, result, settings, settings.reopen)
+    assert scenario.discovery is not None  # checked by _start
     new_log_density = scenario.discovery.new_object_log_density
-    t = scenario.num_steps
-    poses = result.trajectory if result.trajectory is not None else _online_trajectory(scenario, result)
-    poses = np.asarray(poses, float)[: t + 1]
-    num = int(history.max(initial=-1)) + 1
-    poses, objects, cost, mean, cov, ok = solver(history, poses, _initial_objects(problem, history, poses), num)
     failed = not ok
     closures: list[Closure] = []
     considered = dropped = rejected = 0
     for _ in range(settings.max_rounds):
-        cands = candidates(mean, cov, history, classes, num, settings)
+        cands = candidates(g.mean, g.cov, g.history, g.classes, g.num, settings)
         considered += len(cands)
         if not cands:
             break
-        ranges = _creating_ranges(problem.geo, history, num)
-        ranked, d = search(mean, cov, cands, new_log_density, ranges, settings.beam, settings.revisit_log_odds)
+        ranges = _creating_ranges(problem.geo, g.history, g.num)
+        ranked, d = search(g.mean, g.cov, cands, new_log_density, ranges, settings.beam,
+                           settings.revisit_log_odds)
         dropped += d
-        base_misses = _misses(scenario, poses, objects, history, num, settings) if settings.detection_probability else 0
+        base_misses = _base_misses(problem, g, settings)
         accepted, best_score = None, settings.threshold
         for merges, lbf in ranked[: settings.tries]:
             if not merges:
                 continue
-            h2, c2, used = _compact(history, classes, dict(merges))
-            p2, o2, cost2, mean2, cov2, ok2 = solver(h2, poses, _pad(objects[used], len(classes)), len(used))
-            if not ok2 or 2.0 * (cost2 - cost) > _chi2(2 * len(merges), settings.verify_probability):
+            score, g2, used, ok2 = _merged(problem, solver, g, merges, lbf, settings, base_misses)
+            if not score.verified:
                 rejected += 1
                 failed = failed or not ok2
                 continue
-            score = lbf
-            if settings.detection_probability:
-                extra = _misses(scenario, p2, o2, h2, len(used), settings) - base_misses
-                score += extra * math.log1p(-settings.detection_probability)
-            if score > best_score:
-                accepted, best_score = (merges, score, h2, c2, used, (p2, o2, cost2, mean2, cov2)), score
+            if score.log_odds > best_score:
+                accepted, best_score = (merges, score, g2, used), score.log_odds
         if accepted is None:
             break
-        merges, lbf, h2, c2, used, (p2, o2, cost2, mean2, cov2) = accepted
-        closures.append(Closure(tuple((int(origin[a]), int(origin[b])) for a, b in merges), lbf, float(cost),
-                                float(cost2)))
-        history, classes, origin = h2, c2, _pad_index(origin[used], len(classes))
-        poses, objects, cost, mean, cov, num = p2, o2, cost2, mean2, cov2, len(used)
+        merges, score, g2, used = accepted
+        closures.append(Closure(tuple((int(origin[a]), int(origin[b])) for a, b in merges), score.log_odds,
+                                g.cost, g2.cost))
+        g, origin = g2, _pad_index(origin[used], len(g.classes))
     report = LoopClosureReport(tuple(closures), considered, dropped, rejected, failed, reopened)
     if not closures and not reopened and result.trajectory is not None:
         return result, report  # nothing changed: the run's own smoother (its factors, its window) stands
-    return _rewrite(result, history, classes, poses, objects, num, report), report
+    return _rewrite(result, g.history, g.classes, g.poses, g.objects, g.num, report), report
 
 
 def _reopen(history: np.ndarray, classes: np.ndarray, gap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
