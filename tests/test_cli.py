@@ -162,6 +162,42 @@ def test_demo_smoke(tmp_path, capsys):
     assert all(model in stdout for model in ("mirror", "independent", "none"))
 
 
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+def test_run_draws_the_run_and_plot_draws_a_result_file(scenario_path, tmp_path, capsys):
+    out, png = tmp_path / "r.json", tmp_path / "r.png"
+    assert cli.main(["run", scenario_path, "-o", str(out), *SMALL, "--plot", str(png)]) == 0
+    assert png.read_bytes()[:8] == PNG and f"wrote {png}" in capsys.readouterr().out
+    assert cli.main(["plot", str(out), "--scenario", scenario_path]) == 0  # beside the result by default
+    assert (tmp_path / "r.png").read_bytes()[:8] == PNG and f"wrote {png}" in capsys.readouterr().out
+    assert cli.main(["plot", str(out)]) == 2
+    assert "--scenario" in error_line(capsys)
+    other = tmp_path / "other.json"
+    assert cli.main(["simulate", "--seed", "1", "--steps", "4", "-o", str(other)]) == 0
+    capsys.readouterr()
+    assert cli.main(["plot", str(out), "--scenario", str(other), "-o", str(tmp_path / "x.png")]) == 2
+    assert "not a run of this scenario" in error_line(capsys) and not (tmp_path / "x.png").exists()
+    assert cli.main(["plot", str(tmp_path), "--scenario", scenario_path]) == 2  # a folder is a study
+    assert "result file" in error_line(capsys)
+    assert cli.main(["run", scenario_path, "-o", str(out), "--plot", str(tmp_path / "no" / "p.png")]) == 2
+    assert "does not exist" in error_line(capsys)
+
+
+def test_plot_run_draws_a_filter_result_and_a_scenario_without_ground_truth(tmp_path):
+    from hybridslam.analysis import consistency
+    from hybridslam.sim.hallway import HallwaySetup, hallway
+
+    scenario = hallway(0, 0.01, steps=8, setup=HallwaySetup(length=8.0, width=4.0))
+    result, _ = consistency.gated_oracle_result(scenario, 20)  # no trajectory, no objects: as a filter's
+    plot.plot_run(scenario, result, tmp_path / "a.png", title="a filter's result")
+    plot.plot_run(scenario.replace(true_robot_poses=None), result, tmp_path / "b.png")
+    assert all((tmp_path / n).read_bytes()[:8] == PNG for n in ("a.png", "b.png"))
+    with pytest.raises(ValueError, match="not a run of this scenario"):
+        longer = hallway(0, 0.01, steps=9, setup=HallwaySetup(length=8.0, width=4.0))
+        plot.plot_run(longer, result, tmp_path / "c.png")
+
+
 def test_covariance_ellipse_and_band():
     pts = plot.covariance_ellipse([1.0, 2.0], np.diag([4.0, 1.0]), nsig=2)
     assert np.allclose(pts[0], pts[-1])

@@ -106,6 +106,9 @@ EXPECT: dict[str, tuple[list[str], object]] = {
     "hybridslam run scenario.json -o ml.json --estimator ml --smoother filter": (
         [r"estimator=ml;.*smoother=filter", *RUN_TABLE[:2], r"^wrote ml.json$"],
         lambda: _result("ml.json", smoother="filter", trajectory=False)),
+    "hybridslam plot result.json --scenario scenario.json": (
+        [r"^wrote result.png$"],
+        lambda: Path("result.png").stat()),
     "hybridslam import mrclam MRCLAM_Dataset7 --robot 1 --start 20 --duration 100 -o robot1.json": (
         [r"^wrote robot1.json: MRCLAM_Dataset7 robot 1, .* known map of 15 landmarks$",
          r"^motion_cov \(calibrated\): sd", r"^geometric_cov \(calibrated from the detections as written\): sd"],

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+import textwrap
 from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
@@ -318,3 +319,76 @@ def plot_trajectory(ax_or_path: Axes | str | os.PathLike, scenario: Scenario, re
     if fig is not None and path is not None:
         ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
         fig.savefig(path, dpi=120)
+
+
+def _objects_with_detections(result: Result) -> np.ndarray:
+    """Indices of the final top component's objects that some detection is associated with."""
+    top = result.steps[-1].components[0]
+    named = np.concatenate([np.asarray(a, dtype=int).ravel() for a in top.associations] + [np.zeros(0, int)])
+    return np.unique(named[named >= 0])
+
+
+def plot_run(scenario: Scenario, result: Result, path: str | os.PathLike, *,
+             title: str | None = None) -> None:
+    """One run of one estimator on one figure, saved to ``path`` (what ``hybridslam run --plot`` and
+    ``hybridslam plot RESULT --scenario SCENARIO`` draw).
+
+    Left, the map (:func:`plot_trajectory`): true landmarks and trajectory, the online estimate (the
+    highest-weight component's ``x_k`` after each step), and, when the result has them (smoothers),
+    the smoothed trajectory ``x_0..x_T`` and the estimated objects with a detection (rings colored by
+    the final component's class, grey where it is open), with the online final pose's 2-sigma ellipse. Right,
+    per step ``k``: the translation error (m) of the online and smoothed estimates against the ground
+    truth (when the scenario has it), and the number of components with the association entropy
+    ``H(w)`` (nats). Raises ``ValueError`` when the result's steps do not match the scenario's.
+    """
+    if len(result.steps) != scenario.num_steps or not result.steps:
+        raise ValueError(f"result: {len(result.steps)} steps, but the scenario has {scenario.num_steps}: "
+                         "not a run of this scenario")
+    from .trajectory import smoothed_trajectory_from_result, trajectory_from_result
+
+    fig = Figure(figsize=(13.0, 6.0), layout="constrained")
+    grid = fig.add_gridspec(2, 2, width_ratios=(1.7, 1.0))
+    ax_map, ax_err = fig.add_subplot(grid[:, 0]), fig.add_subplot(grid[0, 1])
+    ax_comp = fig.add_subplot(grid[1, 1], sharex=ax_err)
+    top = result.steps[-1].components[0]
+    landmarks = None
+    if result.objects is not None:
+        used = _objects_with_detections(result)
+        used = used[used < len(result.objects)]
+        classes = np.asarray(top.classes, dtype=int)
+        landmarks = (np.asarray(result.objects, float)[used, :2],
+                     np.where(used < len(classes), classes[np.minimum(used, len(classes) - 1)], -1))
+    plot_trajectory(ax_map, scenario, result, landmarks=landmarks, label="online (best component)")
+    smoothed = smoothed_trajectory_from_result(result)
+    if smoothed is not None:
+        poses = np.asarray(result.trajectory, dtype=float)
+        ax_map.plot(poses[:, 0], poses[:, 1], "-", color="C0", lw=1.5, label="smoothed")
+    ellipse = covariance_ellipse(top.pose_mean[:2], np.asarray(top.pose_cov)[:2, :2])
+    ax_map.plot(ellipse[:, 0], ellipse[:, 1], "-", color="C3", lw=1.0, label="online final pose, 2 sd")
+    ax_map.legend(fontsize=8, loc="best")
+    stamps, online = trajectory_from_result(result)
+    if scenario.true_robot_poses is not None:
+        truth = np.asarray(scenario.true_robot_poses, dtype=float)
+        error = lambda poses: np.linalg.norm(poses[:, :2] - truth[1:, :2], axis=1)  # noqa: E731
+        ax_err.plot(stamps, error(online), "-", color="C3", label="online")
+        if smoothed is not None:
+            ax_err.plot(smoothed[0], error(smoothed[1]), "-", color="C0", label="smoothed (after the last step)")
+        ax_err.legend(fontsize=8)
+    else:
+        ax_err.text(0.5, 0.5, "no ground truth in the scenario", ha="center", va="center",
+                    transform=ax_err.transAxes)
+    ax_err.set_ylabel("translation error [m]")
+    ax_err.grid(True, alpha=0.3)
+    counts = [s.metrics.get("num_components", len(s.components)) for s in result.steps]
+    ax_comp.step(stamps, counts, where="mid", color="C2", label="components")
+    ax_comp.set_ylabel("components", color="C2")
+    ax_comp.set_xlabel("step k")
+    ax_comp.grid(True, alpha=0.3)
+    ax_h = ax_comp.twinx()
+    entropy = [_number(s.metrics.get("entropy", math.nan)) for s in result.steps]
+    ax_h.plot(stamps, entropy, ".-", color="C4")
+    ax_h.set_ylabel(r"association entropy $H(w)$", color="C4")
+    ax_comp.set_ylim(0, 1.15 * max(counts, default=1) + 0.5)
+    ax_h.set_ylim(bottom=0)
+    ax_map.set_title(title if title is not None else textwrap.fill(result.estimator, 120), fontsize=9)
+    fig.savefig(path, dpi=120)

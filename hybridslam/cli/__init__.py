@@ -1,10 +1,11 @@
 """The ``hybridslam`` command: one module per subcommand, :func:`main` is the entry point.
 
     hybridslam simulate --seed 0 --steps 10 --alpha 0.25 -o scenario.json
-    hybridslam run scenario.json -o result.json [--estimator hybrid|ml|gpda|max-mixture|multimodal] ...
+    hybridslam run scenario.json -o result.json [--estimator hybrid|ml|gpda|max-mixture|multimodal] [--plot PNG] ...
     hybridslam sweep [--alphas 0,0.25,0.5] [--models mirror,independent,none] [--tracks 8] -o runs/sweep
     hybridslam sweep --scenarios 'logs/*.json' [--estimator ...] -o runs/logs
     hybridslam plot runs/sweep
+    hybridslam plot result.json --scenario scenario.json [-o result.png]
     hybridslam demo [-o runs/demo] [--tracks 4] [--steps 10]
     hybridslam hallway -o runs/hallway [--levels ...] [--seeds 5] [--steps 60] [--known-map]
     hybridslam import mrclam DATASET_DIR --robot N -o FILE [--start S] [--duration D] [--unknown-map]
@@ -27,7 +28,7 @@ import sys
 from collections.abc import Sequence
 
 from ..io.scenario import ScenarioError
-from . import cache, demo, importers, loops, run, simulate, sweep
+from . import cache, demo, importers, loops, plot, run, simulate, sweep
 from .common import PROG, CLIError, Parser
 from .tables import alpha_summary as alpha_summary
 from .tables import summary_table as summary_table
@@ -43,6 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_parser(sub)
     demo.add_parser(sub)
     sweep.add_parsers(sub)
+    plot.add_parser(sub)
     importers.register(sub)
     loops.add_parser(sub)
     return parser

@@ -1,4 +1,4 @@
-"""``hybridslam sweep`` (a resumable study over simulated tracks or scenario files) and ``plot``."""
+"""``hybridslam sweep``: a resumable study over simulated tracks or scenario files."""
 
 from __future__ import annotations
 
@@ -147,19 +147,6 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_plot(args: argparse.Namespace) -> int:
-    """Redraw a study's plots from its table."""
-    path = os.path.join(args.folder, study.TABLE)
-    if not os.path.isfile(path):
-        raise CLIError(f"{args.folder!r}: no {study.TABLE} (run hybridslam sweep -o {args.folder} first)")
-    rows = study.read_table(path)
-    if not rows:
-        raise CLIError(f"{path}: the table is empty (no finished cell yet)")
-    written = draw(args.folder, rows)
-    print("wrote " + ", ".join(written))
-    return 0
-
-
 def add_parsers(sub) -> None:
     p = sub.add_parser("sweep", help="a resumable study: alphas x models x tracks (Fig. 5), or scenario files")
     p.add_argument("-o", "--output", default=os.path.join("runs", "sweep"),
@@ -179,7 +166,3 @@ def add_parsers(sub) -> None:
     add_estimator_options(p, seed_help="track t is simulated with seed + t and weighed with PRNG seed seed + t",
                           capacity_default=str(SWEEP_CAPACITY))
     p.set_defaults(func=cmd_sweep)
-
-    p = sub.add_parser("plot", help="redraw a study's plots from its table.csv")
-    p.add_argument("folder", help="the study's output folder")
-    p.set_defaults(func=cmd_plot)
