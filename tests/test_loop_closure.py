@@ -173,6 +173,9 @@ def test_the_command_line_closes_the_loop_and_reports_bad_files(small_loop, tmp_
     assert main(["close-loops", str(tmp_path / "known.json"), str(tmp_path / "r.json"), "-o",
                  str(tmp_path / "x.json")]) == 2
     assert "known map" in capsys.readouterr().err
+    assert main(["close-loops", str(tmp_path / "s.json"), str(tmp_path / "r.json"), "-o", str(tmp_path / "x.json"),
+                 "--beam", "0"]) == 2
+    assert "LoopClosureSettings.beam" in capsys.readouterr().err
 
 
 def test_the_runs_own_closures_are_reopened_at_each_pause_longer_than_the_gap():

@@ -28,7 +28,7 @@ def cmd_close_loops(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     result = load_result(args.result)
     try:
-        settings = LoopClosureSettings(gap=args.gap, revisit_log_odds=args.revisit_log_odds)
+        settings = LoopClosureSettings(gap=args.gap, revisit_log_odds=args.revisit_log_odds, beam=args.beam)
     except ValueError as e:
         raise CLIError(str(e)) from None
     check_writable(args.output)
@@ -67,4 +67,7 @@ def add_parser(sub) -> None:
                    help="steps between an old object's last detection and a late object's first (default 20)")
     p.add_argument("--revisit-log-odds", type=_finite, default=0.0,
                    help="prior log odds per merge that a late object is an old one (default 0)")
+    p.add_argument("--beam", type=int, default=LoopClosureSettings.beam,
+                   help=f"partial merge sets kept by the search (default {LoopClosureSettings.beam}; "
+                        "what it drops is counted and warned about)")
     p.set_defaults(func=cmd_close_loops)

@@ -151,7 +151,8 @@ class LoopClosureReport:
         lines = [f"loop closure: {self.merged} objects merged ({pairs}) in {len(self.closures)} round(s); "
                  f"{self.considered} late objects had candidates; {self.reopened} of the run's own closures re-opened"]
         if self.beam_dropped:
-            lines.append(f"warning: the beam dropped {self.beam_dropped} partial assignments (raise beam)")
+            lines.append(f"warning: the beam dropped {self.beam_dropped} partial assignments (raise the beam: "
+                         "LoopClosureSettings.beam, close-loops --beam)")
         if self.rejected:
             lines.append(f"warning: {self.rejected} merge set(s) failed verification and were undone")
         if self.failed:
