@@ -6,7 +6,6 @@ import argparse
 import os
 import sys
 import time
-from collections.abc import Sequence
 from typing import Any
 
 from tqdm import tqdm
@@ -23,6 +22,7 @@ from .common import (
     floats,
     warn,
 )
+from .plot import draw
 from .tables import alpha_summary, summary_table
 
 SWEEP_DEFAULTS = {"alphas": "0,0.25,0.5", "tracks": 8, "steps": 10, "K": 15.0}
@@ -44,22 +44,6 @@ def _models(text: str | None) -> tuple[str, ...] | None:
             except ValueError as e:
                 raise CLIError(f"--models {m}: {e}") from None
     return names
-
-
-def draw(folder: str, rows: Sequence[dict]) -> list[str]:
-    """The study's plots from its table rows; returns the files written."""
-    # Imported here: matplotlib costs every other command 0.3-0.5 s of start-up.
-    from ..analysis import plot
-
-    if not rows:
-        return []
-    if "alpha" in rows[0]:
-        path = os.path.join(folder, "alpha_sweep.png")
-        plot.plot_alpha_sweep(rows, path)
-    else:
-        path = os.path.join(folder, "metrics.png")
-        plot.plot_metrics(rows, path)
-    return [path]
 
 
 def _spec(args: argparse.Namespace, models, estimator) -> tuple[study.AlphaStudy | study.FileStudy, str]:
