@@ -307,11 +307,15 @@ def run(
     *,
     seed: int = 0,
     on_step: Callable[[StepRecord, StepInfo, float], None] | None = None,
+    between_steps: Callable[[int, Any], Any] | None = None,
 ) -> Run:
     """Run ``estimator`` over every step of ``scenario``; returns a :class:`Run` (writes nothing).
 
     ``on_step(record, info, seconds)`` is called after each step (the CLI prints its table row and
-    the info's warnings). The same estimator, scenario and seed give the same result.
+    the info's warnings). ``between_steps(k, state)``, if given, returns the state the next step
+    starts from, after step ``k`` (1-based) and its record: a host-side edit of the same shapes, e.g.
+    :class:`hybridslam.estimators.hybrid.loops.OnlineLoopClosure`. The same estimator, scenario and
+    seed give the same result.
     """
     state = estimator.init(scenario)
     history = jax.eval_shape(estimator.view, state).history  # its shape only: nothing to compute
@@ -340,6 +344,8 @@ def run(
         infos.append(trace.info)
         if on_step is not None:
             on_step(records[-1], trace.info, step_s[-1])
+        if between_steps is not None:
+            state = between_steps(k + 1, state)
     extra = {}
     trajectory, objects = _smoothed(estimator, state)
     if trajectory is not None:

@@ -1,0 +1,204 @@
+"""Loop closure during the run: merge hypotheses added to the hybrid belief between steps.
+
+The back-end pass (:mod:`hybridslam.estimators.loop_closure`) searches a finished run's map for
+late objects that are old ones. :class:`OnlineLoopClosure` runs the same search after a step, on the
+highest-weight component, and adds what it finds to the belief as a hypothesis of its own: the
+component with the merged associations (late object ``a`` declared to be old object ``b``, the slots
+renumbered so that the objects stay in creation order), re-solved by the belief's own smoother, of
+log weight ``log w + log odds``, where the log odds are the pass's (the Laplace Bayes factor against
+"every late object is new", Eq. 4.13's new-object density, the negative information of the re-solved
+graph; verified by the re-solved cost's rise). The unmerged component stays, with its weight: the
+belief carries both and later detections decide, as they decide every other association (Eq. 16).
+
+Its slot is an empty one, else the lowest-weight component other than the parent (counted as
+dropped in :attr:`OnlineLoopClosure.replaced`). A merge set whose merged associations an alive
+component already has is not added again. The search runs on the host between two compiled steps
+(``hybridslam.run(..., between_steps=...)``); its solves compile once per run (the graph's shapes do
+not change with the step).
+
+Only the hybrid belief with the full smoother on an unknown map: the merged component needs its
+whole trajectory re-solved, and only an unknown map has late objects. The run's own closures are
+not re-opened (the pass's ``reopen``): a component's objects are its own until a merge joins two.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from ...inference import smoother as sm
+from ...io.scenario import Scenario
+from .. import loop_closure as lc
+from ..smoothing import FINAL_ATOL, DataLog, Full, graph, history_factors
+from .belief import Belief
+from .estimator import Hybrid
+
+
+@eqx.filter_jit
+def _solve(log: DataLog, model, history, classes, num_created, poses, objects, k, realize: bool, max_steps: int):
+    """A component's whole graph after ``k`` steps (the step's own: semantic factors, its class
+    realizations where the classifier sees them), solved to the final tolerance: the trajectory, the
+    marginal of ``[x_k, objects]``, the cost and whether it converged (one compile per run)."""
+    factors = history_factors(history, classes if realize else None)
+    g = graph(log, factors, k, num_created, model.sensor, model.motion_cov, True, "sum")
+    sol = sm.solve(g, poses, objects, max_steps=max_steps, cost_atol=FINAL_ATOL)
+    mean, cov = sm.marginal(sol, k)
+    ok = (sol.result == optx.RESULTS.successful) & jnp.all(jnp.isfinite(mean)) & jnp.all(jnp.isfinite(cov))
+    return sol.poses, mean, cov, sol.cost, ok
+
+
+def _renumbered(history: np.ndarray, classes: np.ndarray, objects: np.ndarray, num: int,
+                merges: dict[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """``merges`` (late -> old) applied to a component's first ``num`` object slots: each late
+    object's detections go to its old one (which takes its class where its own is open), and the
+    remaining objects are renumbered in creation order (objects never detected, the prior map's,
+    first; then by first detection), as the step keeps them. Returns the history, classes, object
+    poses ``(N, 3)`` (freed slots: placeholders at 0) and how many objects remain."""
+    n = len(classes)
+    h, cls = history.copy(), classes.copy()
+    for a, b in merges.items():
+        h[history == a] = b
+        if cls[b] < 0:
+            cls[b] = classes[a]
+    flat = h.ravel()
+    first = np.full(num, -1)
+    seen = np.flatnonzero(flat >= 0)
+    objs, at = np.unique(flat[seen], return_index=True)
+    first[objs] = seen[at]
+    kept = [s for s in range(num) if s not in merges]
+    kept.sort(key=lambda s: (first[s], s))
+    new_index = np.full(n, -1)
+    new_index[kept] = np.arange(len(kept))
+    out_h = np.where(h >= 0, new_index[np.maximum(h, 0)], -1).astype(history.dtype)
+    out_cls = np.full(n, -1, dtype=classes.dtype)
+    out_cls[: len(kept)] = cls[kept]
+    out_obj = np.zeros((n, 3))
+    out_obj[: len(kept)] = objects[kept]
+    return out_h, out_cls, out_obj, len(kept)
+
+
+def _back_projected(history: np.ndarray, geo: np.ndarray, poses: np.ndarray, objects: np.ndarray,
+                    slots: range) -> np.ndarray:
+    """``objects`` with each of ``slots`` placed at its first detection seen from ``poses``
+    (``x_{j+1}`` for step ``j``): the warm start of objects a re-opening made."""
+    out = objects.copy()
+    for s in slots:
+        j, d = (int(x[0]) for x in np.nonzero(history == s))
+        r, bearing = geo[j, d]
+        x = poses[j + 1]
+        out[s, :2] = x[:2] + r * np.array([np.cos(x[2] + bearing), np.sin(x[2] + bearing)])
+    return out
+
+
+@dataclasses.dataclass
+class OnlineLoopClosure:
+    """``between_steps`` for :func:`hybridslam.run` (module docstring): after every step from
+    ``settings.gap + 1`` on, search the top component's map for loop closures and add the best
+    verified merge set as a hypothesis. ``closures`` lists what was added: ``(step, merges, log odds)``,
+    merges ``(late, old)`` in the parent's slot numbering; ``replaced`` counts components dropped to
+    make room."""
+
+    estimator: Hybrid
+    scenario: Scenario
+    settings: lc.LoopClosureSettings = lc.LoopClosureSettings()
+    every: int = 1
+    closures: list[tuple[int, tuple[tuple[int, int], ...], float]] = dataclasses.field(default_factory=list)
+    replaced: int = 0
+
+    def __post_init__(self):
+        if not isinstance(self.estimator, Hybrid) or not isinstance(self.estimator.smoother, Full):
+            raise ValueError("OnlineLoopClosure: needs the hybrid belief with the full smoother (Hybrid(smoother=Full()))")
+        if not (isinstance(self.every, int) and self.every >= 1):
+            raise ValueError(f"OnlineLoopClosure.every: expected a positive int, got {self.every!r}")
+        if self.scenario.discovery is None:
+            raise ValueError("OnlineLoopClosure: the scenario has a known map (no discovery); there are no new "
+                             "objects to merge")
+
+    def __call__(self, k: int, belief: Belief) -> Belief:
+        """The belief after step ``k`` (1-based), with a loop-closure hypothesis added if one is found."""
+        if k <= self.settings.gap or k % self.every:
+            return belief
+        b = jax.device_get(belief)
+        k = int(b.k)
+        log_w = np.asarray(b.log_weights)
+        i = int(np.argmax(log_w))
+        settings = self.settings
+        history, classes, num = np.asarray(b.history[i]), np.asarray(b.classes[i]), int(b.num_created[i])
+        mean, poses = np.asarray(b.mean[i]), np.asarray(b.poses[i])
+        geo = np.asarray(b.log.geo)
+        realize = bool(b.model.sensor.classifier.uses_scores)
+        assert self.scenario.discovery is not None  # checked on construction
+        density = self.scenario.discovery.new_object_log_density
+
+        def solve(h, c, n, p, objects):
+            out = _solve(belief.log, belief.model, jnp.asarray(h), jnp.asarray(c), jnp.asarray(n, jnp.int32),
+                         jnp.asarray(p), jnp.asarray(objects), jnp.asarray(k), realize, self.estimator.gn_max_steps)
+            p2, m2, c2, cost, ok = jax.device_get(out)
+            misses = lc._misses(self.scenario, np.asarray(p2)[: k + 1], np.asarray(m2)[3:].reshape(-1, 3), h[:k], n,
+                                settings) if settings.detection_probability else 0
+            return np.asarray(p2), np.asarray(m2), np.asarray(c2), float(cost), bool(ok), misses
+
+        def negative(misses: int, base: int) -> float:
+            return (misses - base) * math.log1p(-settings.detection_probability) if settings.detection_probability else 0.0
+
+        # The component's own closures re-opened (the pass's reopen): each stretch of an object's
+        # detections after a pause longer than the gap becomes an object of its own.
+        h_r, c_r, origin, added = lc._reopen(history, classes, settings.gap)
+        num_r = num + added
+        objects_r = _back_projected(h_r, geo, poses, mean[3:].reshape(-1, 3), range(num, num_r))
+        p_r, mean_r, cov_r, cost_r, ok_r, misses_r = solve(h_r, c_r, num_r, poses, objects_r)
+        if not ok_r:
+            return belief
+        ranges = lc._creating_ranges(geo[:k], h_r[:k], num_r)
+        cands = lc.candidates(mean_r, cov_r, h_r[:k], c_r, num_r, settings)
+        ranked, _ = lc.search(mean_r, cov_r, cands, density, ranges, settings.beam, settings.revisit_log_odds)
+        # The parent is the re-opened graph with every stretch merged back: its log odds against it.
+        back = tuple((s, int(origin[s])) for s in range(num, num_r))
+        parent_odds = 0.0
+        if back:
+            *_, misses_0 = solve(history, classes, num, poses, mean[3:].reshape(-1, 3))
+            parent_odds = (lc.log_bayes_factor(mean_r, cov_r, back, density, ranges)
+                           + settings.revisit_log_odds * len(back) + negative(misses_0, misses_r))
+        alive = np.flatnonzero(log_w > -np.inf)
+        best = None
+        for merges, lbf in ranked[: settings.tries]:
+            if set(merges) == set(back):
+                continue  # the parent itself
+            h2, c2, o2, n2 = _renumbered(h_r, c_r, mean_r[3:].reshape(-1, 3), num_r, dict(merges))
+            if any(np.array_equal(h2, np.asarray(b.history[j])) for j in alive):
+                continue  # an alive component already holds these associations
+            p2, mean2, cov2, cost2, ok2, misses2 = solve(h2, c2, n2, p_r, o2)
+            if not ok2 or 2.0 * (cost2 - cost_r) > lc._chi2(max(2 * len(merges), 2), settings.verify_probability):
+                continue
+            odds = lbf + negative(misses2, misses_r) - parent_odds
+            if odds > settings.threshold and (best is None or odds > best[0]):
+                best = (odds, merges, h2, c2, n2, p2, mean2, cov2)
+        if best is None:
+            return belief
+        odds, merges, h2, c2, n2, p2, mean2, cov2 = best
+        self.closures.append((k, tuple((int(origin[a]), int(origin[b_])) for a, b_ in merges), float(odds)))
+        return self._insert(belief, i, log_w[i] + odds, h2, c2, n2, p2, mean2, cov2)
+
+    def _insert(self, belief: Belief, parent: int, log_weight: float, history, classes, num, poses, mean, cov) -> Belief:
+        """``belief`` with the merged component in an empty slot (else the weakest but the parent's)."""
+        log_w = np.asarray(belief.log_weights).copy()
+        dead = np.flatnonzero(log_w == -np.inf)
+        if dead.size:
+            j = int(dead[0])
+        else:
+            order = np.argsort(log_w)
+            j = int(order[0] if order[0] != parent else order[1])
+            self.replaced += 1
+        log_w[j] = log_weight
+        log_w = log_w - np.logaddexp.reduce(log_w[log_w > -np.inf])
+        put = lambda a, v: jnp.asarray(a).at[j].set(jnp.asarray(v, dtype=jnp.asarray(a).dtype))  # noqa: E731
+        return eqx.tree_at(
+            lambda x: (x.log_weights, x.history, x.classes, x.num_created, x.poses, x.mean, x.cov), belief,
+            (jnp.asarray(log_w), put(belief.history, history), put(belief.classes, classes),
+             put(belief.num_created, num), put(belief.poses, poses), put(belief.mean, mean), put(belief.cov, cov)))
