@@ -20,12 +20,16 @@ Writes, under ``--output``:
 - ``errors.csv``: APE/RPE statistics of every cell; ``hallway_error.png``, ``hallway_trajectories.png``.
 
     python experiments/hallway_odometry_sweep.py [-o runs/hallway] [--seeds 3] [--estimators ml,gpda,...]
+
+``--estimators`` also takes ``hybrid+loops``: the hybrid belief with loop closure during the run
+(:class:`hybridslam.estimators.hybrid.loops.OnlineLoopClosure`, the pass's default settings).
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import json
 import os
 import time
@@ -39,6 +43,8 @@ from hybridslam.analysis import trajectory
 from hybridslam.analysis.map_error import map_error
 from hybridslam.analysis.plot import plot_trajectory
 from hybridslam.estimators import ESTIMATORS, AbstractEstimator, make_estimator
+from hybridslam.estimators.hybrid.loops import OnlineLoopClosure
+from hybridslam.estimators.loop_closure import LoopClosureSettings
 from hybridslam.io.result import load_result, save_result
 from hybridslam.io.scenario import load_scenario, save_scenario
 from hybridslam.sim import hallway
@@ -59,12 +65,16 @@ SETTINGS: dict[str, dict] = {
 
 
 SMOOTHER = "full"  # main(smoother=...): "full" (the papers' smoothers, the default) or "filter"
+# Not an estimator of its own: the hybrid belief with loop closure during the run (its merge
+# hypotheses added between steps, hybridslam.estimators.hybrid.loops; full smoother only).
+ONLINE = "hybrid+loops"
 
 
 def estimator(name: str, max_detections: int | None = None) -> AbstractEstimator:
     """Estimator ``name`` with the study's :data:`SETTINGS` and :data:`SMOOTHER`; ``max_detections`` pads
     every step to that many detection slots (``None``: the scenario's largest step)."""
-    return make_estimator(name, max_detections=max_detections, smoother=SMOOTHER, **SETTINGS.get(name, {}))
+    base = "hybrid" if name == ONLINE else name
+    return make_estimator(base, max_detections=max_detections, smoother=SMOOTHER, **SETTINGS.get(base, {}))
 
 
 def _scenario(folder: str, trace: float, seed: int, steps: int | None):
@@ -83,8 +93,10 @@ def run_cell(folder: str, name: str, trace: float, seed: int, steps: int | None,
     path, scenario = _scenario(folder, trace, seed, steps)
     stem = os.path.splitext(os.path.basename(path))[0]
     warnings: list[str] = []
-    run = driver.run(estimator(name, max_detections), scenario, seed=seed,
-                     on_step=lambda r, info, s: warnings.extend(info.warnings()))
+    est = estimator(name, max_detections)
+    hook = OnlineLoopClosure(est, scenario) if name == ONLINE else None
+    run = driver.run(est, scenario, seed=seed, on_step=lambda r, info, s: warnings.extend(info.warnings()),
+                     between_steps=hook)
     result_path = os.path.join(folder, "results", name, stem + ".json")
     os.makedirs(os.path.dirname(result_path), exist_ok=True)
     save_result(run.result, result_path)
@@ -121,6 +133,8 @@ def _cell(name: str, trace: float, seed: int) -> dict:
     levels does not rerun the finished cells.
     """
     settings = {k: v for k, v in estimator(name).settings().items() if k != "max_detections"}
+    if name == ONLINE:
+        settings["loop_closure"] = dataclasses.asdict(LoopClosureSettings())
     return {"estimator": name, "trace": trace, "seed": seed, "settings": settings}
 
 
@@ -254,9 +268,9 @@ def main(output: str = os.path.join("runs", "hallway"), seeds: int = 3, estimato
     global SMOOTHER
     SMOOTHER = smoother
     estimators, levels = list(estimators), [float(t) for t in levels]
-    unknown = [n for n in estimators if n not in ESTIMATORS]
+    unknown = [n for n in estimators if n not in ESTIMATORS and n != ONLINE]
     if unknown:
-        raise SystemExit(f"--estimators: unknown {', '.join(unknown)} (known: {', '.join(ESTIMATORS)})")
+        raise SystemExit(f"--estimators: unknown {', '.join(unknown)} (known: {', '.join([*ESTIMATORS, ONLINE])})")
     os.makedirs(output, exist_ok=True)
     with Records(output, {"study": "hallway", "steps": steps}) as records:  # the folder is locked until the end
         cells = [(n, t, s) for t in levels for s in range(seeds) for n in estimators]

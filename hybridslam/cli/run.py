@@ -75,6 +75,15 @@ def cmd_run(args: argparse.Namespace) -> int:
     check_writable(args.output)
     if args.plot is not None:
         check_writable(args.plot)
+    hook = None
+    if args.close_loops is not None:
+        from ..estimators.hybrid.loops import OnlineLoopClosure
+        from ..estimators.loop_closure import LoopClosureSettings
+
+        try:
+            hook = OnlineLoopClosure(estimator, scenario, LoopClosureSettings(gap=args.close_loops))
+        except ValueError as e:
+            raise CLIError(f"--close-loops: {e}") from None
     print(f"{args.scenario}: {scenario.num_steps} steps, {scenario.num_objects} objects; estimator={estimator.name}; "
           f"{estimator.describe().split('; ', 1)[-1]}, seed={args.seed}")
     print("compiling the step ...", flush=True)
@@ -88,8 +97,14 @@ def cmd_run(args: argparse.Namespace) -> int:
         for line in info.warnings():
             throttle(line)
 
-    result = run(estimator, scenario, seed=args.seed, on_step=on_step).result
+    result = run(estimator, scenario, seed=args.seed, on_step=on_step, between_steps=hook).result
     throttle.finish()
+    if hook is not None:
+        added = ", ".join(f"step {k}: {', '.join(f'{a}->{b}' for a, b in m)} (log odds {o:.2f})" for k, m, o in hook.closures)
+        print(f"loop closure during the run: {len(hook.closures)} hypotheses added{': ' + added if added else ''}; "
+              f"its searches took {hook.seconds:.2f} s")
+        if hook.replaced:
+            warn(f"loop closure: {hook.replaced} component(s) dropped to make room for its hypotheses (raise --capacity)")
     timing = result.timing or {"compile_s": 0.0, "step_s": []}
     steps_s = sum(timing["step_s"])
     per_step = 1e3 * steps_s / max(len(timing["step_s"]), 1)
@@ -122,6 +137,10 @@ def add_parser(sub) -> None:
     p.add_argument("-o", "--output", required=True, help="result file to write")
     p.add_argument("--classifier", choices=CLASSIFIERS, default=None,
                    help="classifier model (default: the scenario's)")
+    p.add_argument("--close-loops", type=int, nargs="?", const=20, default=None, metavar="GAP",
+                   help="hybrid, full smoother, unknown map: after each step search the best component's map for "
+                        "loop closures (an object first seen more than GAP steps, default 20, after another's last "
+                        "detection) and add what is found as a hypothesis (hybridslam.estimators.hybrid.loops)")
     p.add_argument("--plot", default=None, metavar="PNG",
                    help="also draw the run (map and trajectories, error and components per step) to this image")
     add_estimator_options(p)

@@ -1,30 +1,37 @@
-"""Loop closure during the run: merge hypotheses added to the hybrid belief between steps.
+"""Loop closure during the run: hypotheses added to the hybrid belief between steps.
 
 The back-end pass (:mod:`hybridslam.estimators.loop_closure`) searches a finished run's map for
 late objects that are old ones. :class:`OnlineLoopClosure` runs the same search after a step, on the
-highest-weight component, and adds what it finds to the belief as a hypothesis of its own: the
-component with the merged associations (late object ``a`` declared to be old object ``b``, the slots
-renumbered so that the objects stay in creation order), re-solved by the belief's own smoother, of
-log weight ``log w + log odds``, where the log odds are the pass's (the Laplace Bayes factor against
-"every late object is new", Eq. 4.13's new-object density, the negative information of the re-solved
-graph; verified by the re-solved cost's rise). The unmerged component stays, with its weight: the
-belief carries both and later detections decide, as they decide every other association (Eq. 16).
+highest-weight component, and adds what it finds to the belief as a hypothesis of its own, so that
+the next steps associate against the closed map:
 
-Its slot is an empty one, else the lowest-weight component other than the parent (counted as
-dropped in :attr:`OnlineLoopClosure.replaced`). A merge set whose merged associations an alive
-component already has is not added again. The search runs on the host between two compiled steps
-(``hybridslam.run(..., between_steps=...)``); its solves compile once per run (the graph's shapes do
-not change with the step).
+1. the component's own closures are re-opened (the pass's ``reopen``: each stretch of an object's
+   detections after a pause longer than ``gap`` becomes an object of its own), and that graph is
+   solved: the reference of every score below;
+2. the pass's beam search over merges (late object ``a`` declared to be old object ``b``), each set
+   scored by its log Bayes factor against the reference (Laplace, Eq. 4.13's new-object density)
+   plus the negative information of its re-solved graph, and verified by the re-solved cost's rise;
+3. the best set that differs from the component itself (which is the reference with every
+   stretch merged back) becomes a component: its associations with the objects renumbered in
+   creation order, re-solved by the belief's own smoother (its semantic factors included), of log
+   weight ``log w + (score of the set − score of the component)``.
 
-Only the hybrid belief with the full smoother on an unknown map: the merged component needs its
-whole trajectory re-solved, and only an unknown map has late objects. The run's own closures are
-not re-opened (the pass's ``reopen``): a component's objects are its own until a merge joins two.
+The component stays, with its weight: the belief carries both and later detections decide, as they
+decide every other association (Eq. 16). The new one takes an empty slot, else the lowest-weight
+component other than its parent (counted in :attr:`OnlineLoopClosure.replaced`). A set whose
+associations an alive component already has is not added again. The search runs on the host between
+two compiled steps (``hybridslam.run(..., between_steps=...)``); its solves compile once per run.
+
+Only the hybrid belief with the full smoother on an unknown map: the new component needs its whole
+trajectory re-solved, and only an unknown map has late objects.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import time
+from typing import cast
 
 import equinox as eqx
 import jax
@@ -35,6 +42,7 @@ import optimistix as optx
 from ...inference import smoother as sm
 from ...io.scenario import Scenario
 from .. import loop_closure as lc
+from ..base import AbstractEstimator
 from ..smoothing import FINAL_ATOL, DataLog, Full, graph, history_factors
 from .belief import Belief
 from .estimator import Hybrid
@@ -100,16 +108,18 @@ def _back_projected(history: np.ndarray, geo: np.ndarray, poses: np.ndarray, obj
 class OnlineLoopClosure:
     """``between_steps`` for :func:`hybridslam.run` (module docstring): after every step from
     ``settings.gap + 1`` on, search the top component's map for loop closures and add the best
-    verified merge set as a hypothesis. ``closures`` lists what was added: ``(step, merges, log odds)``,
-    merges ``(late, old)`` in the parent's slot numbering; ``replaced`` counts components dropped to
-    make room."""
+    verified merge set as a hypothesis (every ``every`` steps). ``closures`` lists what was added:
+    ``(step, merges, log odds)``, merges ``(late, old)`` in the parent's slot numbering (before its
+    own closures were re-opened); ``replaced`` counts components dropped to make room; ``seconds`` the
+    time the searches took."""
 
-    estimator: Hybrid
+    estimator: AbstractEstimator  # Hybrid(smoother=Full()): checked on construction
     scenario: Scenario
     settings: lc.LoopClosureSettings = lc.LoopClosureSettings()
     every: int = 1
     closures: list[tuple[int, tuple[tuple[int, int], ...], float]] = dataclasses.field(default_factory=list)
     replaced: int = 0
+    seconds: float = 0.0  # wall time spent searching, summed over the steps
 
     def __post_init__(self):
         if not isinstance(self.estimator, Hybrid) or not isinstance(self.estimator.smoother, Full):
@@ -124,6 +134,14 @@ class OnlineLoopClosure:
         """The belief after step ``k`` (1-based), with a loop-closure hypothesis added if one is found."""
         if k <= self.settings.gap or k % self.every:
             return belief
+        t0 = time.perf_counter()
+        try:
+            return self._search(belief)
+        finally:
+            self.seconds += time.perf_counter() - t0
+
+    def _search(self, belief: Belief) -> Belief:
+        """:meth:`__call__`'s work (module docstring, steps 1-3)."""
         b = jax.device_get(belief)
         k = int(b.k)
         log_w = np.asarray(b.log_weights)
@@ -138,7 +156,7 @@ class OnlineLoopClosure:
 
         def solve(h, c, n, p, objects):
             out = _solve(belief.log, belief.model, jnp.asarray(h), jnp.asarray(c), jnp.asarray(n, jnp.int32),
-                         jnp.asarray(p), jnp.asarray(objects), jnp.asarray(k), realize, self.estimator.gn_max_steps)
+                         jnp.asarray(p), jnp.asarray(objects), jnp.asarray(k), realize, cast(Hybrid, self.estimator).gn_max_steps)
             p2, m2, c2, cost, ok = jax.device_get(out)
             misses = lc._misses(self.scenario, np.asarray(p2)[: k + 1], np.asarray(m2)[3:].reshape(-1, 3), h[:k], n,
                                 settings) if settings.detection_probability else 0
