@@ -305,21 +305,74 @@ def search(mean: np.ndarray, cov: np.ndarray, cands: dict[int, list[int]], new_l
     """The best injective merge set (each late object: a candidate or new) by :func:`log_bayes_factor`
     plus ``log_odds`` per merge (the prior), a beam over the late objects in order; returns the kept
     sets, best first, each with its log posterior odds against no merge, and how many partial sets
-    the beam dropped."""
-    partial: list[tuple[float, tuple[tuple[int, int], ...]]] = [(0.0, ())]
+    the beam dropped.
+
+    Each partial set carries the Cholesky factor ``L`` of its stacked differences' covariance and
+    ``z = L⁻¹ A μ``, so that adding a merge is one 2-row extension of the factor (the conditional
+    Gaussian of the new difference given the set's): the same score as :func:`log_bayes_factor`, to
+    rounding. Every extension of every partial set by every candidate of a late object is one batched
+    computation (sets of fewer merges padded with identity rows)."""
+    n_obj = (len(mean) - 3) // 3
+    # The beam: scores (B,), factors (B, M, M), z (B, M), the stacked rows of each set's late and old
+    # objects (B, M; padding: row 0, masked), the objects each set has taken (B, N), the sets.
+    score = np.zeros(1)
+    chol, z = np.zeros((1, 0, 0)), np.zeros((1, 0))
+    late, old, used = np.zeros((1, 0), int), np.zeros((1, 0), int), np.zeros((1, 0), bool)
+    taken = np.zeros((1, n_obj), bool)
+    sets: list[tuple[tuple[int, int], ...]] = [()]
     dropped = 0
     for a in sorted(cands):
-        grown = []
-        for _, merges in partial:
-            grown.append(merges)
-            taken = {b for _, b in merges}
-            grown.extend(merges + ((a, b),) for b in cands[a] if b not in taken)
-        scored = sorted(((log_bayes_factor(mean, cov, m, new_log_density, ranges) + log_odds * len(m), m)
-                         for m in grown),
-                        key=lambda x: -x[0])
-        dropped += max(len(scored) - beam, 0)
-        partial = scored[:beam]
-    return [(m, lbf) for lbf, m in partial], dropped
+        ia = np.array([3 + 3 * a, 4 + 3 * a])
+        bs = np.array(cands[a], dtype=int)
+        ib = np.stack([3 + 3 * bs, 4 + 3 * bs], axis=-1)  # (G, 2)
+        d = mean[ia][None] - mean[ib]  # (G, 2)
+        s_ee = (cov[np.ix_(ia, ia)][None] + cov[ib[:, :, None], ib[:, None, :]] - cov[ia[None, :, None], ib[:, None, :]]
+                - cov[ib[:, :, None], ia[None, None, :]])  # (G, 2, 2)
+        v = cov[:, ia][None] - cov[:, ib].transpose(1, 0, 2)  # (G, D, 2): Cov(·, p_a − p_b)
+        c = (v[:, late] - v[:, old]) * used[None, :, :, None]  # (G, B, M, 2): Cov(set, new)
+        if chol.shape[-1]:  # one factorization per set for every candidate: (B, M, G·2)
+            rhs = c.transpose(1, 2, 0, 3).reshape(c.shape[1], c.shape[2], -1)
+            lc = np.linalg.solve(chol, rhs).reshape(c.shape[1], c.shape[2], c.shape[0], 2).transpose(2, 0, 1, 3)
+        else:
+            lc = c  # (G, B, M, 2)
+        schur = s_ee[:, None] - np.swapaxes(lc, -1, -2) @ lc  # (G, B, 2, 2)
+        r = d[:, None] - np.einsum("gbmi,bm->gbi", lc, z)
+        ok = ~taken[:, bs].T  # (G, B): injective
+        ok &= (schur[..., 0, 0] > 0) & (schur[..., 0, 0] * schur[..., 1, 1] - schur[..., 0, 1] * schur[..., 1, 0] > 0)
+        ls = np.linalg.cholesky(np.where(ok[..., None, None], schur, np.eye(2)))
+        ze = np.linalg.solve(ls, r[..., None])[..., 0]
+        per_merge = log_odds - (new_log_density - math.log(max(ranges[a], 1e-9)))
+        inc = (-0.5 * np.sum(ze * ze, -1) - np.log(ls[..., 0, 0]) - np.log(ls[..., 1, 1]) - math.log(2 * math.pi)
+               + per_merge)
+        grown = np.concatenate([score, np.where(ok & np.isfinite(inc), score[None] + inc, -np.inf).ravel()])
+        order = np.argsort(-grown, kind="stable")
+        order = order[np.isfinite(grown[order])]
+        dropped += max(len(order) - beam, 0)
+        order = order[:beam]
+        keep, ext = order[order < len(score)], order[order >= len(score)] - len(score)
+        g, bi = np.divmod(ext, len(score))
+        m = chol.shape[-1]
+        grow = len(ext) > 0
+        size = m + 2 if grow else m
+        new_chol = np.broadcast_to(np.eye(size), (len(order), size, size)).copy()
+        new_z, new_late = np.zeros((len(order), size)), np.zeros((len(order), size), int)
+        new_old, new_used = np.zeros((len(order), size), int), np.zeros((len(order), size), bool)
+        src = np.concatenate([keep, bi])
+        new_chol[:, :m, :m], new_z[:, :m] = chol[src], z[src]
+        new_late[:, :m], new_old[:, :m], new_used[:, :m] = late[src], old[src], used[src]
+        if grow:
+            e = slice(len(keep), None)
+            new_chol[e, m:, :m] = np.swapaxes(lc[g, bi], -1, -2)
+            new_chol[e, m:, m:] = ls[g, bi]
+            new_z[e, m:] = ze[g, bi]
+            new_late[e, m:], new_old[e, m:], new_used[e, m:] = ia, ib[g], True
+        new_taken = taken[src].copy()
+        new_taken[np.arange(len(keep), len(order)), bs[g]] = True
+        score = np.concatenate([score[keep], grown[len(score):][ext]])
+        sets = [sets[i] for i in keep] + [sets[i] + ((a, int(bs[j])),) for j, i in zip(g, bi)]
+        chol, z, late, old, used, taken = new_chol, new_z, new_late, new_old, new_used, new_taken
+    ranked = sorted(zip(score, range(len(sets))), key=lambda x: -x[0])
+    return [(sets[i], float(sc)) for sc, i in ranked], dropped
 
 
 @dataclasses.dataclass(frozen=True)

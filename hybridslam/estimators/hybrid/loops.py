@@ -215,8 +215,13 @@ class OnlineLoopClosure:
             self.replaced += 1
         log_w[j] = log_weight
         log_w = log_w - np.logaddexp.reduce(log_w[log_w > -np.inf])
-        put = lambda a, v: jnp.asarray(a).at[j].set(jnp.asarray(v, dtype=jnp.asarray(a).dtype))  # noqa: E731
-        return eqx.tree_at(
-            lambda x: (x.log_weights, x.history, x.classes, x.num_created, x.poses, x.mean, x.cov), belief,
-            (jnp.asarray(log_w), put(belief.history, history), put(belief.classes, classes),
-             put(belief.num_created, num), put(belief.poses, poses), put(belief.mean, mean), put(belief.cov, cov)))
+        # On the host: a device-side .at[j].set would compile a program per field on first use.
+        host = jax.device_get((belief.history, belief.classes, belief.num_created, belief.poses, belief.mean,
+                               belief.cov))
+        fields = []
+        for array, value in zip(host, (history, classes, num, poses, mean, cov)):
+            array = np.array(array)
+            array[j] = value
+            fields.append(jnp.asarray(array))
+        return eqx.tree_at(lambda x: (x.log_weights, x.history, x.classes, x.num_created, x.poses, x.mean, x.cov),
+                           belief, (jnp.asarray(log_w), *fields))
