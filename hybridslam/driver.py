@@ -313,7 +313,8 @@ def run(
 
     ``on_step(record, info, seconds)`` is called after each step (the CLI prints its table row and
     the info's warnings). ``between_steps(k, state)``, if given, returns the state the next step
-    starts from, after step ``k`` (1-based) and its record: a host-side edit of the same shapes, e.g.
+    starts from, after step ``k`` (1-based, not the last) and its record: a host-side edit of the
+    same shapes, e.g.
     :class:`hybridslam.estimators.hybrid.loops.OnlineLoopClosure`. The same estimator, scenario and
     seed give the same result.
     """
@@ -344,7 +345,7 @@ def run(
         infos.append(trace.info)
         if on_step is not None:
             on_step(records[-1], trace.info, step_s[-1])
-        if between_steps is not None:
+        if between_steps is not None and k + 1 < scenario.num_steps:
             state = between_steps(k + 1, state)
     extra = {}
     trajectory, objects = _smoothed(estimator, state)

@@ -153,10 +153,11 @@ class OnlineLoopClosure:
         realize = bool(b.model.sensor.classifier.uses_scores)
         assert self.scenario.discovery is not None  # checked on construction
         density = self.scenario.discovery.new_object_log_density
+        max_steps = cast(Hybrid, self.estimator).gn_max_steps
 
         def solve(h, c, n, p, objects):
             out = _solve(belief.log, belief.model, jnp.asarray(h), jnp.asarray(c), jnp.asarray(n, jnp.int32),
-                         jnp.asarray(p), jnp.asarray(objects), jnp.asarray(k), realize, cast(Hybrid, self.estimator).gn_max_steps)
+                         jnp.asarray(p), jnp.asarray(objects), jnp.asarray(k), realize, max_steps)
             p2, m2, c2, cost, ok = jax.device_get(out)
             misses = lc._misses(self.scenario, np.asarray(p2)[: k + 1], np.asarray(m2)[3:].reshape(-1, 3), h[:k], n,
                                 settings) if settings.detection_probability else 0
@@ -197,7 +198,7 @@ class OnlineLoopClosure:
             odds = lbf + negative(misses2, misses_r) - parent_odds
             if odds > settings.threshold and (best is None or odds > best[0]):
                 best = (odds, merges, h2, c2, n2, p2, mean2, cov2)
-        if best is None:
+        if best is None or len(log_w) < 2:  # a belief of one component has no room for a second hypothesis
             return belief
         odds, merges, h2, c2, n2, p2, mean2, cov2 = best
         self.closures.append((k, tuple((int(origin[a]), int(origin[b_])) for a, b_ in merges), float(odds)))
