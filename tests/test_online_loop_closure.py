@@ -77,6 +77,8 @@ def test_the_command_line_closes_loops_during_the_run(drifted_loop, tmp_path, ca
     assert main(argv) == 0
     out = capsys.readouterr().out
     assert "loop closure during the run:" in out and "hypotheses added: step" in out
-    assert error_summary(hs.load_result(tmp_path / "r.json"), scenario)["final_smoothed"] < 0.5
+    result = hs.load_result(tmp_path / "r.json")
+    assert error_summary(result, scenario)["final_smoothed"] < 0.5
+    assert result.estimator.endswith("hypotheses added)")
     assert main(argv[:-2] + ["--smoother", "filter", "--close-loops"]) == 2
     assert "--close-loops" in capsys.readouterr().err

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import re
 from collections import Counter
 
@@ -100,6 +101,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     result = run(estimator, scenario, seed=args.seed, on_step=on_step, between_steps=hook).result
     throttle.finish()
     if hook is not None:
+        result = dataclasses.replace(result, estimator=f"{result.estimator}, loop closure during the run "
+                                                        f"({len(hook.closures)} hypotheses added)")
         added = ", ".join(f"step {k}: {', '.join(f'{a}->{b}' for a, b in m)} (log odds {o:.2f})" for k, m, o in hook.closures)
         print(f"loop closure during the run: {len(hook.closures)} hypotheses added{': ' + added if added else ''}; "
               f"its searches took {hook.seconds:.2f} s")
