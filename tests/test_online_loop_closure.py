@@ -82,3 +82,18 @@ def test_the_command_line_closes_loops_during_the_run(drifted_loop, tmp_path, ca
     assert result.estimator.endswith("hypotheses added)")
     assert main(argv[:-2] + ["--smoother", "filter", "--close-loops"]) == 2
     assert "--close-loops" in capsys.readouterr().err
+
+
+def test_between_steps_runs_between_steps_only_and_an_identity_hook_changes_nothing(drifted_loop):
+    scenario, estimator, plain = drifted_loop
+    seen: list[int] = []
+
+    def identity(k, state):
+        seen.append(k)
+        return state
+
+    result = hs.run(estimator, scenario, between_steps=identity).result
+    assert seen == list(range(1, scenario.num_steps))  # after steps 1..T-1, never after the last
+    assert [s.components[0].pose_mean.tolist() for s in result.steps] == \
+        [s.components[0].pose_mean.tolist() for s in plain.steps]
+    np.testing.assert_array_equal(result.trajectory, plain.trajectory)
