@@ -183,9 +183,9 @@ def test_the_runs_own_closures_are_reopened_at_each_pause_longer_than_the_gap():
     history[0:3, 0] = 0  # object 0: steps 0-2, then again 30-32 (a closure of the run's own)
     history[30:33, 0] = 0
     history[5:35, 1] = 1  # object 1: never pauses
-    h, cls, origin, added = lc._reopen(history, np.array([1, 0, -1, -1]), gap=20)
+    h, cls, origin, added = lc.reopen(history, np.array([1, 0, -1, -1]), gap=20)
     assert added == 1
     assert (h[0:3, 0] == 0).all() and (h[30:33, 0] == 2).all() and (h[5:35, 1] == 1).all()
     assert cls.tolist() == [1, 0, 1, -1] and origin.tolist()[:3] == [0, 1, 0]
-    same, _, _, none = lc._reopen(history, np.array([1, 0]), gap=20)  # no free slot: left as it is
+    same, _, _, none = lc.reopen(history, np.array([1, 0]), gap=20)  # no free slot: left as it is
     assert none == 0 and (same == history).all()

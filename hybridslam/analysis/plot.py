@@ -354,10 +354,8 @@ def plot_run(scenario: Scenario, result: Result, path: str | os.PathLike, *,
     landmarks = None
     if result.objects is not None:
         used = _objects_with_detections(result)
-        used = used[used < len(result.objects)]
-        classes = np.asarray(top.classes, dtype=int)
-        landmarks = (np.asarray(result.objects, float)[used, :2],
-                     np.where(used < len(classes), classes[np.minimum(used, len(classes) - 1)], -1))
+        used = used[used < len(result.objects)]  # objects is indexed like classes (the file format)
+        landmarks = (np.asarray(result.objects, float)[used, :2], np.asarray(top.classes, dtype=int)[used])
     plot_trajectory(ax_map, scenario, result, landmarks=landmarks, label="online (best component)")
     smoothed = smoothed_trajectory_from_result(result)
     if smoothed is not None:

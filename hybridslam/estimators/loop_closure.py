@@ -187,19 +187,26 @@ def _problem(scenario: Scenario, component: ComponentRecord) -> _Problem:
     return _Problem(scenario, log, history, classes, np.asarray(log.geo))
 
 
-def _compact(history: np.ndarray, classes: np.ndarray, merges: dict[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Apply ``merges`` (late -> old) and renumber the used objects in order of first detection:
+def compact(history: np.ndarray, classes: np.ndarray, merges: dict[int, int],
+            num: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Apply ``merges`` (late -> old; the old object takes the late one's class where its own is
+    open) and renumber the objects in order of first detection (with ``num``, the objects below it
+    that no detection names come first, in index order: a prior map's undetected objects, kept):
     the new history, classes (padded with -1 to the same length) and the old index of each new one."""
-    h = history.copy()
+    h, cls = history.copy(), classes.copy()
     for a, b in merges.items():
         h[history == a] = b
-    used = list(dict.fromkeys(int(s) for s in h.ravel() if s >= 0))  # row-major: order of first detection
+        if cls[b] < 0:
+            cls[b] = classes[a]
+    detected = list(dict.fromkeys(int(s) for s in h.ravel() if s >= 0))  # row-major: order of first detection
+    named = set(detected)
+    used = [s for s in range(num or 0) if s not in named and s not in merges] + detected
     new_of = np.full(len(classes), -1, dtype=np.int64)
     new_of[used] = np.arange(len(used))
     out = np.where(h >= 0, new_of[np.maximum(h, 0)], -1).astype(np.int32)
-    cls = np.full(len(classes), -1, dtype=np.int64)
-    cls[: len(used)] = classes[used]
-    return out, cls, np.asarray(used, dtype=np.int64)
+    out_cls = np.full(len(classes), -1, dtype=np.int64)
+    out_cls[: len(used)] = cls[used]
+    return out, out_cls, np.asarray(used, dtype=np.int64)
 
 
 @eqx.filter_jit
@@ -254,7 +261,7 @@ def _initial_objects(problem: _Problem, history: np.ndarray, poses: np.ndarray) 
     return objects
 
 
-def _creating_ranges(geo: np.ndarray, history: np.ndarray, n: int) -> np.ndarray:
+def creating_ranges(geo: np.ndarray, history: np.ndarray, n: int) -> np.ndarray:
     """Per object, the range (m) of the detection that created it (1 where none)."""
     _, _, creating = _span(history, n)
     return np.where(creating >= 0, geo[..., 0].ravel()[np.maximum(creating, 0)], 1.0)
@@ -409,7 +416,7 @@ class _Solved:
     cov: np.ndarray
 
 
-def _start(scenario: Scenario, result: Result, settings: LoopClosureSettings, reopen: bool):
+def _start(scenario: Scenario, result: Result, settings: LoopClosureSettings, reopen_closures: bool):
     """The run's graph solved, before any merge: the problem, its solver, the solution, each
     object's index in the run's own numbering, how many closures were re-opened, and convergence."""
     if scenario.discovery is None:
@@ -421,8 +428,8 @@ def _start(scenario: Scenario, result: Result, settings: LoopClosureSettings, re
     history, classes = problem.history, problem.classes
     origin = np.arange(len(classes))  # each current object's index in the run's own numbering
     reopened = 0
-    if reopen:
-        history, classes, origin, reopened = _reopen(history, classes, settings.gap)
+    if reopen_closures:
+        history, classes, origin, reopened = reopen(history, classes, settings.gap)
     poses = result.trajectory if result.trajectory is not None else _online_trajectory(scenario, result)
     poses = np.asarray(poses, float)[: scenario.num_steps + 1]
     num = int(history.max(initial=-1)) + 1
@@ -434,21 +441,32 @@ def _merged(problem: _Problem, solver: _Solver, g: _Solved, merges: Sequence[tup
             settings: LoopClosureSettings, base_misses: int) -> tuple[MergeScore, _Solved, np.ndarray, bool]:
     """``merges`` applied to ``g`` and re-solved (warm-started): the score, the solved graph, the
     old index of each object, and convergence."""
-    h2, c2, used = _compact(g.history, g.classes, dict(merges))
+    h2, c2, used = compact(g.history, g.classes, dict(merges))
     p2, o2, cost2, mean2, cov2, ok = solver(h2, g.poses, _pad(g.objects[used], len(g.classes)), len(used))
-    verified = ok and 2.0 * (cost2 - g.cost) <= _chi2(2 * len(merges), settings.verify_probability)
-    neg = 0.0
-    if settings.detection_probability:
-        extra = _misses(problem.scenario, p2, o2, h2, len(used), settings) - base_misses
-        neg = extra * math.log1p(-settings.detection_probability)
-    return (MergeScore(lbf, neg, float(cost2 - g.cost), bool(verified)),
+    extra = misses(problem.scenario, p2, o2, h2, len(used), settings) - base_misses
+    return (judge(lbf, float(cost2 - g.cost), ok, extra, len(merges), settings),
             _Solved(h2, c2, len(used), p2, o2, float(cost2), mean2, cov2), used, ok)
+
+
+def negative_information(extra_misses: int, settings: LoopClosureSettings) -> float:
+    """The log-likelihood of ``extra_misses`` more (step, object) pairs in view yet undetected
+    (fewer: negative), ``log(1 − detection_probability)`` each (module docstring)."""
+    return extra_misses * math.log1p(-settings.detection_probability) if settings.detection_probability else 0.0
+
+
+def judge(log_bayes_factor: float, cost_rise: float, converged: bool, extra_misses: int, merged: int,
+          settings: LoopClosureSettings) -> MergeScore:
+    """A merge set's :class:`MergeScore` from its parts: verified when its re-solve converged and
+    ``2 · cost_rise`` lies within the chi-square ``verify_probability`` quantile of its ``2 · merged``
+    constraints (2 at least), and :func:`negative_information` of its extra misses."""
+    verified = converged and 2.0 * cost_rise <= chi2_quantile(max(2 * merged, 2), settings.verify_probability)
+    return MergeScore(log_bayes_factor, negative_information(extra_misses, settings), cost_rise, bool(verified))
 
 
 def _base_misses(problem: _Problem, g: _Solved, settings: LoopClosureSettings) -> int:
     if not settings.detection_probability:
         return 0
-    return _misses(problem.scenario, g.poses, g.objects, g.history, g.num, settings)
+    return misses(problem.scenario, g.poses, g.objects, g.history, g.num, settings)
 
 
 def score_merges(scenario: Scenario, result: Result, merges: Sequence[tuple[int, int]],
@@ -458,13 +476,13 @@ def score_merges(scenario: Scenario, result: Result, merges: Sequence[tuple[int,
     first round: e.g. the true merges of a simulated run, to tell a search that missed them from a
     model that does not favour them. Any pair may be given; the search would only consider gated
     ones. Raises on an object index the component does not use or an object named twice."""
-    problem, solver, g, _, _, _ = _start(scenario, result, settings, reopen=False)
+    problem, solver, g, _, _, _ = _start(scenario, result, settings, reopen_closures=False)
     merges = tuple((int(a), int(b)) for a, b in merges)
     named = [x for m in merges for x in m]
     if any(not 0 <= x < g.num for x in named) or len(set(named)) != len(named):
         raise ValueError(f"score_merges: merges {merges} must join distinct objects among the run's {g.num}")
     assert scenario.discovery is not None  # checked by _start
-    ranges = _creating_ranges(problem.geo, g.history, g.num)
+    ranges = creating_ranges(problem.geo, g.history, g.num)
     lbf = log_bayes_factor(g.mean, g.cov, merges, scenario.discovery.new_object_log_density, ranges)
     lbf += settings.revisit_log_odds * len(merges)
     return _merged(problem, solver, g, merges, lbf, settings, _base_misses(problem, g, settings))[0]
@@ -492,7 +510,7 @@ def close_loops(scenario: Scenario, result: Result, settings: LoopClosureSetting
         considered += len(cands)
         if not cands:
             break
-        ranges = _creating_ranges(problem.geo, g.history, g.num)
+        ranges = creating_ranges(problem.geo, g.history, g.num)
         ranked, d = search(g.mean, g.cov, cands, new_log_density, ranges, settings.beam,
                            settings.revisit_log_odds)
         dropped += d
@@ -520,7 +538,7 @@ def close_loops(scenario: Scenario, result: Result, settings: LoopClosureSetting
     return _rewrite(result, g.history, g.classes, g.poses, g.objects, g.num, report), report
 
 
-def _reopen(history: np.ndarray, classes: np.ndarray, gap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+def reopen(history: np.ndarray, classes: np.ndarray, gap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Split every object at each pause of more than ``gap`` steps between its detections (module
     docstring): the new history, classes, each object's original index, and how many objects were
     added. Unchanged (0 added) if the objects would not fit in ``len(classes)`` slots."""
@@ -545,7 +563,7 @@ def _reopen(history: np.ndarray, classes: np.ndarray, gap: int) -> tuple[np.ndar
     return h, np.asarray(cls), np.asarray(origin), added
 
 
-def _chi2(dof: int, probability: float) -> float:
+def chi2_quantile(dof: int, probability: float) -> float:
     """The chi-square ``probability`` quantile with ``dof`` degrees of freedom (Wilson-Hilferty; exact for 2)."""
     if dof == 2:
         return chi2_gate(probability)
@@ -584,7 +602,7 @@ def _rewrite(result: Result, history: np.ndarray, classes: np.ndarray, poses: np
         estimator=f"{result.estimator}, loop closure ({report.merged} merged)")
 
 
-def _misses(scenario: Scenario, poses: np.ndarray, objects: np.ndarray, history: np.ndarray, num: int,
+def misses(scenario: Scenario, poses: np.ndarray, objects: np.ndarray, history: np.ndarray, num: int,
             settings: LoopClosureSettings) -> int:
     """Negative information: (step, object) pairs where the solved object lies inside the sensor's
     footprint from the solved pose, by ``fov_margin`` (m, rad) at least, yet no detection of that step

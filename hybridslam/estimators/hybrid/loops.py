@@ -49,7 +49,8 @@ from .estimator import Hybrid
 
 
 @eqx.filter_jit
-def _solve(log: DataLog, model, history, classes, num_created, poses, objects, k, realize: bool, max_steps: int):
+def _solve(log: DataLog, model, history, classes, num_created, poses, objects, k, realize: bool,
+           max_steps: int):
     """A component's whole graph after ``k`` steps (the step's own: semantic factors, its class
     realizations where the classifier sees them), solved to the final tolerance: the trajectory, the
     marginal of ``[x_k, objects]``, the cost and whether it converged (one compile per run)."""
@@ -63,32 +64,14 @@ def _solve(log: DataLog, model, history, classes, num_created, poses, objects, k
 
 def _renumbered(history: np.ndarray, classes: np.ndarray, objects: np.ndarray, num: int,
                 merges: dict[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """``merges`` (late -> old) applied to a component's first ``num`` object slots: each late
-    object's detections go to its old one (which takes its class where its own is open), and the
-    remaining objects are renumbered in creation order (objects never detected, the prior map's,
-    first; then by first detection), as the step keeps them. Returns the history, classes, object
-    poses ``(N, 3)`` (freed slots: placeholders at 0) and how many objects remain."""
-    n = len(classes)
-    h, cls = history.copy(), classes.copy()
-    for a, b in merges.items():
-        h[history == a] = b
-        if cls[b] < 0:
-            cls[b] = classes[a]
-    flat = h.ravel()
-    first = np.full(num, -1)
-    seen = np.flatnonzero(flat >= 0)
-    objs, at = np.unique(flat[seen], return_index=True)
-    first[objs] = seen[at]
-    kept = [s for s in range(num) if s not in merges]
-    kept.sort(key=lambda s: (first[s], s))
-    new_index = np.full(n, -1)
-    new_index[kept] = np.arange(len(kept))
-    out_h = np.where(h >= 0, new_index[np.maximum(h, 0)], -1).astype(history.dtype)
-    out_cls = np.full(n, -1, dtype=classes.dtype)
-    out_cls[: len(kept)] = cls[kept]
-    out_obj = np.zeros((n, 3))
-    out_obj[: len(kept)] = objects[kept]
-    return out_h, out_cls, out_obj, len(kept)
+    """``merges`` (late -> old) applied to a component's first ``num`` object slots by
+    :func:`~..loop_closure.compact` (creation order, as the step keeps them: a prior map's undetected
+    objects first, then by first detection): the history, classes, object poses ``(N, 3)`` (freed
+    slots: placeholders at 0) and how many objects remain."""
+    h, cls, used = lc.compact(history, classes, merges, num)
+    out = np.zeros((len(classes), 3))
+    out[: len(used)] = objects[used]
+    return h.astype(history.dtype), cls.astype(classes.dtype), out, len(used)
 
 
 def _back_projected(history: np.ndarray, geo: np.ndarray, poses: np.ndarray, objects: np.ndarray,
@@ -123,7 +106,8 @@ class OnlineLoopClosure:
 
     def __post_init__(self):
         if not isinstance(self.estimator, Hybrid) or not isinstance(self.estimator.smoother, Full):
-            raise ValueError("OnlineLoopClosure: needs the hybrid belief with the full smoother (Hybrid(smoother=Full()))")
+            raise ValueError("OnlineLoopClosure: needs the hybrid belief with the full smoother "
+                             "(Hybrid(smoother=Full()))")
         if not (isinstance(self.every, int) and self.every >= 1):
             raise ValueError(f"OnlineLoopClosure.every: expected a positive int, got {self.every!r}")
         if self.scenario.discovery is None:
@@ -159,22 +143,19 @@ class OnlineLoopClosure:
             out = _solve(belief.log, belief.model, jnp.asarray(h), jnp.asarray(c), jnp.asarray(n, jnp.int32),
                          jnp.asarray(p), jnp.asarray(objects), jnp.asarray(k), realize, max_steps)
             p2, m2, c2, cost, ok = jax.device_get(out)
-            misses = lc._misses(self.scenario, np.asarray(p2)[: k + 1], np.asarray(m2)[3:].reshape(-1, 3), h[:k], n,
-                                settings) if settings.detection_probability else 0
-            return np.asarray(p2), np.asarray(m2), np.asarray(c2), float(cost), bool(ok), misses
-
-        def negative(misses: int, base: int) -> float:
-            return (misses - base) * math.log1p(-settings.detection_probability) if settings.detection_probability else 0.0
+            objects2 = np.asarray(m2)[3:].reshape(-1, 3)
+            missed = lc.misses(self.scenario, np.asarray(p2)[: k + 1], objects2, h[:k], n, settings)
+            return np.asarray(p2), np.asarray(m2), np.asarray(c2), float(cost), bool(ok), missed
 
         # The component's own closures re-opened (the pass's reopen): each stretch of an object's
         # detections after a pause longer than the gap becomes an object of its own.
-        h_r, c_r, origin, added = lc._reopen(history, classes, settings.gap)
+        h_r, c_r, origin, added = lc.reopen(history, classes, settings.gap)
         num_r = num + added
         objects_r = _back_projected(h_r, geo, poses, mean[3:].reshape(-1, 3), range(num, num_r))
         p_r, mean_r, cov_r, cost_r, ok_r, misses_r = solve(h_r, c_r, num_r, poses, objects_r)
         if not ok_r:
             return belief
-        ranges = lc._creating_ranges(geo[:k], h_r[:k], num_r)
+        ranges = lc.creating_ranges(geo[:k], h_r[:k], num_r)
         cands = lc.candidates(mean_r, cov_r, h_r[:k], c_r, num_r, settings)
         ranked, _ = lc.search(mean_r, cov_r, cands, density, ranges, settings.beam, settings.revisit_log_odds)
         # The parent is the re-opened graph with every stretch merged back: its log odds against it.
@@ -183,7 +164,8 @@ class OnlineLoopClosure:
         if back:
             *_, misses_0 = solve(history, classes, num, poses, mean[3:].reshape(-1, 3))
             parent_odds = (lc.log_bayes_factor(mean_r, cov_r, back, density, ranges)
-                           + settings.revisit_log_odds * len(back) + negative(misses_0, misses_r))
+                           + settings.revisit_log_odds * len(back)
+                           + lc.negative_information(misses_0 - misses_r, settings))
         alive = np.flatnonzero(log_w > -np.inf)
         best = None
         for merges, lbf in ranked[: settings.tries]:
@@ -193,9 +175,10 @@ class OnlineLoopClosure:
             if any(np.array_equal(h2, np.asarray(b.history[j])) for j in alive):
                 continue  # an alive component already holds these associations
             p2, mean2, cov2, cost2, ok2, misses2 = solve(h2, c2, n2, p_r, o2)
-            if not ok2 or 2.0 * (cost2 - cost_r) > lc._chi2(max(2 * len(merges), 2), settings.verify_probability):
+            score = lc.judge(lbf, cost2 - cost_r, ok2, misses2 - misses_r, len(merges), settings)
+            if not score.verified:
                 continue
-            odds = lbf + negative(misses2, misses_r) - parent_odds
+            odds = score.log_odds - parent_odds
             if odds > settings.threshold and (best is None or odds > best[0]):
                 best = (odds, merges, h2, c2, n2, p2, mean2, cov2)
         if best is None or len(log_w) < 2:  # a belief of one component has no room for a second hypothesis
@@ -204,7 +187,8 @@ class OnlineLoopClosure:
         self.closures.append((k, tuple((int(origin[a]), int(origin[b_])) for a, b_ in merges), float(odds)))
         return self._insert(belief, i, log_w[i] + odds, h2, c2, n2, p2, mean2, cov2)
 
-    def _insert(self, belief: Belief, parent: int, log_weight: float, history, classes, num, poses, mean, cov) -> Belief:
+    def _insert(self, belief: Belief, parent: int, log_weight: float, history, classes, num, poses, mean,
+                cov) -> Belief:
         """``belief`` with the merged component in an empty slot (else the weakest but the parent's)."""
         log_w = np.asarray(belief.log_weights).copy()
         dead = np.flatnonzero(log_w == -np.inf)
