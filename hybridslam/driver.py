@@ -245,7 +245,8 @@ def record_from_arrays(
     components = [
         ComponentRecord(
             weight=float(w[i] / total),
-            associations=[[int(o) for o in history[i, j, : num_detections[j]]] for j in range(k)],
+            # One conversion of the whole history (a long log's records hold millions of lists).
+            associations=[row[:n] for row, n in zip(history[i, :k].tolist(), num_detections)],
             classes=[int(c) for c in classes[i]],
             pose_mean=np.asarray(pose_mean[i], dtype=float),
             pose_cov=0.5 * (np.asarray(pose_cov[i], dtype=float) + np.asarray(pose_cov[i], dtype=float).T),

@@ -216,3 +216,67 @@ def test_unassociated_detection_is_minus_one() -> None:
     r = parse_result(obj)
     assert r.steps[1].components[0].associations == [[-1], []]
     assert result_to_json(r) == obj
+
+
+def _reference_dumps(obj, indent: int = 0, width: int = 100) -> str:
+    """``jsonfields.dumps`` as it was before it became linear (it encoded each subtree again at
+    every level): the layout the new one must keep, byte for byte."""
+    text = json.dumps(obj, allow_nan=False)
+    nested = isinstance(obj, dict) or (isinstance(obj, list) and any(isinstance(x, (dict, list)) for x in obj))
+    if not nested or len(text) + indent <= width:
+        return text
+    pad, inner = " " * indent, " " * (indent + 1)
+    if isinstance(obj, dict):
+        lines = [f"{inner}{json.dumps(k)}: {_reference_dumps(v, indent + 1, width)}" for k, v in obj.items()]
+        return "{\n" + ",\n".join(lines) + "\n" + pad + "}"
+    lines = [inner + _reference_dumps(x, indent + 1, width) for x in obj]
+    return "[\n" + ",\n".join(lines) + "\n" + pad + "]"
+
+
+_scalars = st.none() | st.booleans() | st.integers(-50, 50) | st.floats(-1e3, 1e3) | st.text("ab],[ {\"", max_size=4)
+_json_values = st.recursive(_scalars, lambda inner: st.lists(inner, max_size=5)
+                            | st.dictionaries(st.text("kx", max_size=3), inner, max_size=4), max_leaves=30)
+
+
+@settings(max_examples=300, deadline=None, database=None)
+@given(_json_values, st.integers(8, 40), st.integers(0, 3))  # 8: an empty object fits (the reference spread it)
+def test_the_writers_layout_is_the_reference_layout(obj, width: int, indent: int) -> None:
+    """Spread lists of flat lists (cut from their one-line text) and every other value lay out as
+    the reference does, strings holding brackets included; and the text is the same JSON."""
+    from hybridslam.io.jsonfields import dumps
+
+    got = dumps(obj, indent, width)
+    assert got == _reference_dumps(obj, indent, width)
+    assert json.loads(got) == json.loads(json.dumps(obj))
+
+
+def test_a_long_results_association_lists_are_written_one_per_line(tmp_path) -> None:
+    obj = minimal()
+    obj["steps"][0]["components"][0]["associations"] = [[0, 1, 2, 3, 4, 5, 6, 7, 8, 9] * 12]
+    save_result(parse_result(obj), tmp_path / "r.json")
+    text = (tmp_path / "r.json").read_text()
+    assert text == _reference_dumps(result_to_json(parse_result(obj))) + "\n"
+
+
+@pytest.mark.parametrize("bad, path, message", [
+    ([[0], [True]], "[1][0]", "expected an integer, got boolean"),
+    ([[0], ["1"]], "[1][0]", "expected an integer, got string"),
+    ([[0], [1.5]], "[1][0]", "expected an integer, got 1.5"),
+    ([[0], [0, -3]], "[1][1]", "expected an integer >= -1, got -3"),
+    ([[0], 4], "[1]", "expected a list, got number"),
+])
+def test_association_errors_name_the_entry(bad, path: str, message: str) -> None:
+    obj = minimal()
+    obj["steps"][1]["components"][0]["associations"] = bad
+    with pytest.raises(ScenarioError) as e:
+        parse_result(obj)
+    assert str(e.value) == f"steps[1].components[0].associations{path}: {message}"
+
+
+def test_whole_number_floats_still_count_as_associations_and_bools_not_as_numbers() -> None:
+    obj = minimal()
+    obj["steps"][1]["components"][0]["associations"] = [[1.0], [0]]
+    assert parse_result(obj).steps[1].components[0].associations == [[1], [0]]
+    obj["steps"][1]["components"][0]["pose_mean"] = [1.0, True, 0.0]
+    with pytest.raises(ScenarioError, match=r"pose_mean\[1\]: expected a number, got boolean"):
+        parse_result(obj)

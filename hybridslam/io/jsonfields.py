@@ -8,6 +8,7 @@ standard library.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 import math
 import numbers
@@ -141,13 +142,29 @@ def integer(obj: Any, path: str, lo: int | None = None, hi: int | None = None) -
 
 
 def integers(obj: Any, path: str, lo: int | None = None) -> list[int]:
+    if type(obj) is list and all(type(x) is int for x in obj) and (lo is None or not obj or min(obj) >= lo):
+        return obj  # the common case, without a path string per entry
     return [integer(x, f"{path}[{i}]", lo) for i, x in enumerate(as_list(obj, path))]
+
+
+def integer_lists(obj: Any, path: str, lo: int | None = None) -> list[list[int]]:
+    """A list of lists of integers >= ``lo`` (a component's associations)."""
+    items = as_list(obj, path)
+    if all(type(a) is list for a in items):
+        flat = list(itertools.chain.from_iterable(items))
+        if set(map(type, flat)) <= {int} and (lo is None or not flat or min(flat) >= lo):
+            return items
+    return [integers(a, f"{path}[{j}]", lo) for j, a in enumerate(items)]
 
 
 def vector(obj: Any, path: str, n: int | None = None) -> np.ndarray:
     items = as_list(obj, path)
     if n is not None and len(items) != n:
         fail(path, f"expected {n} numbers, got {len(items)}")
+    if set(map(type, items)) <= {float, int}:  # no bool, no string: the common case, checked at once
+        out = np.array(items, dtype=np.float64)
+        if np.all(np.isfinite(out)):
+            return out
     return np.array([number(x, f"{path}[{i}]") for i, x in enumerate(items)], dtype=np.float64)
 
 
@@ -194,18 +211,45 @@ def floats(a: Any) -> Any:
 
 
 def dumps(obj: Any, indent: int = 0, width: int = 100) -> str:
-    """JSON text; objects and lists of lists/objects are spread over lines when long."""
-    text = json.dumps(obj, allow_nan=False)
-    nested = isinstance(obj, dict) or (
-        isinstance(obj, list) and any(isinstance(x, (dict, list)) for x in obj))
-    if not nested or len(text) + indent <= width:
-        return text
-    pad, inner = " " * indent, " " * (indent + 1)
+    """JSON text; objects and lists of lists/objects are spread over lines when long (one item per
+    line, one more space of indent per level), everything else on one line.
+
+    Linear in the text: each value is encoded once (a result file of a 1700-step log holds about
+    25 million association lists, and encoding every subtree again at each level took minutes).
+    """
     if isinstance(obj, dict):
-        lines = [f"{inner}{json.dumps(k)}: {dumps(v, indent + 1, width)}" for k, v in obj.items()]
-        return "{\n" + ",\n".join(lines) + "\n" + pad + "}"
-    lines = [inner + dumps(x, indent + 1, width) for x in obj]
-    return "[\n" + ",\n".join(lines) + "\n" + pad + "]"
+        parts = [(_key(k), dumps(v, indent + 1, width)) for k, v in obj.items()]
+        if parts and not any("\n" in v for _, v in parts):
+            text = "{" + ", ".join(f"{k}: {v}" for k, v in parts) + "}"
+            if len(text) + indent <= width:
+                return text
+        if not parts:
+            return "{}"
+        pad, inner = " " * indent, " " * (indent + 1)
+        return "{\n" + ",\n".join(f"{inner}{k}: {v}" for k, v in parts) + "\n" + pad + "}"
+    if not (isinstance(obj, list) and any(isinstance(x, (dict, list)) for x in obj)):
+        return json.dumps(obj, allow_nan=False)
+    pad, inner = " " * indent, " " * (indent + 1)
+    if all(type(x) is list for x in obj):
+        text = json.dumps(obj, allow_nan=False)
+        if len(text) + indent <= width:
+            return text
+        if '"' not in text and "{" not in text and text.count("[") == len(obj) + 1:
+            # A list of flat lists of numbers (associations, matrices): one item per line, cut
+            # from the one-line text, whose "], [" then only separates items.
+            return "[\n" + inner + "[" + text[2:-2].replace("], [", "],\n" + inner + "[") + "]\n" + pad + "]"
+    items = [dumps(x, indent + 1, width) for x in obj]
+    if not any("\n" in x for x in items):
+        text = "[" + ", ".join(items) + "]"
+        if len(text) + indent <= width:
+            return text
+    return "[\n" + ",\n".join(inner + x for x in items) + "\n" + pad + "]"
+
+
+def _key(k: Any) -> str:
+    """An object key as JSON text: a string, or the JSON text of any other key as a string (as
+    ``json.dumps`` writes ``{1: 2}``)."""
+    return json.dumps(k if isinstance(k, str) else json.dumps(k))
 
 
 def write_json(obj: Any, path: str | os.PathLike) -> None:

@@ -69,7 +69,7 @@ def _component(obj: Any, path: str, k: int) -> ComponentRecord:
     return ComponentRecord(
         weight=jf.get(obj, "weight", path, _weight),
         # -1: the component left the detection unassociated (clutter / outlier hypothesis)
-        associations=[jf.integers(a, f"{path}.associations[{j}]", -1) for j, a in enumerate(assoc)],
+        associations=jf.integer_lists(assoc, f"{path}.associations", -1),
         classes=jf.get(obj, "classes", path, jf.integers, -1),
         pose_mean=jf.get(obj, "pose_mean", path, jf.vector, 3),
         pose_cov=jf.get(obj, "pose_cov", path, jf.symmetric, 3),
@@ -129,7 +129,7 @@ def parse_result(obj: Any) -> Result:
 def _component_json(c: ComponentRecord) -> dict:
     return {
         "weight": float(c.weight),
-        "associations": [[int(i) for i in a] for a in c.associations],
+        "associations": [list(map(int, a)) for a in c.associations],
         "classes": [int(i) for i in c.classes],
         "pose_mean": jf.floats(c.pose_mean),
         "pose_cov": jf.floats(c.pose_cov),
