@@ -280,3 +280,15 @@ def test_whole_number_floats_still_count_as_associations_and_bools_not_as_number
     obj["steps"][1]["components"][0]["pose_mean"] = [1.0, True, 0.0]
     with pytest.raises(ScenarioError, match=r"pose_mean\[1\]: expected a number, got boolean"):
         parse_result(obj)
+
+
+def test_a_huge_integer_is_named_not_a_traceback_and_records_do_not_share_the_callers_lists() -> None:
+    obj = minimal()
+    obj["steps"][0]["components"][0]["pose_mean"] = [1.0, 10**400, 0.0]
+    with pytest.raises(ScenarioError, match=r"components\[0\]\.pose_mean\[1\]: not a finite number"):
+        parse_result(obj)
+    obj = minimal()
+    r = parse_result(obj)
+    obj["steps"][1]["components"][0]["associations"][0].append(1)
+    obj["steps"][1]["components"][0]["classes"][0] = 1
+    assert r == parse_result(minimal())

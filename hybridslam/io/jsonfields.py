@@ -143,7 +143,7 @@ def integer(obj: Any, path: str, lo: int | None = None, hi: int | None = None) -
 
 def integers(obj: Any, path: str, lo: int | None = None) -> list[int]:
     if type(obj) is list and all(type(x) is int for x in obj) and (lo is None or not obj or min(obj) >= lo):
-        return obj  # the common case, without a path string per entry
+        return list(obj)  # the common case, without a path string per entry
     return [integer(x, f"{path}[{i}]", lo) for i, x in enumerate(as_list(obj, path))]
 
 
@@ -153,7 +153,7 @@ def integer_lists(obj: Any, path: str, lo: int | None = None) -> list[list[int]]
     if all(type(a) is list for a in items):
         flat = list(itertools.chain.from_iterable(items))
         if set(map(type, flat)) <= {int} and (lo is None or not flat or min(flat) >= lo):
-            return items
+            return [list(a) for a in items]  # copies: the record must not share the caller's lists
     return [integers(a, f"{path}[{j}]", lo) for j, a in enumerate(items)]
 
 
@@ -162,7 +162,10 @@ def vector(obj: Any, path: str, n: int | None = None) -> np.ndarray:
     if n is not None and len(items) != n:
         fail(path, f"expected {n} numbers, got {len(items)}")
     if set(map(type, items)) <= {float, int}:  # no bool, no string: the common case, checked at once
-        out = np.array(items, dtype=np.float64)
+        try:
+            out = np.array(items, dtype=np.float64)
+        except OverflowError:  # an integer beyond float64: the loop below names it
+            out = np.full(1, np.inf)
         if np.all(np.isfinite(out)):
             return out
     return np.array([number(x, f"{path}[{i}]") for i, x in enumerate(items)], dtype=np.float64)
