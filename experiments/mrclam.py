@@ -83,7 +83,7 @@ from hybridslam.analysis.plot import plot_trajectory
 from hybridslam.estimators import ESTIMATORS, AbstractEstimator, make_estimator
 from hybridslam.estimators.smoothing import Lag, parse_smoother
 from hybridslam.io.mrclam import MRCLAMError, compose, import_mrclam
-from hybridslam.io.result import Result, load_result, save_result
+from hybridslam.io.result import Result, ResultWriter, StepRecord, load_result
 from hybridslam.io.scenario import Scenario, load_scenario, save_scenario
 from hybridslam.studies.study import Records
 
@@ -207,19 +207,22 @@ def _score(pairs: list[tuple[int, int]], known_map: bool) -> dict:
             "duplicate_objects": duplicates, "mixed_objects": mixed}
 
 
-def association_accuracy(s: Scenario, result: Result) -> dict:
+def association_accuracy(s: Scenario, result: Result, online: list[list[int]] | None = None) -> dict:
     """``final`` (the last step's best component's history) and ``online`` (each step's best component,
-    that step's associations) scores against ``true_object``."""
+    that step's associations) scores against ``true_object``. ``online[j]``: step ``j + 1``'s
+    associations of that step's best component, where ``result`` keeps the last step's only
+    (``hybridslam.run(..., keep_associations=False)``)."""
     known_map = s.discovery is None
     final = result.steps[-1].components[0].associations
+    if online is None:
+        online = [list(result.steps[j].components[0].associations[j]) for j in range(len(s.steps))]
     final_pairs, online_pairs = [], []
     for j, step in enumerate(s.steps):
-        online = result.steps[j].components[0].associations[j]
         for i, d in enumerate(step.detections):
             if d.true_object is None or d.true_object < 0:
                 continue
             final_pairs.append((int(final[j][i]), int(d.true_object)))
-            online_pairs.append((int(online[i]), int(d.true_object)))
+            online_pairs.append((int(online[j][i]), int(d.true_object)))
     return {"final": _score(final_pairs, known_map), "online": _score(online_pairs, known_map)}
 
 
@@ -253,12 +256,19 @@ def run_cell(folder: str, dataset: str, robot: int, start: float, duration: floa
         path, s = scenario(folder, dataset, robot, start, duration, map_, motion_noise)
         stem = os.path.splitext(os.path.basename(path))[0]
         warnings: list[str] = []
-        run = driver.run(estimator(name, smoother, max_detections), s,
-                         on_step=lambda r, info, sec: warnings.extend(info.warnings()))
+        chosen: list[list[int]] = []  # each step's best component's associations of that step
         label = f"{name}-{smoother}"
         result_path = os.path.join(folder, "results", label, stem + ".json")
         os.makedirs(os.path.dirname(result_path), exist_ok=True)
-        save_result(run.result, result_path)
+
+        def on_step(record: StepRecord, info, seconds: float) -> None:
+            writer.add(record)
+            chosen.append(list(record.components[0].associations[-1]))
+            warnings.extend(info.warnings())
+
+        with ResultWriter(result_path) as writer:  # records written as they come: a whole log's fill gigabytes
+            run = driver.run(estimator(name, smoother, max_detections), s, on_step=on_step, keep_associations=False)
+            writer.finish(run.result.estimator, run.result.timing, run.result.trajectory, run.result.objects)
         _, reference = trajectory.trajectory_from_scenario(s)
         _, online = trajectory.trajectory_from_result(run.result)
         reckoned = dead_reckoning(s)
@@ -275,7 +285,7 @@ def run_cell(folder: str, dataset: str, robot: int, start: float, duration: floa
             "errors": trajectory.trajectory_errors(reference, online),
             "smoothed_errors": smoothed,
             "dead_reckoning": trajectory.trajectory_errors(reference, reckoned),
-            "association": association_accuracy(s, run.result),
+            "association": association_accuracy(s, run.result, chosen),
             "map_error": map_error(s, run.result),  # hybridslam.analysis.map_error
             "num_steps": s.num_steps,
             "detections": sum(len(st.detections) for st in s.steps),

@@ -297,6 +297,11 @@ def object_poses(objects: Any, count: Any) -> np.ndarray:
     return poses
 
 
+def _without_associations(record: StepRecord) -> StepRecord:
+    return dataclasses.replace(record, components=[dataclasses.replace(c, associations=())
+                                                   for c in record.components])
+
+
 def _first(tree):
     """The first entry of every leaf, on the host (numpy: indexing a device array compiles a program)."""
     return jax.tree.map(lambda x: np.asarray(x)[0], jax.device_get(tree))
@@ -309,6 +314,7 @@ def run(
     seed: int = 0,
     on_step: Callable[[StepRecord, StepInfo, float], None] | None = None,
     between_steps: Callable[[int, Any], Any] | None = None,
+    keep_associations: bool = True,
 ) -> Run:
     """Run ``estimator`` over every step of ``scenario``; returns a :class:`Run` (writes nothing).
 
@@ -318,6 +324,11 @@ def run(
     same shapes, e.g.
     :class:`hybridslam.estimators.hybrid.loops.OnlineLoopClosure`. The same estimator, scenario and
     seed give the same result.
+
+    ``keep_associations=False``: the returned records keep the associations of the last step only
+    (earlier steps' components hold ``()``), for a run whose ``on_step`` writes each whole record
+    as it comes (:class:`hybridslam.io.result.ResultWriter`). A result file holds every
+    component's whole history at every step: T² lists, gigabytes over a whole real log.
     """
     state = estimator.init(scenario)
     history = jax.eval_shape(estimator.view, state).history  # its shape only: nothing to compute
@@ -342,6 +353,8 @@ def run(
         state, trace = jax.block_until_ready(step_fn(estimator, state, xs, key))
         step_s.append(time.perf_counter() - t0)
         trace = _first(trace)
+        if records and not keep_associations:
+            records[-1] = _without_associations(records[-1])
         records.append(trace_record(trace, num_det, has_truth))
         infos.append(trace.info)
         if on_step is not None:

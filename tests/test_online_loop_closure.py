@@ -46,8 +46,10 @@ def test_merge_hypotheses_close_a_loop_the_belief_misses(drifted_loop):
     run = hs.run(estimator, scenario, between_steps=hook)
     before, after = error_summary(plain, scenario), error_summary(run.result, scenario)
     assert before["final_smoothed"] > 1.5 and after["final_smoothed"] < 0.5
-    assert hook.closures and all(odds > 0 for _, _, odds in hook.closures)
-    assert all(step > 10 for step, _, _ in hook.closures)
+    assert hook.closures and all(c.log_odds > 0 and c.step > 10 for c in hook.closures)
+    for c in hook.closures:  # each names what it changes: no object merged into itself
+        assert (c.merges or c.splits) and all(a != b for a, b in c.merges)
+        assert str(c).startswith(f"step {c.step}: ") and str(c).endswith(f"(log odds {c.log_odds:.2f})")
     state = run.state
     alive = np.asarray(state.log_weights) > -np.inf
     assert np.isclose(np.logaddexp.reduce(np.asarray(state.log_weights)[alive]), 0.0)

@@ -292,3 +292,48 @@ def test_a_huge_integer_is_named_not_a_traceback_and_records_do_not_share_the_ca
     obj["steps"][1]["components"][0]["associations"][0].append(1)
     obj["steps"][1]["components"][0]["classes"][0] = 1
     assert r == parse_result(minimal())
+
+
+_items = st.lists(st.dictionaries(st.text("kx", max_size=3), _json_values, max_size=3), max_size=6)
+
+
+@settings(max_examples=150, deadline=None, database=None)
+@given(st.dictionaries(st.text("ab", max_size=3), _json_values, max_size=3), _items, st.integers(8, 60))
+def test_a_streamed_list_writes_what_write_json_writes(tmp_path_factory, head, items, width: int) -> None:
+    """Items appended one at a time give the text of the whole object, short lists on one line included."""
+    from hybridslam.io import jsonfields as jf
+
+    folder = tmp_path_factory.mktemp("streamed")
+    head = {**head, "steps": items}
+    with jf.StreamedList(folder / "a.json", "steps", width=width) as streamed:
+        for item in items:
+            streamed.append(item)
+        streamed.close({**head, "steps": None})
+    assert (folder / "a.json").read_text() == jf.dumps(head, 0, width) + "\n"
+    assert sorted(p.name for p in folder.iterdir()) == ["a.json"]  # no temporary file left
+
+
+def test_the_result_writer_checks_each_step_and_writes_nothing_on_an_error(tmp_path) -> None:
+    from hybridslam.io.result import ResultWriter
+
+    r = parse_result(minimal())
+    with ResultWriter(tmp_path / "r.json") as writer:
+        for step in r.steps:
+            writer.add(step)
+        assert len(writer) == 2 and not (tmp_path / "r.json").exists()  # nothing at the path before finish
+        writer.finish(r.estimator, r.timing)
+    assert load_result(tmp_path / "r.json") == r
+    assert (tmp_path / "r.json").read_text() == _reference_dumps(result_to_json(r)) + "\n"  # steps mid-object
+    save_result(r, tmp_path / "s.json")
+
+    with pytest.raises(ScenarioError, match=r"^steps\[0\]\.k: expected 1"):
+        with ResultWriter(tmp_path / "bad.json") as writer:
+            writer.add(r.steps[1])
+    with pytest.raises(ScenarioError, match=r"^timing\.step_s: expected 2 numbers, got 1"):
+        with ResultWriter(tmp_path / "bad.json") as writer:
+            for step in r.steps:
+                writer.add(step)
+            writer.finish(r.estimator, {"compile_s": 1.0, "step_s": [0.1]})
+    with ResultWriter(tmp_path / "bad.json") as writer:  # left without finish: nothing written
+        writer.add(r.steps[0])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.json", "s.json"]

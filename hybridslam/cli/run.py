@@ -12,7 +12,7 @@ from ..analysis.trajectory import error_summary
 from ..driver import run
 from ..estimators.base import AbstractEstimator, StepInfo
 from ..estimators.smoothing import Full
-from ..io.result import StepRecord, save_result
+from ..io.result import ResultWriter, StepRecord
 from ..io.scenario import Scenario, ScenarioError, load_scenario
 from .common import (
     CLASSIFIERS,
@@ -67,6 +67,14 @@ class WarningThrottle:
 LONG_RUN_STEPS = 500  # a full smoother's steps past this many poses cost several times a short run's
 
 
+def closure_summary(hook) -> str:
+    """The line ``hybridslam run --close-loops`` prints after the run: each added hypothesis's
+    changes against its parent (:class:`~hybridslam.estimators.hybrid.loops.Closure`)."""
+    added = "; ".join(str(c) for c in hook.closures)
+    return (f"loop closure during the run: {len(hook.closures)} hypotheses added{': ' + added if added else ''}; "
+            f"its searches took {hook.seconds:.2f} s")
+
+
 def long_run_note(estimator: AbstractEstimator, scenario: Scenario) -> str | None:
     """The note ``run`` prints before a long file under the full smoother, else ``None``.
 
@@ -112,40 +120,44 @@ def cmd_run(args: argparse.Namespace) -> int:
     num_det = [len(s.detections) for s in scenario.steps]
     throttle = WarningThrottle()
 
-    def on_step(record: StepRecord, info: StepInfo, seconds: float) -> None:
-        if record.k == 1:
-            print(TABLE_HEADER)
-        print(table_row(record, num_det[record.k - 1], seconds), flush=True)
-        for line in info.warnings():
-            throttle(line)
+    with ResultWriter(args.output) as writer:  # each record written as it comes: a long log's fill gigabytes
 
-    result = run(estimator, scenario, seed=args.seed, on_step=on_step, between_steps=hook).result
-    throttle.finish()
-    if hook is not None:
-        result = dataclasses.replace(result, estimator=f"{result.estimator}, loop closure during the run "
-                                                        f"({len(hook.closures)} hypotheses added)")
-        added = ", ".join(f"step {k}: {', '.join(f'{a}->{b}' for a, b in m)} (log odds {o:.2f})" for k, m, o in hook.closures)
-        print(f"loop closure during the run: {len(hook.closures)} hypotheses added{': ' + added if added else ''}; "
-              f"its searches took {hook.seconds:.2f} s")
-        if hook.replaced:
-            warn(f"loop closure: {hook.replaced} component(s) dropped to make room for its hypotheses (raise --capacity)")
-    timing = result.timing or {"compile_s": 0.0, "step_s": []}
-    steps_s = sum(timing["step_s"])
-    per_step = 1e3 * steps_s / max(len(timing["step_s"]), 1)
-    print(f"compile time {timing['compile_s']:.2f} s; {scenario.num_steps} steps in {steps_s:.2f} s "
-          f"({per_step:.1f} ms/step)")
-    errors = error_summary(result, scenario)
-    if errors:
-        line = (f"translation error (m): online APE {errors['ape_online']:.3f}, "
-                f"RPE {errors.get('rpe_online', float('nan')):.3f}")
-        if "ape_smoothed" in errors:
-            line += f"; smoothed APE {errors['ape_smoothed']:.3f}, RPE {errors.get('rpe_smoothed', float('nan')):.3f}"
-        print(line + f"; last pose {errors['final']:.3f}")
-    mapped = map_error(scenario, result)
-    if mapped.get("objects"):
-        print(f"map error (m): {mapped['objects']} objects with detections, {mapped['mean_m']:.3f} from their "
-              f"true objects on average (median {mapped['median_m']:.3f})")
-    save_result(result, args.output)
+        def on_step(record: StepRecord, info: StepInfo, seconds: float) -> None:
+            writer.add(record)
+            if record.k == 1:
+                print(TABLE_HEADER)
+            print(table_row(record, num_det[record.k - 1], seconds), flush=True)
+            for line in info.warnings():
+                throttle(line)
+
+        result = run(estimator, scenario, seed=args.seed, on_step=on_step, between_steps=hook,
+                     keep_associations=False).result
+        throttle.finish()
+        if hook is not None:
+            result = dataclasses.replace(result, estimator=f"{result.estimator}, loop closure during the run "
+                                                            f"({len(hook.closures)} hypotheses added)")
+            print(closure_summary(hook))
+            if hook.replaced:
+                warn(f"loop closure: {hook.replaced} component(s) dropped to make room for its hypotheses "
+                     "(raise --capacity)")
+        timing = result.timing or {"compile_s": 0.0, "step_s": []}
+        steps_s = sum(timing["step_s"])
+        per_step = 1e3 * steps_s / max(len(timing["step_s"]), 1)
+        print(f"compile time {timing['compile_s']:.2f} s; {scenario.num_steps} steps in {steps_s:.2f} s "
+              f"({per_step:.1f} ms/step)")
+        errors = error_summary(result, scenario)
+        if errors:
+            line = (f"translation error (m): online APE {errors['ape_online']:.3f}, "
+                    f"RPE {errors.get('rpe_online', float('nan')):.3f}")
+            if "ape_smoothed" in errors:
+                line += (f"; smoothed APE {errors['ape_smoothed']:.3f}, "
+                         f"RPE {errors.get('rpe_smoothed', float('nan')):.3f}")
+            print(line + f"; last pose {errors['final']:.3f}")
+        mapped = map_error(scenario, result)
+        if mapped.get("objects"):
+            print(f"map error (m): {mapped['objects']} objects with detections, {mapped['mean_m']:.3f} from their "
+                  f"true objects on average (median {mapped['median_m']:.3f})")
+        writer.finish(result.estimator, result.timing, result.trajectory, result.objects)
     print(f"wrote {args.output}")
     if args.plot is not None:
         from ..analysis.plot import plot_run  # here: matplotlib costs every other command 0.3-0.5 s

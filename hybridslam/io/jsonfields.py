@@ -13,6 +13,8 @@ import json
 import math
 import numbers
 import os
+import shutil
+import tempfile
 from collections.abc import Callable
 from typing import Any, NoReturn
 
@@ -221,18 +223,9 @@ def dumps(obj: Any, indent: int = 0, width: int = 100) -> str:
     25 million association lists, and encoding every subtree again at each level took minutes).
     """
     if isinstance(obj, dict):
-        parts = [(_key(k), dumps(v, indent + 1, width)) for k, v in obj.items()]
-        if parts and not any("\n" in v for _, v in parts):
-            text = "{" + ", ".join(f"{k}: {v}" for k, v in parts) + "}"
-            if len(text) + indent <= width:
-                return text
-        if not parts:
-            return "{}"
-        pad, inner = " " * indent, " " * (indent + 1)
-        return "{\n" + ",\n".join(f"{inner}{k}: {v}" for k, v in parts) + "\n" + pad + "}"
+        return _object_text([(_key(k), dumps(v, indent + 1, width)) for k, v in obj.items()], indent, width)
     if not (isinstance(obj, list) and any(isinstance(x, (dict, list)) for x in obj)):
         return json.dumps(obj, allow_nan=False)
-    pad, inner = " " * indent, " " * (indent + 1)
     if all(type(x) is list for x in obj):
         text = json.dumps(obj, allow_nan=False)
         if len(text) + indent <= width:
@@ -240,13 +233,30 @@ def dumps(obj: Any, indent: int = 0, width: int = 100) -> str:
         if '"' not in text and "{" not in text and text.count("[") == len(obj) + 1:
             # A list of flat lists of numbers (associations, matrices): one item per line, cut
             # from the one-line text, whose "], [" then only separates items.
-            return "[\n" + inner + "[" + text[2:-2].replace("], [", "],\n" + inner + "[") + "]\n" + pad + "]"
-    items = [dumps(x, indent + 1, width) for x in obj]
+            inner = " " * (indent + 1)
+            return "[\n" + inner + "[" + text[2:-2].replace("], [", "],\n" + inner + "[") + "]\n" + " " * indent + "]"
+    return _list_text([dumps(x, indent + 1, width) for x in obj], indent, width)
+
+
+def _object_text(parts: list[tuple[str, str]], indent: int, width: int) -> str:
+    """An object's text from its keys' and values' texts (values already at ``indent + 1``)."""
+    if not parts:
+        return "{}"
+    if not any("\n" in v for _, v in parts):
+        text = "{" + ", ".join(f"{k}: {v}" for k, v in parts) + "}"
+        if len(text) + indent <= width:
+            return text
+    inner = " " * (indent + 1)
+    return "{\n" + ",\n".join(f"{inner}{k}: {v}" for k, v in parts) + "\n" + " " * indent + "}"
+
+
+def _list_text(items: list[str], indent: int, width: int) -> str:
+    """A list's text from its items' texts (at ``indent + 1``): one line if short, else one item per line."""
     if not any("\n" in x for x in items):
         text = "[" + ", ".join(items) + "]"
         if len(text) + indent <= width:
             return text
-    return "[\n" + ",\n".join(inner + x for x in items) + "\n" + pad + "]"
+    return "[\n" + ",\n".join(" " * (indent + 1) + x for x in items) + "\n" + " " * indent + "]"
 
 
 def _key(k: Any) -> str:
@@ -258,6 +268,81 @@ def _key(k: Any) -> str:
 def write_json(obj: Any, path: str | os.PathLike) -> None:
     with open(path, "w", encoding="utf-8") as f:
         f.write(dumps(obj) + "\n")
+
+
+class StreamedList:
+    """Writes a JSON file whose top-level ``key`` is a long list of objects, one item at a time.
+
+    :meth:`append` encodes an item and writes it to a temporary file beside ``path``, so that the
+    items need not all be held in memory (a result file of a whole log holds millions of lists);
+    :meth:`close` then writes ``head`` with that list in place of ``head[key]``, byte for byte the
+    text :func:`write_json` gives the whole object, and moves it to ``path`` (a reader never sees
+    half a file). :meth:`discard` (or leaving a ``with`` block on an exception) removes the
+    temporary file and writes nothing.
+    """
+
+    def __init__(self, path: str | os.PathLike, key: str, width: int = 100):
+        self.path, self.key, self.width = os.fspath(path), key, width
+        if os.path.isdir(self.path):
+            raise IsADirectoryError(f"{self.path!r} is a folder")
+        folder, name = os.path.split(os.path.abspath(self.path))
+        self._file = tempfile.NamedTemporaryFile("w", encoding="utf-8", dir=folder, prefix=f".{name}.",
+                                                 suffix=".partial", delete=False)
+        self._count = 0
+        self._short: list[str] | None = []  # the items' texts while they could still fit on one line
+
+    def __enter__(self) -> StreamedList:
+        return self
+
+    def __exit__(self, kind, value, tb) -> None:
+        if kind is not None:
+            self.discard()
+
+    def __len__(self) -> int:
+        return self._count
+
+    def append(self, item: Any) -> None:
+        text = dumps(item, 2, self.width)  # the list is a value of the top-level object: indent 1
+        self._file.write(("," if self._count else "") + "\n  " + text)
+        self._count += 1
+        if self._short is not None:
+            self._short.append(text)
+            if "\n" in text or sum(map(len, self._short)) + 2 * len(self._short) > self.width:
+                self._short = None
+
+    def close(self, head: dict) -> None:
+        """Write ``head`` (with ``head[key]`` replaced by the appended items) to ``path``."""
+        if self.key not in head:
+            self.discard()
+            raise ValueError(f"StreamedList.close: head has no key {self.key!r} for the streamed list")
+        self._file.close()
+        marker = "\n\x00"  # a value with a line break keeps the object on many lines, as the list does
+        items = self._short if self._count == 0 or self._short is not None else None
+        listed = _list_text(items, 1, self.width) if items else "[]"
+        parts = [(_key(k), marker if k == self.key else dumps(v, 1, self.width)) for k, v in head.items()]
+        if items is not None and "\n" not in listed:
+            parts = [(k, listed if v == marker else v) for k, v in parts]
+        text = _object_text(parts, 0, self.width) + "\n"
+        before, _, after = text.partition(marker)
+        try:
+            with open(self._file.name + ".json", "w", encoding="utf-8") as out:
+                out.write(before)
+                if marker in text:
+                    out.write("[")
+                    with open(self._file.name, encoding="utf-8") as streamed:
+                        shutil.copyfileobj(streamed, out)
+                    out.write("\n ]")
+                out.write(after)
+            os.replace(self._file.name + ".json", self.path)
+        finally:
+            for leftover in (self._file.name, self._file.name + ".json"):
+                if os.path.exists(leftover):
+                    os.remove(leftover)
+
+    def discard(self) -> None:
+        self._file.close()
+        if os.path.exists(self._file.name):
+            os.remove(self._file.name)
 
 
 def read_json(path: str | os.PathLike) -> Any:

@@ -117,13 +117,15 @@ def parse_result(obj: Any) -> Result:
     top = jf.as_object(obj, "<root>")
     jf.check_format(top, RESULT_FORMAT)
     steps = jf.get(top, "steps", "", jf.as_list)
-    return Result(
-        estimator=jf.get(top, "estimator", "", jf.string),
-        steps=[_step(s, f"steps[{i}]", i + 1) for i, s in enumerate(steps)],
-        timing=jf.maybe(top, "timing", "", _timing, len(steps)),
-        trajectory=jf.maybe(top, "trajectory", "", jf.matrix, len(steps) + 1, 3),
-        objects=jf.maybe(top, "objects", "", jf.matrix, None, 3),
-    )
+    return Result(steps=[_step(s, f"steps[{i}]", i + 1) for i, s in enumerate(steps)], **_head(top, len(steps)))
+
+
+def _head(top: dict, num_steps: int) -> dict[str, Any]:
+    """The fields of a result file besides its steps, checked against its number of steps."""
+    return {"estimator": jf.get(top, "estimator", "", jf.string),
+            "timing": jf.maybe(top, "timing", "", _timing, num_steps),
+            "trajectory": jf.maybe(top, "trajectory", "", jf.matrix, num_steps + 1, 3),
+            "objects": jf.maybe(top, "objects", "", jf.matrix, None, 3)}
 
 
 def _component_json(c: ComponentRecord) -> dict:
@@ -136,16 +138,17 @@ def _component_json(c: ComponentRecord) -> dict:
     }
 
 
+def _step_json(s: StepRecord) -> dict:
+    return {"k": int(s.k),
+            "components": [_component_json(c) for c in s.components],
+            # + 0.0 in Python (IEEE): -0.0 becomes 0.0 (an entropy of one hypothesis computed as
+            # -0.0 inside jit, where XLA drops the same addition), so text comparisons agree too.
+            "metrics": {key: int(v) if key == "num_components" else float(v) + 0.0 for key, v in s.metrics.items()}}
+
+
 def result_to_json(r: Result) -> dict:
     """The JSON object for `r` (inverse of `parse_result`)."""
-    out: dict[str, Any] = {"format": RESULT_FORMAT, "estimator": r.estimator, "steps": [
-        {"k": int(s.k),
-         "components": [_component_json(c) for c in s.components],
-         # + 0.0 in Python (IEEE): -0.0 becomes 0.0 (an entropy of one hypothesis computed as
-         # -0.0 inside jit, where XLA drops the same addition), so text comparisons agree too.
-         "metrics": {key: int(v) if key == "num_components" else float(v) + 0.0
-                     for key, v in s.metrics.items()}}
-        for s in r.steps]}
+    out: dict[str, Any] = {"format": RESULT_FORMAT, "estimator": r.estimator, "steps": [_step_json(s) for s in r.steps]}
     if r.timing is not None:
         out["timing"] = {"compile_s": float(r.timing["compile_s"]),
                          "step_s": jf.floats(r.timing["step_s"])}
@@ -161,8 +164,61 @@ def load_result(path: str | os.PathLike) -> Result:
     return parse_result(jf.read_json(path))
 
 
+class ResultWriter:
+    """Writes a result file one step at a time, as a run goes.
+
+    A result file holds every component's whole association history at every step, T² lists in
+    all: a whole 1700-step log's file is 300 MB and its lists, held at once, take gigabytes. The
+    writer checks each record (as :func:`load_result` would) and writes it to a temporary file
+    beside ``path``; :meth:`finish` adds the other fields and moves the file to ``path``, byte for
+    byte what :func:`save_result` writes for the same :class:`Result`. Leaving a ``with`` block on
+    an exception, or before :meth:`finish`, writes nothing::
+
+        with ResultWriter("result.json") as writer:
+            run(estimator, scenario, on_step=lambda record, info, s: writer.add(record),
+                keep_associations=False)
+            writer.finish(estimator.describe(scenario), timing=..., trajectory=..., objects=...)
+    """
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = os.fspath(path)
+        self._steps = jf.StreamedList(path, "steps")
+        self._done = False
+
+    def __enter__(self) -> ResultWriter:
+        return self
+
+    def __exit__(self, kind, value, tb) -> None:
+        if not self._done:
+            self._steps.discard()
+
+    def __len__(self) -> int:
+        """The steps written so far."""
+        return len(self._steps)
+
+    def add(self, record: StepRecord) -> None:
+        """Check and write the record of the next step (``record.k`` = the steps written so far + 1)."""
+        obj = _step_json(record)
+        _step(obj, f"steps[{len(self)}]", len(self) + 1)
+        self._steps.append(obj)
+
+    def finish(self, estimator: str, timing: dict | None = None, trajectory: np.ndarray | None = None,
+               objects: np.ndarray | None = None) -> None:
+        """Check the fields besides the steps (``timing["step_s"]`` and ``trajectory`` must match the
+        steps written) and write the file."""
+        try:
+            head = result_to_json(Result(estimator, [], timing, trajectory, objects))
+            _head(head, len(self))
+            self._steps.close(head)
+        except BaseException:
+            self._steps.discard()
+            raise
+        self._done = True
+
+
 def save_result(r: Result, path: str | os.PathLike) -> None:
-    """Validate `r` and write it as a result file."""
-    obj = result_to_json(r)
-    parse_result(obj)
-    jf.write_json(obj, path)
+    """Validate `r` and write it as a result file (nothing is written if it is invalid)."""
+    with ResultWriter(path) as writer:
+        for step in r.steps:
+            writer.add(step)
+        writer.finish(r.estimator, r.timing, r.trajectory, r.objects)

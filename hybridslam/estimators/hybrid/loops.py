@@ -31,7 +31,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from typing import cast
+from typing import NamedTuple, cast
 
 import equinox as eqx
 import jax
@@ -74,6 +74,17 @@ def _renumbered(history: np.ndarray, classes: np.ndarray, objects: np.ndarray, n
     return h.astype(history.dtype), cls.astype(classes.dtype), out, len(used)
 
 
+def _closure(k: int, merges, origin: np.ndarray, stretches: range, odds: float) -> Closure:
+    """What a merge set (in the re-opened numbering) changes against the parent: merges between
+    different objects, and the re-opened stretches it leaves as objects of their own (a stretch
+    merged back into its own object changes nothing)."""
+    merged = {a for a, _ in merges}
+    return Closure(step=k,
+                   merges=tuple((int(origin[a]), int(origin[b])) for a, b in merges if origin[a] != origin[b]),
+                   splits=tuple(sorted({int(origin[s]) for s in stretches if s not in merged})),
+                   log_odds=float(odds))
+
+
 def _back_projected(history: np.ndarray, geo: np.ndarray, poses: np.ndarray, objects: np.ndarray,
                     slots: range) -> np.ndarray:
     """``objects`` with each of ``slots`` placed at its first detection seen from ``poses``
@@ -87,20 +98,33 @@ def _back_projected(history: np.ndarray, geo: np.ndarray, poses: np.ndarray, obj
     return out
 
 
+class Closure(NamedTuple):
+    """A hypothesis :class:`OnlineLoopClosure` added, against its parent component, in the parent's
+    object numbering (its own earlier closures not re-opened)."""
+
+    step: int  # after this step (1-based)
+    merges: tuple[tuple[int, int], ...]  # (a, b): object a's detections (or a re-opened stretch of them) are b's
+    splits: tuple[int, ...]  # objects whose detections after a pause longer than the gap became an object of their own
+    log_odds: float  # against the parent: the new component's log weight is the parent's + this
+
+    def __str__(self) -> str:
+        changes = [f"{a}->{b}" for a, b in self.merges] + [f"{o} split" for o in self.splits]
+        return f"step {self.step}: {', '.join(changes)} (log odds {self.log_odds:.2f})"
+
+
 @dataclasses.dataclass
 class OnlineLoopClosure:
     """``between_steps`` for :func:`hybridslam.run` (module docstring): after every step from
     ``settings.gap + 1`` on, search the top component's map for loop closures and add the best
-    verified merge set as a hypothesis (every ``every`` steps). ``closures`` lists what was added:
-    ``(step, merges, log odds)``, merges ``(late, old)`` in the parent's slot numbering (before its
-    own closures were re-opened); ``replaced`` counts components dropped to make room; ``seconds`` the
-    time the searches took."""
+    verified merge set as a hypothesis (every ``every`` steps). ``closures`` lists what was added
+    (:class:`Closure`: what it changes against its parent); ``replaced`` counts components dropped
+    to make room; ``seconds`` the time the searches took."""
 
     estimator: AbstractEstimator  # Hybrid(smoother=Full()): checked on construction
     scenario: Scenario
     settings: lc.LoopClosureSettings = lc.LoopClosureSettings()
     every: int = 1
-    closures: list[tuple[int, tuple[tuple[int, int], ...], float]] = dataclasses.field(default_factory=list)
+    closures: list[Closure] = dataclasses.field(default_factory=list)
     replaced: int = 0
     seconds: float = 0.0  # wall time spent searching, summed over the steps
 
@@ -184,7 +208,7 @@ class OnlineLoopClosure:
         if best is None or len(log_w) < 2:  # a belief of one component has no room for a second hypothesis
             return belief
         odds, merges, h2, c2, n2, p2, mean2, cov2 = best
-        self.closures.append((k, tuple((int(origin[a]), int(origin[b_])) for a, b_ in merges), float(odds)))
+        self.closures.append(_closure(k, merges, origin, range(num, num_r), odds))
         return self._insert(belief, i, log_w[i] + odds, h2, c2, n2, p2, mean2, cov2)
 
     def _insert(self, belief: Belief, parent: int, log_weight: float, history, classes, num, poses, mean,
