@@ -122,12 +122,13 @@ def xla_defaults_from_environment() -> bool:
     return value == "1"
 
 
-def compiler_options() -> dict[str, str | bool | int]:
+def compiler_options(quick: bool = False) -> dict[str, str | bool | int]:
     """The XLA options :func:`compiled` passes: :data:`CPU_COMPILER_OPTIONS` on the CPU backend,
-    none on others or when ``$HYBRIDSLAM_XLA_DEFAULTS`` is ``1``."""
+    none on others or when ``$HYBRIDSLAM_XLA_DEFAULTS`` is ``1``. ``quick``: LLVM's optimization
+    level 0 (:data:`QUICK_RUN_STEPS`)."""
     if xla_defaults_from_environment() or jax.default_backend() != "cpu":
         return {}
-    return dict(CPU_COMPILER_OPTIONS)
+    return dict(CPU_COMPILER_OPTIONS) | ({"xla_backend_optimization_level": 0} if quick else {})
 
 
 def _as_xla_flags(options: dict[str, str | bool | int]) -> str:
@@ -155,10 +156,10 @@ def use_elemental_emitters_everywhere() -> bool:
     return probe.returncode == 0
 
 
-def compile_lowered(lowered: Any) -> Any:
+def compile_lowered(lowered: Any, quick: bool = False) -> Any:
     """``lowered.compile()`` (a ``jax`` or ``equinox`` lowered program) with :func:`compiler_options`;
     if this jaxlib rejects an option, with XLA's defaults."""
-    options = compiler_options()
+    options = compiler_options(quick)
     if options:
         try:
             return lowered.compile(compiler_options=options)
@@ -189,9 +190,26 @@ def _collector_paused():
             gc.enable()
 
 
-def compiled(fn: Callable, *args) -> tuple[Callable, float]:
+# A short run compiles with LLVM's optimization level 0: XLA's part of the compile takes about half
+# as long and the steps twice as long, which a run of a few steps does not feel (a 10-step
+# paper-setup file, `hybridslam run`, 2026-11-27, alternating: compile 4.63, 4.89 -> 3.61, 3.71 s;
+# steps 4.1, 3.8 -> 7.2, 7.7 ms; results equal to 1e-14). A program that short runs reuse is compiled
+# again at the default level once the step time they spent at level 0 passes TIER_UP times its
+# compile (rent or buy: at most about twice the better choice made in advance).
+QUICK_RUN_STEPS = 20
+TIER_UP = 2.5
+_QUICK: dict[int, list[float]] = {}  # id of a level-0 executable in _COMPILED -> [compile s, step s run]
+
+
+def compiled(fn: Callable, *args, steps: int | None = None) -> tuple[Callable, float]:
     """``eqx.filter_jit(fn)`` compiled ahead of time for these arguments' structure and shapes, and
-    the seconds spent compiling (0 when an equal program was compiled before in this process)."""
+    the seconds spent compiling (0 when an equal program was compiled before in this process).
+
+    ``steps``: how many times the caller will run it (:func:`run`: the scenario's steps). At most
+    :data:`QUICK_RUN_STEPS` compiles it quickly (LLVM level 0, slower code), until the time spent
+    running that code (:func:`spent`) says that compiling it fully pays.
+    """
+    quick = steps is not None and steps <= QUICK_RUN_STEPS
     dynamic, static = eqx.partition(args, eqx.is_array)
     leaves, treedef = jax.tree_util.tree_flatten(dynamic)
     key: tuple | None = (fn, treedef, tuple((x.shape, x.dtype, getattr(x, "sharding", None)) for x in leaves),
@@ -201,14 +219,27 @@ def compiled(fn: Callable, *args) -> tuple[Callable, float]:
     except TypeError:  # an unhashable static part: compile every time, correctly
         key = None
     if key is not None and key in _COMPILED:
-        return _COMPILED[key], 0.0
+        tally = _QUICK.get(id(_COMPILED[key]))
+        if tally is None or (quick and tally[1] < TIER_UP * tally[0]):
+            return _COMPILED[key], 0.0
+        del _QUICK[id(_COMPILED[key])]
+        quick = False  # level 0 has cost more than a full compile would: compile it fully
     t0 = time.perf_counter()
     with _collector_paused():
-        executable = compile_lowered(eqx.filter_jit(fn).lower(*args))  # type: ignore[attr-defined]
+        executable = compile_lowered(eqx.filter_jit(fn).lower(*args), quick)  # type: ignore[attr-defined]
     seconds = time.perf_counter() - t0
     if key is not None:
         _COMPILED[key] = executable
+        if quick:
+            _QUICK[id(executable)] = [seconds, 0.0]
     return executable, seconds
+
+
+def spent(executable: Callable, seconds: float) -> None:
+    """Count ``seconds`` of running ``executable`` (from :func:`compiled`) toward compiling it fully."""
+    tally = _QUICK.get(id(executable))
+    if tally is not None:
+        tally[1] += seconds
 
 
 def clear_compiled() -> None:
@@ -220,6 +251,7 @@ def clear_compiled() -> None:
     Cannot allocate memory". Call this between programs that will not run again.
     """
     _COMPILED.clear()
+    _QUICK.clear()
     jax.clear_caches()
 
 
@@ -345,7 +377,8 @@ def run(
     def one(k: int) -> Inputs:
         return jax.tree.map(lambda x: x[k : k + 1], inputs)
 
-    step_fn, compile_s = compiled(scan, estimator, state, one(0), key) if scenario.num_steps else (scan, 0.0)
+    step_fn, compile_s = (compiled(scan, estimator, state, one(0), key, steps=scenario.num_steps)
+                          if scenario.num_steps else (scan, 0.0))
     records, infos, step_s = [], [], []
     for k in range(scenario.num_steps):
         xs = one(k)
@@ -365,6 +398,7 @@ def run(
                 on_step(records[-1], trace.info, step_s[-1])
         if between_steps is not None and k + 1 < scenario.num_steps:
             state = between_steps(k + 1, state)
+    spent(step_fn, sum(step_s))
     extra = {}
     trajectory, objects = _smoothed(estimator, state)
     if trajectory is not None:

@@ -76,3 +76,34 @@ def test_the_garbage_collector_pauses_only_while_compiling(monkeypatch):
         assert seen == [False, False]
     finally:
         gc.enable() if was else gc.disable()
+
+
+def _g(x):
+    return jnp.cos(x) * jnp.cumsum(x)
+
+
+def test_a_short_run_compiles_quickly_and_a_program_its_reuses_pay_for_is_compiled_fully(monkeypatch):
+    """Level 0 for a run of at most QUICK_RUN_STEPS steps; the same program again at the default
+    level once its level-0 steps cost TIER_UP times its compile, or for a longer run."""
+    monkeypatch.delenv(driver.XLA_DEFAULTS_ENV, raising=False)
+    on_cpu = jax.default_backend() == "cpu"
+    assert driver.compiler_options(quick=True) == ({**driver.CPU_COMPILER_OPTIONS,
+                                                     "xla_backend_optimization_level": 0} if on_cpu else {})
+    x = jnp.linspace(0.0, 1.0, 7)
+    quick, seconds = driver.compiled(_g, x, steps=driver.QUICK_RUN_STEPS)
+    assert seconds > 0 and driver._QUICK[id(quick)] == [seconds, 0.0]
+    np.testing.assert_allclose(np.asarray(quick(x)), np.asarray(_g(x)), rtol=1e-14)
+    driver.spent(quick, 0.4 * driver.TIER_UP * seconds)
+    assert driver.compiled(_g, x, steps=3) == (quick, 0.0)  # not yet paid for
+    driver.spent(quick, 0.6 * driver.TIER_UP * seconds)
+    full, again = driver.compiled(_g, x, steps=3)
+    assert full is not quick and again > 0 and id(full) not in driver._QUICK
+    assert driver.compiled(_g, x, steps=3) == (full, 0.0)
+    y = jnp.linspace(0.0, 1.0, 9)  # another shape: another program, compiled fully for a long run
+    long, _ = driver.compiled(_g, y, steps=driver.QUICK_RUN_STEPS + 1)
+    assert id(long) not in driver._QUICK
+    driver.spent(long, 1e9)  # counts only for level-0 programs
+    assert driver.compiled(_g, y) == (long, 0.0)
+    z = jnp.linspace(0.0, 1.0, 11)
+    short, _ = driver.compiled(_g, z, steps=1)
+    assert id(short) in driver._QUICK and driver.compiled(_g, z)[0] is not short  # steps unknown: fully
