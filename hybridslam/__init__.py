@@ -72,6 +72,7 @@ from .estimators.hybrid.belief import Belief as Belief
 from .estimators.hybrid.belief import Priors as Priors
 from .estimators.hybrid.belief import priors_from_scenario as priors_from_scenario
 from .io.result import Result as Result
+from .io.result import ResultWriter as ResultWriter
 from .io.result import load_result as load_result
 from .io.result import save_result as save_result
 from .io.scenario import Scenario as Scenario

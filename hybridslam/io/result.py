@@ -174,10 +174,10 @@ class ResultWriter:
     byte what :func:`save_result` writes for the same :class:`Result`. Leaving a ``with`` block on
     an exception, or before :meth:`finish`, writes nothing::
 
-        with ResultWriter("result.json") as writer:
-            run(estimator, scenario, on_step=lambda record, info, s: writer.add(record),
-                keep_associations=False)
-            writer.finish(estimator.describe(scenario), timing=..., trajectory=..., objects=...)
+        with hybridslam.ResultWriter("result.json") as writer:
+            r = hybridslam.run(estimator, scenario, on_step=lambda record, info, s: writer.add(record),
+                               keep_associations=False).result
+            writer.finish(r.estimator, r.timing, r.trajectory, r.objects)
     """
 
     def __init__(self, path: str | os.PathLike):
