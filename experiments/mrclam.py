@@ -266,8 +266,10 @@ def run_cell(folder: str, dataset: str, robot: int, start: float, duration: floa
             chosen.append(list(record.components[0].associations[-1]))
             warnings.extend(info.warnings())
 
-        with ResultWriter(result_path) as writer:  # records written as they come: a whole log's fill gigabytes
-            run = driver.run(estimator(name, smoother, max_detections), s, on_step=on_step, keep_associations=False)
+        # Records written as they come: a whole log's fill gigabytes.
+        with ResultWriter(result_path) as writer:
+            run = driver.run(estimator(name, smoother, max_detections), s, on_step=on_step,
+                             keep_associations=False)
             writer.finish(run.result.estimator, run.result.timing, run.result.trajectory, run.result.objects)
         _, reference = trajectory.trajectory_from_scenario(s)
         _, online = trajectory.trajectory_from_result(run.result)

@@ -80,9 +80,10 @@ def main() -> None:
     parser.add_argument("--mrclam", default=None, help="an MRCLAM dataset folder (skip the workload without it)")
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("--quick-compile", action="store_true",
-                        help="compile runs of at most hybridslam.driver.QUICK_RUN_STEPS steps quickly, as hybridslam.run "
-                             "does (LLVM level 0: less compile, slower steps); default: every program fully, so that "
-                             "the step times are those of the optimized program the per-step goals are about")
+                        help="compile runs of at most hybridslam.driver.QUICK_RUN_STEPS steps quickly, as "
+                             "hybridslam.run does (LLVM level 0: less compile, slower steps); default: every "
+                             "program fully, so that the step times are those of the optimized program the "
+                             "per-step goals are about")
     parser.add_argument("--smoothers", default=None,
                         help="smoothers of the hallway and mrclam rows (default: hallway full,filter; mrclam full), "
                              "e.g. full,lag:10,filter")

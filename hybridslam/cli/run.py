@@ -71,8 +71,8 @@ def closure_summary(hook) -> str:
     """The line ``hybridslam run --close-loops`` prints after the run: each added hypothesis's
     changes against its parent (:class:`~hybridslam.estimators.hybrid.loops.Closure`)."""
     added = "; ".join(str(c) for c in hook.closures)
-    return (f"loop closure during the run: {len(hook.closures)} hypotheses added{': ' + added if added else ''}; "
-            f"its searches took {hook.seconds:.2f} s")
+    return (f"loop closure during the run: {len(hook.closures)} hypotheses added"
+            f"{': ' + added if added else ''}; its searches took {hook.seconds:.2f} s")
 
 
 def long_run_note(estimator: AbstractEstimator, scenario: Scenario) -> str | None:
@@ -155,8 +155,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             print(line + f"; last pose {errors['final']:.3f}")
         mapped = map_error(scenario, result)
         if mapped.get("objects"):
-            print(f"map error (m): {mapped['objects']} objects with detections, {mapped['mean_m']:.3f} from their "
-                  f"true objects on average (median {mapped['median_m']:.3f})")
+            print(f"map error (m): {mapped['objects']} objects with detections, {mapped['mean_m']:.3f} "
+                  f"from their true objects on average (median {mapped['median_m']:.3f})")
         writer.finish(result.estimator, result.timing, result.trajectory, result.objects)
     print(f"wrote {args.output}")
     if args.plot is not None:

@@ -234,7 +234,8 @@ def dumps(obj: Any, indent: int = 0, width: int = 100) -> str:
             # A list of flat lists of numbers (associations, matrices): one item per line, cut
             # from the one-line text, whose "], [" then only separates items.
             inner = " " * (indent + 1)
-            return "[\n" + inner + "[" + text[2:-2].replace("], [", "],\n" + inner + "[") + "]\n" + " " * indent + "]"
+            cut = text[2:-2].replace("], [", "],\n" + inner + "[")
+            return "[\n" + inner + "[" + cut + "]\n" + " " * indent + "]"
     return _list_text([dumps(x, indent + 1, width) for x in obj], indent, width)
 
 

@@ -117,7 +117,8 @@ def parse_result(obj: Any) -> Result:
     top = jf.as_object(obj, "<root>")
     jf.check_format(top, RESULT_FORMAT)
     steps = jf.get(top, "steps", "", jf.as_list)
-    return Result(steps=[_step(s, f"steps[{i}]", i + 1) for i, s in enumerate(steps)], **_head(top, len(steps)))
+    return Result(steps=[_step(s, f"steps[{i}]", i + 1) for i, s in enumerate(steps)],
+                  **_head(top, len(steps)))
 
 
 def _head(top: dict, num_steps: int) -> dict[str, Any]:
@@ -143,12 +144,14 @@ def _step_json(s: StepRecord) -> dict:
             "components": [_component_json(c) for c in s.components],
             # + 0.0 in Python (IEEE): -0.0 becomes 0.0 (an entropy of one hypothesis computed as
             # -0.0 inside jit, where XLA drops the same addition), so text comparisons agree too.
-            "metrics": {key: int(v) if key == "num_components" else float(v) + 0.0 for key, v in s.metrics.items()}}
+            "metrics": {key: int(v) if key == "num_components" else float(v) + 0.0
+                        for key, v in s.metrics.items()}}
 
 
 def result_to_json(r: Result) -> dict:
     """The JSON object for `r` (inverse of `parse_result`)."""
-    out: dict[str, Any] = {"format": RESULT_FORMAT, "estimator": r.estimator, "steps": [_step_json(s) for s in r.steps]}
+    out: dict[str, Any] = {"format": RESULT_FORMAT, "estimator": r.estimator,
+                           "steps": [_step_json(s) for s in r.steps]}
     if r.timing is not None:
         out["timing"] = {"compile_s": float(r.timing["compile_s"]),
                          "step_s": jf.floats(r.timing["step_s"])}

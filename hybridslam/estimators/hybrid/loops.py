@@ -74,13 +74,28 @@ def _renumbered(history: np.ndarray, classes: np.ndarray, objects: np.ndarray, n
     return h.astype(history.dtype), cls.astype(classes.dtype), out, len(used)
 
 
+class Closure(NamedTuple):
+    """A hypothesis :class:`OnlineLoopClosure` added, against its parent component, in the parent's
+    object numbering (its own earlier closures not re-opened)."""
+
+    step: int  # after this step (1-based)
+    merges: tuple[tuple[int, int], ...]  # (a, b): object a's detections (or a re-opened stretch) are b's
+    splits: tuple[int, ...]  # objects whose detections after a pause longer than the gap became objects
+    log_odds: float  # against the parent: the new component's log weight is the parent's + this
+
+    def __str__(self) -> str:
+        changes = [f"{a}->{b}" for a, b in self.merges] + [f"{o} split" for o in self.splits]
+        return f"step {self.step}: {', '.join(changes)} (log odds {self.log_odds:.2f})"
+
+
 def _closure(k: int, merges, origin: np.ndarray, stretches: range, odds: float) -> Closure:
     """What a merge set (in the re-opened numbering) changes against the parent: merges between
     different objects, and the re-opened stretches it leaves as objects of their own (a stretch
     merged back into its own object changes nothing)."""
     merged = {a for a, _ in merges}
     return Closure(step=k,
-                   merges=tuple((int(origin[a]), int(origin[b])) for a, b in merges if origin[a] != origin[b]),
+                   merges=tuple((int(origin[a]), int(origin[b])) for a, b in merges
+                                if origin[a] != origin[b]),
                    splits=tuple(sorted({int(origin[s]) for s in stretches if s not in merged})),
                    log_odds=float(odds))
 
@@ -96,20 +111,6 @@ def _back_projected(history: np.ndarray, geo: np.ndarray, poses: np.ndarray, obj
         x = poses[j + 1]
         out[s, :2] = x[:2] + r * np.array([np.cos(x[2] + bearing), np.sin(x[2] + bearing)])
     return out
-
-
-class Closure(NamedTuple):
-    """A hypothesis :class:`OnlineLoopClosure` added, against its parent component, in the parent's
-    object numbering (its own earlier closures not re-opened)."""
-
-    step: int  # after this step (1-based)
-    merges: tuple[tuple[int, int], ...]  # (a, b): object a's detections (or a re-opened stretch of them) are b's
-    splits: tuple[int, ...]  # objects whose detections after a pause longer than the gap became an object of their own
-    log_odds: float  # against the parent: the new component's log weight is the parent's + this
-
-    def __str__(self) -> str:
-        changes = [f"{a}->{b}" for a, b in self.merges] + [f"{o} split" for o in self.splits]
-        return f"step {self.step}: {', '.join(changes)} (log odds {self.log_odds:.2f})"
 
 
 @dataclasses.dataclass
