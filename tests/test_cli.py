@@ -95,6 +95,23 @@ def test_same_seed_same_result(scenario_path, tmp_path):
         [c.pose_mean.tolist() for step in api.steps for c in step.components]
 
 
+def test_a_run_that_fails_half_way_leaves_no_file_behind(scenario_path, tmp_path, monkeypatch):
+    """The records written so far go with the failure: no result file, no temporary file."""
+    real = cli.run.run
+
+    def run_then_fail(estimator, scenario, *, on_step, **kwargs):
+        def failing(record, info, seconds):
+            on_step(record, info, seconds)
+            if record.k == 2:
+                raise KeyboardInterrupt  # a user's Ctrl-C between steps
+
+        return real(estimator, scenario, on_step=failing, **kwargs)
+
+    monkeypatch.setattr(cli.run, "run", run_then_fail)
+    assert cli.main(["run", scenario_path, "-o", str(tmp_path / "r.json"), *SMALL]) == 130
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_run_warns_on_capacity_and_visibility(scenario_path, tmp_path, capsys, monkeypatch):
     """The warnings come from StepInfo; fake the counters on a real run (same compiled step)."""
     real = cli.run.run
