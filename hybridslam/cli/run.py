@@ -69,7 +69,7 @@ LONG_RUN_STEPS = 500  # a full smoother's steps past this many poses cost severa
 
 def closure_summary(hook) -> str:
     """The line ``hybridslam run --close-loops`` prints after the run: each added hypothesis's
-    changes against its parent (:class:`~hybridslam.estimators.hybrid.loops.Closure`)."""
+    changes against its parent (:class:`~hybridslam.estimators.hybrid.loops.ClosureHypothesis`)."""
     added = "; ".join(str(c) for c in hook.closures)
     return (f"loop closure during the run: {len(hook.closures)} hypotheses added"
             f"{': ' + added if added else ''}; its searches took {hook.seconds:.2f} s")

@@ -141,6 +141,7 @@ class LoopClosureReport:
     rejected: int
     failed: bool
     reopened: int = 0
+    reopen_skipped: int = 0  # stretches left closed: the re-opened objects would not fit the object slots
 
     @property
     def merged(self) -> int:
@@ -150,6 +151,10 @@ class LoopClosureReport:
         pairs = ", ".join(f"{a}->{b}" for c in self.closures for a, b in c.merges) or "none"
         lines = [f"loop closure: {self.merged} objects merged ({pairs}) in {len(self.closures)} round(s); "
                  f"{self.considered} late objects had candidates; {self.reopened} of the run's own closures re-opened"]
+        if self.reopen_skipped:
+            lines.append(f"warning: the run's own closures were not re-opened: their {self.reopen_skipped} stretches "
+                         "would not fit the object slots (the scenario's discovery.max_objects; e.g. import mrclam "
+                         "--max-objects)")
         if self.beam_dropped:
             lines.append(f"warning: the beam dropped {self.beam_dropped} partial assignments (raise the beam: "
                          "LoopClosureSettings.beam, close-loops --beam)")
@@ -418,7 +423,8 @@ class _Solved:
 
 def _start(scenario: Scenario, result: Result, settings: LoopClosureSettings, reopen_closures: bool):
     """The run's graph solved, before any merge: the problem, its solver, the solution, each
-    object's index in the run's own numbering, how many closures were re-opened, and convergence."""
+    object's index in the run's own numbering, how many closures were re-opened and how many could not
+    be (no room), and convergence."""
     if scenario.discovery is None:
         raise ValueError("close_loops: the scenario has a known map (no discovery); there are no new objects to merge")
     if len(result.steps) != scenario.num_steps or not result.steps:
@@ -427,14 +433,16 @@ def _start(scenario: Scenario, result: Result, settings: LoopClosureSettings, re
     solver = _Solver(problem, settings.max_steps)
     history, classes = problem.history, problem.classes
     origin = np.arange(len(classes))  # each current object's index in the run's own numbering
-    reopened = 0
+    reopened = skipped = 0
     if reopen_closures:
         history, classes, origin, reopened = reopen(history, classes, settings.gap)
+        skipped = 0 if reopened else pauses(history, settings.gap)
     poses = result.trajectory if result.trajectory is not None else _online_trajectory(scenario, result)
     poses = np.asarray(poses, float)[: scenario.num_steps + 1]
     num = int(history.max(initial=-1)) + 1
     p, o, cost, mean, cov, ok = solver(history, poses, _initial_objects(problem, history, poses), num)
-    return problem, solver, _Solved(history, classes, num, p, o, float(cost), mean, cov), origin, reopened, ok
+    return (problem, solver, _Solved(history, classes, num, p, o, float(cost), mean, cov), origin, reopened,
+            skipped, ok)
 
 
 def _merged(problem: _Problem, solver: _Solver, g: _Solved, merges: Sequence[tuple[int, int]], lbf: float,
@@ -476,7 +484,7 @@ def score_merges(scenario: Scenario, result: Result, merges: Sequence[tuple[int,
     first round: e.g. the true merges of a simulated run, to tell a search that missed them from a
     model that does not favour them. Any pair may be given; the search would only consider gated
     ones. Raises on an object index the component does not use or an object named twice."""
-    problem, solver, g, _, _, _ = _start(scenario, result, settings, reopen_closures=False)
+    problem, solver, g, *_ = _start(scenario, result, settings, reopen_closures=False)
     merges = tuple((int(a), int(b)) for a, b in merges)
     named = [x for m in merges for x in m]
     if any(not 0 <= x < g.num for x in named) or len(set(named)) != len(named):
@@ -499,7 +507,7 @@ def close_loops(scenario: Scenario, result: Result, settings: LoopClosureSetting
     it is (this pass's graph is geometric only, the run's may be richer); one without (a filter's)
     gets the re-solved trajectory and objects.
     """
-    problem, solver, g, origin, reopened, ok = _start(scenario, result, settings, settings.reopen)
+    problem, solver, g, origin, reopened, skipped, ok = _start(scenario, result, settings, settings.reopen)
     assert scenario.discovery is not None  # checked by _start
     new_log_density = scenario.discovery.new_object_log_density
     failed = not ok
@@ -532,7 +540,7 @@ def close_loops(scenario: Scenario, result: Result, settings: LoopClosureSetting
         closures.append(Closure(tuple((int(origin[a]), int(origin[b])) for a, b in merges), score.log_odds,
                                 g.cost, g2.cost))
         g, origin = g2, _pad_index(origin[used], len(g.classes))
-    report = LoopClosureReport(tuple(closures), considered, dropped, rejected, failed, reopened)
+    report = LoopClosureReport(tuple(closures), considered, dropped, rejected, failed, reopened, skipped)
     if not closures and not reopened and result.trajectory is not None:
         return result, report  # nothing changed: the run's own smoother (its factors, its window) stands
     return _rewrite(result, g.history, g.classes, g.poses, g.objects, g.num, report), report
@@ -541,7 +549,22 @@ def close_loops(scenario: Scenario, result: Result, settings: LoopClosureSetting
 def reopen(history: np.ndarray, classes: np.ndarray, gap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Split every object at each pause of more than ``gap`` steps between its detections (module
     docstring): the new history, classes, each object's original index, and how many objects were
-    added. Unchanged (0 added) if the objects would not fit in ``len(classes)`` slots."""
+    added. Unchanged (0 added) if the objects would not fit in ``len(classes)`` slots
+    (:func:`pauses` counts the stretches then left closed)."""
+    h, cls, origin, added = _split(history, classes, gap)
+    if int(history.max(initial=-1)) + 1 + added > len(classes):
+        return history, classes, np.arange(len(classes)), 0
+    return h, cls, origin, added
+
+
+def pauses(history: np.ndarray, gap: int) -> int:
+    """How many stretches of an object's detections follow a pause of more than ``gap`` steps: the
+    objects :func:`reopen` adds, given the slots."""
+    return _split(history, np.full(int(history.max(initial=-1)) + 1, -1), gap)[3]
+
+
+def _split(history: np.ndarray, classes: np.ndarray, gap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """:func:`reopen`'s split, with the stretches past ``len(classes)`` numbered but not recorded."""
     n = len(classes)
     h = history.copy()
     origin, cls = list(range(n)), list(classes)
@@ -558,8 +581,6 @@ def reopen(history: np.ndarray, classes: np.ndarray, gap: int) -> tuple[np.ndarr
             slot, added = slot + 1, added + 1
         last[s] = int(j)
         h[j, i] = current.get(s, s)
-    if slot > n:
-        return history, classes, np.arange(n), 0
     return h, np.asarray(cls), np.asarray(origin), added
 
 

@@ -74,7 +74,7 @@ def _renumbered(history: np.ndarray, classes: np.ndarray, objects: np.ndarray, n
     return h.astype(history.dtype), cls.astype(classes.dtype), out, len(used)
 
 
-class Closure(NamedTuple):
+class ClosureHypothesis(NamedTuple):
     """A hypothesis :class:`OnlineLoopClosure` added, against its parent component, in the parent's
     object numbering (its own earlier closures not re-opened)."""
 
@@ -88,16 +88,16 @@ class Closure(NamedTuple):
         return f"step {self.step}: {', '.join(changes)} (log odds {self.log_odds:.2f})"
 
 
-def _closure(k: int, merges, origin: np.ndarray, stretches: range, odds: float) -> Closure:
+def _closure(k: int, merges, origin: np.ndarray, stretches: range, odds: float) -> ClosureHypothesis:
     """What a merge set (in the re-opened numbering) changes against the parent: merges between
     different objects, and the re-opened stretches it leaves as objects of their own (a stretch
     merged back into its own object changes nothing)."""
     merged = {a for a, _ in merges}
-    return Closure(step=k,
-                   merges=tuple((int(origin[a]), int(origin[b])) for a, b in merges
-                                if origin[a] != origin[b]),
-                   splits=tuple(sorted({int(origin[s]) for s in stretches if s not in merged})),
-                   log_odds=float(odds))
+    return ClosureHypothesis(step=k,
+                             merges=tuple((int(origin[a]), int(origin[b])) for a, b in merges
+                                          if origin[a] != origin[b]),
+                             splits=tuple(sorted({int(origin[s]) for s in stretches if s not in merged})),
+                             log_odds=float(odds))
 
 
 def _back_projected(history: np.ndarray, geo: np.ndarray, poses: np.ndarray, objects: np.ndarray,
@@ -118,14 +118,14 @@ class OnlineLoopClosure:
     """``between_steps`` for :func:`hybridslam.run` (module docstring): after every step from
     ``settings.gap + 1`` on, search the top component's map for loop closures and add the best
     verified merge set as a hypothesis (every ``every`` steps). ``closures`` lists what was added
-    (:class:`Closure`: what it changes against its parent); ``replaced`` counts components dropped
-    to make room; ``seconds`` the time the searches took."""
+    (:class:`ClosureHypothesis`: what it changes against its parent); ``replaced`` counts components
+    dropped to make room; ``seconds`` the time the searches took."""
 
     estimator: AbstractEstimator  # Hybrid(smoother=Full()): checked on construction
     scenario: Scenario
     settings: lc.LoopClosureSettings = lc.LoopClosureSettings()
     every: int = 1
-    closures: list[Closure] = dataclasses.field(default_factory=list)
+    closures: list[ClosureHypothesis] = dataclasses.field(default_factory=list)
     replaced: int = 0
     seconds: float = 0.0  # wall time spent searching, summed over the steps
 
