@@ -190,5 +190,4 @@ def test_the_runs_own_closures_are_reopened_at_each_pause_longer_than_the_gap():
     same, _, _, none = lc.reopen(history, np.array([1, 0]), gap=20)  # no free slot: left as it is
     assert none == 0 and (same == history).all()
     assert lc.pauses(history, gap=20) == 1 and lc.pauses(history, gap=30) == 0  # what was left closed
-    report = lc.LoopClosureReport((), 0, 0, 0, False, reopened=0, reopen_skipped=1)
-    assert "not re-opened: their 1 stretches would not fit the object slots" in report.summary()
+

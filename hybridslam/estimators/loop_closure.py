@@ -141,7 +141,6 @@ class LoopClosureReport:
     rejected: int
     failed: bool
     reopened: int = 0
-    reopen_skipped: int = 0  # stretches left closed: the re-opened objects would not fit the object slots
 
     @property
     def merged(self) -> int:
@@ -151,10 +150,6 @@ class LoopClosureReport:
         pairs = ", ".join(f"{a}->{b}" for c in self.closures for a, b in c.merges) or "none"
         lines = [f"loop closure: {self.merged} objects merged ({pairs}) in {len(self.closures)} round(s); "
                  f"{self.considered} late objects had candidates; {self.reopened} of the run's own closures re-opened"]
-        if self.reopen_skipped:
-            lines.append(f"warning: the run's own closures were not re-opened: their {self.reopen_skipped} stretches "
-                         "would not fit the object slots (the scenario's discovery.max_objects; e.g. import mrclam "
-                         "--max-objects)")
         if self.beam_dropped:
             lines.append(f"warning: the beam dropped {self.beam_dropped} partial assignments (raise the beam: "
                          "LoopClosureSettings.beam, close-loops --beam)")
@@ -423,26 +418,31 @@ class _Solved:
 
 def _start(scenario: Scenario, result: Result, settings: LoopClosureSettings, reopen_closures: bool):
     """The run's graph solved, before any merge: the problem, its solver, the solution, each
-    object's index in the run's own numbering, how many closures were re-opened and how many could not
-    be (no room), and convergence."""
+    object's index in the run's own numbering, how many closures were re-opened, and convergence."""
     if scenario.discovery is None:
         raise ValueError("close_loops: the scenario has a known map (no discovery); there are no new objects to merge")
     if len(result.steps) != scenario.num_steps or not result.steps:
         raise ValueError(f"close_loops: the result has {len(result.steps)} steps, the scenario {scenario.num_steps}")
-    problem = _problem(scenario, result.steps[-1].components[0])
+    top = result.steps[-1].components[0]
+    problem = _problem(scenario, top)
+    if reopen_closures:
+        # After the run the pass is not bound by the run's object slots: with the slots full (a
+        # whole log: 209 stretches for 60 slots) it re-opens into new ones (a multiple of 8, so that
+        # a few more or fewer share a compile).
+        short = pauses(problem.history, settings.gap) - (len(problem.classes) - _used(problem.history))
+        if short > 0:
+            problem = _problem(scenario, dataclasses.replace(top, classes=[*top.classes, *[-1] * (-(-short // 8) * 8)]))
     solver = _Solver(problem, settings.max_steps)
     history, classes = problem.history, problem.classes
     origin = np.arange(len(classes))  # each current object's index in the run's own numbering
-    reopened = skipped = 0
+    reopened = 0
     if reopen_closures:
         history, classes, origin, reopened = reopen(history, classes, settings.gap)
-        skipped = 0 if reopened else pauses(history, settings.gap)
     poses = result.trajectory if result.trajectory is not None else _online_trajectory(scenario, result)
     poses = np.asarray(poses, float)[: scenario.num_steps + 1]
     num = int(history.max(initial=-1)) + 1
     p, o, cost, mean, cov, ok = solver(history, poses, _initial_objects(problem, history, poses), num)
-    return (problem, solver, _Solved(history, classes, num, p, o, float(cost), mean, cov), origin, reopened,
-            skipped, ok)
+    return problem, solver, _Solved(history, classes, num, p, o, float(cost), mean, cov), origin, reopened, ok
 
 
 def _merged(problem: _Problem, solver: _Solver, g: _Solved, merges: Sequence[tuple[int, int]], lbf: float,
@@ -507,7 +507,7 @@ def close_loops(scenario: Scenario, result: Result, settings: LoopClosureSetting
     it is (this pass's graph is geometric only, the run's may be richer); one without (a filter's)
     gets the re-solved trajectory and objects.
     """
-    problem, solver, g, origin, reopened, skipped, ok = _start(scenario, result, settings, settings.reopen)
+    problem, solver, g, origin, reopened, ok = _start(scenario, result, settings, settings.reopen)
     assert scenario.discovery is not None  # checked by _start
     new_log_density = scenario.discovery.new_object_log_density
     failed = not ok
@@ -540,7 +540,7 @@ def close_loops(scenario: Scenario, result: Result, settings: LoopClosureSetting
         closures.append(Closure(tuple((int(origin[a]), int(origin[b])) for a, b in merges), score.log_odds,
                                 g.cost, g2.cost))
         g, origin = g2, _pad_index(origin[used], len(g.classes))
-    report = LoopClosureReport(tuple(closures), considered, dropped, rejected, failed, reopened, skipped)
+    report = LoopClosureReport(tuple(closures), considered, dropped, rejected, failed, reopened)
     if not closures and not reopened and result.trajectory is not None:
         return result, report  # nothing changed: the run's own smoother (its factors, its window) stands
     return _rewrite(result, g.history, g.classes, g.poses, g.objects, g.num, report), report
@@ -550,9 +550,9 @@ def reopen(history: np.ndarray, classes: np.ndarray, gap: int) -> tuple[np.ndarr
     """Split every object at each pause of more than ``gap`` steps between its detections (module
     docstring): the new history, classes, each object's original index, and how many objects were
     added. Unchanged (0 added) if the objects would not fit in ``len(classes)`` slots
-    (:func:`pauses` counts the stretches then left closed)."""
+    (:func:`pauses` counts the objects it would add)."""
     h, cls, origin, added = _split(history, classes, gap)
-    if int(history.max(initial=-1)) + 1 + added > len(classes):
+    if _used(history) + added > len(classes):
         return history, classes, np.arange(len(classes)), 0
     return h, cls, origin, added
 
@@ -560,7 +560,12 @@ def reopen(history: np.ndarray, classes: np.ndarray, gap: int) -> tuple[np.ndarr
 def pauses(history: np.ndarray, gap: int) -> int:
     """How many stretches of an object's detections follow a pause of more than ``gap`` steps: the
     objects :func:`reopen` adds, given the slots."""
-    return _split(history, np.full(int(history.max(initial=-1)) + 1, -1), gap)[3]
+    return _split(history, np.full(_used(history), -1), gap)[3]
+
+
+def _used(history: np.ndarray) -> int:
+    """The object slots a history names (objects are numbered from 0 in order of creation)."""
+    return int(history.max(initial=-1)) + 1
 
 
 def _split(history: np.ndarray, classes: np.ndarray, gap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
@@ -616,10 +621,11 @@ def _rewrite(result: Result, history: np.ndarray, classes: np.ndarray, poses: np
     top = last.components[0]
     counts = [len(a) for a in top.associations]
     assoc = [history[j, :c].astype(np.int64) for j, c in enumerate(counts)]
-    comp = dataclasses.replace(top, associations=assoc, classes=[int(c) for c in classes])
+    keep = max(len(top.classes), num)  # the run's slots, or more where re-opening needed more (_start)
+    comp = dataclasses.replace(top, associations=assoc, classes=[int(c) for c in classes[:keep]])
     steps = list(result.steps[:-1]) + [dataclasses.replace(last, components=[comp] + list(last.components[1:]))]
     return dataclasses.replace(
-        result, steps=steps, trajectory=np.asarray(poses, float), objects=np.asarray(objects, float),
+        result, steps=steps, trajectory=np.asarray(poses, float), objects=np.asarray(objects, float)[:keep],
         estimator=f"{result.estimator}, loop closure ({report.merged} merged)")
 
 
