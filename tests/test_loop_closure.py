@@ -191,3 +191,28 @@ def test_the_runs_own_closures_are_reopened_at_each_pause_longer_than_the_gap():
     assert none == 0 and (same == history).all()
     assert lc.pauses(history, gap=20) == 1 and lc.pauses(history, gap=30) == 0  # what was left closed
 
+
+
+def test_a_run_whose_object_slots_are_full_still_has_its_closures_reopened_and_merged_back(small_loop):
+    """The run closed its loop itself and used every slot: the pass re-opens the closures into new
+    slots (after the run it is not bound by the run's shapes) and merges them back."""
+    import dataclasses
+
+    scenario, result, truth_of, late = small_loop
+    top = result.steps[-1].components[0]
+    history = np.full((len(top.associations), max(map(len, top.associations))), -1)
+    for j, a in enumerate(top.associations):
+        history[j, : len(a)] = a
+    old_of = {a: min(t for t in truth_of if truth_of[t] == truth_of[a]) for a in late}
+    h, cls, used = lc.compact(history, np.asarray(top.classes), old_of)  # the run's own closures
+    full = dataclasses.replace(top, associations=[r[: len(a)].tolist() for r, a in zip(h, top.associations)],
+                               classes=list(cls[: len(used)]))  # no free slot
+    run = dataclasses.replace(result, steps=[*result.steps[:-1],
+                                             dataclasses.replace(result.steps[-1], components=[full])])
+    assert lc.reopen(h, cls[: len(used)], GAP)[3] == 0 < lc.pauses(h, GAP)  # the run's slots cannot hold them
+    closed, report = lc.close_loops(scenario, run, lc.LoopClosureSettings(gap=GAP))
+    assert report.reopened == lc.pauses(h, GAP) and not report.failed
+    merges = [m for c in report.closures for m in c.merges]
+    assert merges and all(a == b for a, b in merges)  # each stretch back onto its own object
+    final = closed.steps[-1].components[0]
+    assert len(final.classes) == len(used) and max(max(a, default=-1) for a in final.associations) + 1 == len(used)

@@ -35,7 +35,9 @@ is kept; rounds repeat until none is.
 The run's own loop closures are re-opened first (``reopen``): where an object's detections
 stop for more than ``gap`` steps and then resume, the later stretch becomes an object of its own,
 so a wrong closure made one step at a time can be undone and a right one is merged back. Wrong
-associations that are not separated by such a gap are kept.
+associations that are not separated by such a gap are kept. Where the run's object slots cannot
+hold the stretches (a whole MRCLAM log: 209 stretches, 60 slots), the pass adds slots: after the
+run it is not bound by the run's static shapes.
 
 What it does not do: it runs once, after the run, so the online estimates (``pose_mean``) keep the
 estimator's associations; only the final step's top component (its associations, classes,
