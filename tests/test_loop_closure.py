@@ -215,4 +215,5 @@ def test_a_run_whose_object_slots_are_full_still_has_its_closures_reopened_and_m
     merges = [m for c in report.closures for m in c.merges]
     assert merges and all(a == b for a, b in merges)  # each stretch back onto its own object
     final = closed.steps[-1].components[0]
-    assert len(final.classes) == len(used) and max(max(a, default=-1) for a in final.associations) + 1 == len(used)
+    assert len(final.classes) == len(used)
+    assert max(max(a, default=-1) for a in final.associations) + 1 == len(used)

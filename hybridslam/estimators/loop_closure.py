@@ -433,7 +433,8 @@ def _start(scenario: Scenario, result: Result, settings: LoopClosureSettings, re
         # a few more or fewer share a compile).
         short = pauses(problem.history, settings.gap) - (len(problem.classes) - _used(problem.history))
         if short > 0:
-            problem = _problem(scenario, dataclasses.replace(top, classes=[*top.classes, *[-1] * (-(-short // 8) * 8)]))
+            extra = -(-short // 8) * 8
+            problem = _problem(scenario, dataclasses.replace(top, classes=[*top.classes, *[-1] * extra]))
     solver = _Solver(problem, settings.max_steps)
     history, classes = problem.history, problem.classes
     origin = np.arange(len(classes))  # each current object's index in the run's own numbering
@@ -570,7 +571,8 @@ def _used(history: np.ndarray) -> int:
     return int(history.max(initial=-1)) + 1
 
 
-def _split(history: np.ndarray, classes: np.ndarray, gap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+def _split(history: np.ndarray, classes: np.ndarray, gap: int
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """:func:`reopen`'s split, with the stretches past ``len(classes)`` numbered but not recorded."""
     n = len(classes)
     h = history.copy()
