@@ -270,7 +270,7 @@ def run_cell(folder: str, dataset: str, robot: int, start: float, duration: floa
         with ResultWriter(result_path) as writer:
             run = driver.run(estimator(name, smoother, max_detections), s, on_step=on_step,
                              keep_associations=False)
-            writer.finish(run.result.estimator, run.result.timing, run.result.trajectory, run.result.objects)
+            writer.finish(run.result)
         _, reference = trajectory.trajectory_from_scenario(s)
         _, online = trajectory.trajectory_from_result(run.result)
         reckoned = dead_reckoning(s)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 
 import math
@@ -321,7 +322,7 @@ def test_the_result_writer_checks_each_step_and_writes_nothing_on_an_error(tmp_p
         for step in r.steps:
             writer.add(step)
         assert len(writer) == 2 and not (tmp_path / "r.json").exists()  # nothing at the path before finish
-        writer.finish(r.estimator, r.timing)
+        writer.finish(r)
     assert load_result(tmp_path / "r.json") == r
     assert (tmp_path / "r.json").read_text() == _reference_dumps(result_to_json(r)) + "\n"  # steps mid-object
     save_result(r, tmp_path / "s.json")
@@ -333,7 +334,7 @@ def test_the_result_writer_checks_each_step_and_writes_nothing_on_an_error(tmp_p
         with ResultWriter(tmp_path / "bad.json") as writer:
             for step in r.steps:
                 writer.add(step)
-            writer.finish(r.estimator, {"compile_s": 1.0, "step_s": [0.1]})
+            writer.finish(dataclasses.replace(r, timing={"compile_s": 1.0, "step_s": [0.1]}))
     with ResultWriter(tmp_path / "bad.json") as writer:  # left without finish: nothing written
         writer.add(r.steps[0])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["r.json", "s.json"]

@@ -157,7 +157,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         if mapped.get("objects"):
             print(f"map error (m): {mapped['objects']} objects with detections, {mapped['mean_m']:.3f} "
                   f"from their true objects on average (median {mapped['median_m']:.3f})")
-        writer.finish(result.estimator, result.timing, result.trajectory, result.objects)
+        writer.finish(result)
     print(f"wrote {args.output}")
     if args.plot is not None:
         from ..analysis.plot import plot_run  # here: matplotlib costs every other command 0.3-0.5 s

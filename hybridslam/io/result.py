@@ -8,6 +8,7 @@ Pure numpy + stdlib json, built from the validation helpers of `scenario`.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from dataclasses import dataclass
 from collections.abc import Sequence
@@ -180,7 +181,7 @@ class ResultWriter:
         with hybridslam.ResultWriter("result.json") as writer:
             r = hybridslam.run(estimator, scenario, on_step=lambda record, info, s: writer.add(record),
                                keep_associations=False).result
-            writer.finish(r.estimator, r.timing, r.trajectory, r.objects)
+            writer.finish(r)
     """
 
     def __init__(self, path: str | os.PathLike):
@@ -205,12 +206,11 @@ class ResultWriter:
         _step(obj, f"steps[{len(self)}]", len(self) + 1)
         self._steps.append(obj)
 
-    def finish(self, estimator: str, timing: dict | None = None, trajectory: np.ndarray | None = None,
-               objects: np.ndarray | None = None) -> None:
-        """Check the fields besides the steps (``timing["step_s"]`` and ``trajectory`` must match the
-        steps written) and write the file."""
+    def finish(self, result: Result) -> None:
+        """Check ``result``'s fields besides its steps (the records added are the steps:
+        ``timing["step_s"]`` and ``trajectory`` must match them) and write the file."""
         try:
-            head = result_to_json(Result(estimator, [], timing, trajectory, objects))
+            head = result_to_json(dataclasses.replace(result, steps=[]))
             _head(head, len(self))
             self._steps.close(head)
         except BaseException:
@@ -224,4 +224,4 @@ def save_result(r: Result, path: str | os.PathLike) -> None:
     with ResultWriter(path) as writer:
         for step in r.steps:
             writer.add(step)
-        writer.finish(r.estimator, r.timing, r.trajectory, r.objects)
+        writer.finish(r)
