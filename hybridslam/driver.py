@@ -32,7 +32,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 
 from .analysis.metrics import Metrics, metrics
 from .estimators.base import AbstractEstimator, Mixture, StepInfo
-from .io.result import ComponentRecord, Result, StepRecord
+from .io.result import ComponentRecord, HistoryLinker, Result, StepRecord
 from .io.scenario import Scenario, stack_steps
 from .models.measurement import Detections
 
@@ -329,11 +329,6 @@ def object_poses(objects: Any, count: Any) -> np.ndarray:
     return poses
 
 
-def _without_associations(record: StepRecord) -> StepRecord:
-    return dataclasses.replace(record, components=[dataclasses.replace(c, associations=())
-                                                   for c in record.components])
-
-
 def _first(tree):
     """The first entry of every leaf, on the host (numpy: indexing a device array compiles a program)."""
     return jax.tree.map(lambda x: np.asarray(x)[0], jax.device_get(tree))
@@ -357,10 +352,11 @@ def run(
     :class:`hybridslam.estimators.hybrid.loops.OnlineLoopClosure`. The same estimator, scenario and
     seed give the same result.
 
-    ``keep_associations=False``: the returned records keep the associations of the last step only
-    (earlier steps' components hold ``()``), for a run whose ``on_step`` writes each whole record
-    as it comes (:class:`hybridslam.io.result.ResultWriter`). A result file holds every
-    component's whole history at every step: T² lists, gigabytes over a whole real log.
+    ``keep_associations=False``: each record (the one ``on_step`` gets and the one returned) holds
+    its components' histories as :class:`hybridslam.io.result.History` links to the previous
+    record's (the component's ``parent`` and that step's list): the same histories in memory linear
+    in the run, where plain lists take T² (gigabytes over a whole real log), and what
+    :class:`hybridslam.io.result.ResultWriter` writes without matching them again.
     """
     state = estimator.init(scenario)
     history = jax.eval_shape(estimator.view, state).history  # its shape only: nothing to compute
@@ -380,6 +376,7 @@ def run(
     step_fn, compile_s = (compiled(scan, estimator, state, one(0), key, steps=scenario.num_steps)
                           if scenario.num_steps else (scan, 0.0))
     records, infos, step_s = [], [], []
+    link = None if keep_associations else HistoryLinker()
     for k in range(scenario.num_steps):
         xs = one(k)
         t0 = time.perf_counter()
@@ -389,20 +386,20 @@ def run(
         # A record is k · K lists of ints (no cycles: freed by their counts). Their number alone sets
         # off the collector's full passes over JAX's heap, which over a whole log cost more than the
         # steps (1700 MRCLAM steps written as they go: 201 s end to end, 39 s of it steps).
-        # Kept without its lists (keep_associations=False), a record leaves nothing for the collector
-        # to carry into the next step's timing; the last one is rebuilt whole after the loop.
+        # Linked to the previous one (keep_associations=False), a record keeps one list per component
+        # and leaves nothing for the collector to carry into the next step's timing.
         with _collector_paused():
             record = trace_record(trace, num_det, has_truth)
+            if link is not None:
+                record = link(record)
             infos.append(trace.info)
             if on_step is not None:
                 on_step(record, trace.info, step_s[-1])
-            records.append(record if keep_associations else _without_associations(record))
+            records.append(record)
             del record
         if between_steps is not None and k + 1 < scenario.num_steps:
             state = between_steps(k + 1, state)
     spent(step_fn, sum(step_s))
-    if records and not keep_associations:
-        records[-1] = trace_record(trace, num_det, has_truth)
     extra = {}
     trajectory, objects = _smoothed(estimator, state)
     if trajectory is not None:

@@ -25,7 +25,7 @@ DOC = os.path.join(os.path.dirname(__file__), os.pardir, "docs", "file_format.md
 
 # The documented exception to "optional keys may be dropped one at a time" (docs/file_format.md,
 # "Unknown maps"): with `discovery`, a detection's `true_object` indexes `true_objects`.
-DEPENDENTS = {"scenario": {"true_objects": ["steps[].detections[].true_object"]}, "result": {}}
+DEPENDENTS = {"scenario": {"true_objects": ["steps[].detections[].true_object"]}, "result": {}, "result-1": {}}
 
 
 def key_table(name: str) -> dict[str, str]:
@@ -49,7 +49,8 @@ def key_table(name: str) -> dict[str, str]:
 
 
 SCENARIO_KEYS = key_table("scenario")
-RESULT_KEYS = key_table("result")
+RESULT_KEYS = key_table("result")  # format 2
+RESULT_1_KEYS = key_table("result-1")
 
 
 def models_of(required: str) -> list[str]:
@@ -59,7 +60,7 @@ def models_of(required: str) -> list[str]:
 
 def kinds(table: dict[str, str]) -> None:
     for key, required in table.items():
-        assert required in ("yes", "no") or models_of(required), f"{key}: required = {required!r}"
+        assert required in ("yes", "no", "conditional") or models_of(required), f"{key}: required = {required!r}"
 
 
 # --------------------------------------------------------------------------- #
@@ -85,8 +86,8 @@ def full_scenario(model: str = "mirror") -> dict:
     return obj
 
 
-def full_result() -> dict:
-    """A valid 2-step result with every optional key (timing, errors, smoother output)."""
+def full_result_1() -> dict:
+    """A valid 2-step format 1 result with every optional key (timing, errors, smoother output)."""
     cov = [[0.1, 0.01, 0.0], [0.01, 0.1, 0.0], [0.0, 0.0, 0.02]]
     metrics = {"entropy": 0.56, "det_cov": 0.0099, "err_wmax": 0.1, "err_wavg": 0.12}
     return {
@@ -112,12 +113,30 @@ def full_result() -> dict:
     }
 
 
-PARSE = {"scenario": parse_scenario, "result": parse_result}
-TABLES = {"scenario": SCENARIO_KEYS, "result": RESULT_KEYS}
+def full_result() -> dict:
+    """The format 1 file as format 2 with a step more: step 2 linked to its parent, step 3 (the
+    last) whole, with its parent."""
+    obj = full_result_1()
+    obj["format"] = "hybridslam-result/2"
+    step2 = obj["steps"][1]["components"][0]
+    step2["parent"] = 0
+    step2["step_associations"] = step2.pop("associations")[-1]
+    step3 = {**step2, "parent": 0, "associations": [[0], [], [1]], "pose_mean": [3.0, 0.1, 0.05]}
+    del step3["step_associations"]
+    obj["steps"].append({"k": 3, "components": [step3], "metrics": dict(obj["steps"][1]["metrics"])})
+    obj["timing"]["step_s"].append(0.01)
+    obj["trajectory"].append([3.0, 0.1, 0.05])
+    return obj
+
+
+PARSE = {"scenario": parse_scenario, "result": parse_result, "result-1": parse_result}
+TABLES = {"scenario": SCENARIO_KEYS, "result": RESULT_KEYS, "result-1": RESULT_1_KEYS}
+KINDS = list(TABLES)
 
 
 def full(kind: str, model: str = "mirror") -> dict:
-    return full_scenario(model) if kind == "scenario" else full_result()
+    return {"scenario": full_scenario, "result": lambda _: full_result(),
+            "result-1": lambda _: full_result_1()}[kind](model)
 
 
 # --------------------------------------------------------------------------- #
@@ -174,7 +193,7 @@ def all_paths(obj, prefix: str = "") -> Iterator[str]:
 # --------------------------------------------------------------------------- #
 
 
-@pytest.mark.parametrize("kind", ["scenario", "result"])
+@pytest.mark.parametrize("kind", KINDS)
 def test_tables_are_well_formed(kind: str) -> None:
     kinds(TABLES[kind])
     for key in TABLES[kind]:  # every nested key's parents are listed too
@@ -182,14 +201,14 @@ def test_tables_are_well_formed(kind: str) -> None:
         assert parent == key or parent.removesuffix("[]") in TABLES[kind], f"{key}: parent not listed"
 
 
-@pytest.mark.parametrize("kind", ["scenario", "result"])
+@pytest.mark.parametrize("kind", KINDS)
 def test_full_files_parse_and_hold_every_documented_key(kind: str) -> None:
     for model in sorted({m for r in TABLES[kind].values() for m in models_of(r)} | {"mirror"}):
         obj = full(kind, model)
         PARSE[kind](copy.deepcopy(obj))
         present = set(all_paths(obj))
         for key, required in TABLES[kind].items():
-            if required in ("yes", "no") or model in models_of(required):
+            if required in ("yes", "no", "conditional") or model in models_of(required):
                 assert key in present, f"{key} is documented but missing from the {model} test file"
 
 
@@ -197,6 +216,7 @@ def test_tables_cover_what_the_writers_write() -> None:
     written = set(all_paths(full_scenario())) - {"generator"}  # metadata: kept, not part of the format
     assert written <= set(SCENARIO_KEYS), sorted(written - set(SCENARIO_KEYS))
     assert set(all_paths(full_result())) <= set(RESULT_KEYS)
+    assert set(all_paths(full_result_1())) <= set(RESULT_1_KEYS)
 
 
 def required_cases(kind: str) -> list:
@@ -209,7 +229,7 @@ def required_cases(kind: str) -> list:
     return cases
 
 
-@pytest.mark.parametrize("kind, key, model", required_cases("scenario") + required_cases("result"))
+@pytest.mark.parametrize("kind, key, model", [c for kind in KINDS for c in required_cases(kind)])
 def test_missing_required_key_is_named(kind: str, key: str, model: str) -> None:
     obj = full(kind, model)
     path = delete(obj, key)
@@ -224,7 +244,7 @@ def optional_cases(kind: str) -> list:
             for key, required in TABLES[kind].items() if required == "no"]
 
 
-@pytest.mark.parametrize("kind, key", optional_cases("scenario") + optional_cases("result"))
+@pytest.mark.parametrize("kind, key", [c for kind in KINDS for c in optional_cases(kind)])
 def test_optional_key_present_or_absent(kind: str, key: str) -> None:
     obj = full(kind)
     assert any(places(obj, key)), f"{key} is not in the test file"
@@ -245,7 +265,7 @@ def test_optional_key_present_or_absent(kind: str, key: str) -> None:
 
 def test_optional_sections_all_absent() -> None:
     """The smallest valid files: every optional key removed at once."""
-    for kind in ("scenario", "result"):
+    for kind in KINDS:
         obj = full(kind)
         for key, required in sorted(TABLES[kind].items(), key=lambda kv: -kv[0].count(".")):
             if required == "no" and any(places(obj, key)):
@@ -261,11 +281,27 @@ def test_optional_keys_are_read() -> None:
     assert s.true_robot_poses.shape == (3, 3) and s.true_object_poses.shape == (6, 3)
     assert s.discovery.max_objects == 10 and len(s.true_objects) == 6
     r = parse_result(full_result())
-    assert r.timing == {"compile_s": 3.2, "step_s": [0.012, 0.011]}
+    assert r.timing == {"compile_s": 3.2, "step_s": [0.012, 0.011, 0.01]}
     assert set(r.steps[0].metrics) == {"entropy", "det_cov", "num_components", "err_wmax", "err_wavg"}
 
 
 def test_clutter_association_is_accepted() -> None:
-    obj = full_result()
+    obj = full_result_1()
     obj["steps"][0]["components"][0]["associations"] = [[-1]]
     parse_result(obj)
+    obj = full_result()
+    obj["steps"][1]["components"][0]["step_associations"] = [-1]
+    obj["steps"][2]["components"][0]["associations"][1] = [-1]
+    parse_result(obj)
+
+
+def test_the_documented_result_example_parses_with_its_histories() -> None:
+    """The format 2 example of "The result file": parents followed, step 2's histories are whole."""
+    import json
+
+    with open(DOC, encoding="utf-8") as f:
+        text = f.read().split("## The result file", 1)[1]
+    example = json.loads(text.split("```json", 1)[1].split("```", 1)[0])
+    r = parse_result(example)
+    assert [list(c.associations) for c in r.steps[1].components] == [[[0, 1], [0]], [[1, 0], [1]]]
+    assert [c.parent for c in r.steps[2].components] == [0]

@@ -21,15 +21,29 @@ CASES = json.loads(pathlib.Path(GOLDEN, "cases.json").read_text(encoding="utf-8"
 
 
 @pytest.mark.parametrize("name", sorted(CASES))
-def test_result_file_is_unchanged(name):
+def test_result_file_is_unchanged(name, tmp_path):
     case = CASES[name]
     scenario = hs.load_scenario(os.path.join(GOLDEN, case["scenario"] + ".json"))
     run = run_estimator(scenario, case["estimator"], seed=0, **case["settings"])
-    got = json.loads(json.dumps(result_to_json(run.result)))
+    got = json.loads(json.dumps(result_to_json(run.result, version=1)))
     got.pop("timing", None)
     with open(os.path.join(GOLDEN, name + ".result.json"), encoding="utf-8") as f:
         want = json.load(f)
     assert differences(got["steps"], want["steps"]) == []
+    # Written in format 2 (parents, each step's own associations) and read back: every step's whole
+    # histories, and everything else, are the format 1 file's.
+    hs.save_result(run.result, tmp_path / "r.json")
+    assert json.loads((tmp_path / "r.json").read_text())["format"] == "hybridslam-result/2"
+    back = json.loads(json.dumps(result_to_json(hs.load_result(tmp_path / "r.json"), version=1)))
+    assert differences(back["steps"], want["steps"]) == []
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_golden_file_through_format_2_is_unchanged(name, tmp_path):
+    """The committed format 1 file, written in format 2 and read back: the same file, exactly."""
+    want = hs.load_result(os.path.join(GOLDEN, name + ".result.json"))
+    hs.save_result(want, tmp_path / "r.json")
+    assert result_to_json(hs.load_result(tmp_path / "r.json"), version=1) == result_to_json(want, version=1)
 
 
 def test_the_comparison_allows_last_bits_and_tie_order_only():

@@ -81,6 +81,13 @@ def floats(text: str, option: str) -> tuple[float, ...]:
     return values
 
 
+def add_result_format_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--result-format", type=int, choices=(1, 2), default=2,
+                   help="result file format (docs/file_format.md): 2, each step's parents and own associations "
+                        "(linear in the run); 1, every whole history at every step, for readers of format 1 only "
+                        "(a 1700-step log's file: 300 MB)")
+
+
 # --------------------------------------------------------------------------- #
 # Estimator options
 # --------------------------------------------------------------------------- #

@@ -10,7 +10,7 @@ from ..analysis.trajectory import error_summary
 from ..estimators.loop_closure import LoopClosureSettings, close_loops
 from ..io.result import load_result, save_result
 from ..io.scenario import load_scenario
-from .common import CLIError, check_writable, warn
+from .common import CLIError, add_result_format_option, check_writable, warn
 
 
 def _errors(label: str, result, scenario) -> str:
@@ -45,7 +45,7 @@ def cmd_close_loops(args: argparse.Namespace) -> int:
         if result.trajectory is not None:
             print(_errors("before", result, scenario))
         print(_errors("after", closed, scenario))
-    save_result(closed, args.output)
+    save_result(closed, args.output, args.result_format)
     print(f"wrote {args.output}")
     return 0
 
@@ -63,6 +63,7 @@ def add_parser(sub) -> None:
     p.add_argument("scenario", help="the scenario file the run was made on (unknown map)")
     p.add_argument("result", help="its result file (the last step's top component is used)")
     p.add_argument("-o", "--output", required=True, help="result file to write")
+    add_result_format_option(p)
     p.add_argument("--gap", type=int, default=20,
                    help="steps between an old object's last detection and a late object's first (default 20)")
     p.add_argument("--revisit-log-odds", type=_finite, default=0.0,

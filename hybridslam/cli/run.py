@@ -18,6 +18,7 @@ from .common import (
     CLASSIFIERS,
     CLIError,
     add_estimator_options,
+    add_result_format_option,
     check_writable,
     estimator_from_args,
     fmt,
@@ -120,7 +121,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     num_det = [len(s.detections) for s in scenario.steps]
     throttle = WarningThrottle()
 
-    with ResultWriter(args.output) as writer:  # each record written as it comes: a long log's fill gigabytes
+    with ResultWriter(args.output, args.result_format) as writer:  # each record written as it comes
 
         def on_step(record: StepRecord, info: StepInfo, seconds: float) -> None:
             writer.add(record)
@@ -179,5 +180,6 @@ def add_parser(sub) -> None:
                         "detection) and add what is found as a hypothesis (hybridslam.estimators.hybrid.loops)")
     p.add_argument("--plot", default=None, metavar="PNG",
                    help="also draw the run (map and trajectories, error and components per step) to this image")
+    add_result_format_option(p)
     add_estimator_options(p)
     p.set_defaults(func=cmd_run)

@@ -13,9 +13,7 @@ import json
 import math
 import numbers
 import os
-import shutil
-import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any, NoReturn
 
 import numpy as np
@@ -39,12 +37,19 @@ class ScenarioError(ValueError):
 def equal(a: Any, b: Any) -> bool:
     if dataclasses.is_dataclass(a) and not isinstance(a, type):
         return type(a) is type(b) and all(
-            equal(getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a)
+            equal(getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a) if f.compare
         )
     if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
         return np.shape(a) == np.shape(b) and bool(np.array_equal(a, b))
-    if isinstance(a, (list, tuple)):
-        return isinstance(b, (list, tuple)) and len(a) == len(b) and all(map(equal, a, b))
+    if isinstance(a, Sequence) and not isinstance(a, str):  # lists, tuples, a result's lazy histories
+        if not (isinstance(b, Sequence) and not isinstance(b, str) and len(a) == len(b)):
+            return False
+        try:
+            if a == b:  # lists of numbers (a result's T² association lists) at C speed
+                return True
+        except (TypeError, ValueError):  # arrays inside: compared one by one below
+            pass
+        return all(map(equal, a, b))
     if isinstance(a, dict):
         return isinstance(b, dict) and a.keys() == b.keys() and all(equal(a[k], b[k]) for k in a)
     return bool(a == b)
@@ -111,6 +116,8 @@ def string(obj: Any, path: str) -> str:
 
 
 def number(obj: Any, path: str) -> float:
+    if type(obj) is float and math.isfinite(obj):
+        return obj  # the common case, without the abstract base classes' checks
     if isinstance(obj, (bool, np.bool_)) or not isinstance(obj, numbers.Real):
         fail(path, f"expected a number, got {kind(obj)}")
     try:
@@ -132,6 +139,8 @@ def positive(obj: Any, path: str) -> float:
 def integer(obj: Any, path: str, lo: int | None = None, hi: int | None = None) -> int:
     """An integer in [lo, hi) (either bound may be None). A whole float (``2.0``) counts: the format's
     numbers are plain JSON numbers, and a writer may print an integer with a decimal point."""
+    if type(obj) is int and (lo is None or obj >= lo) and (hi is None or obj < hi):
+        return obj  # the common case, without the abstract base classes' checks
     whole = isinstance(obj, float) and math.isfinite(obj) and obj.is_integer()
     if isinstance(obj, (bool, np.bool_)) or not (isinstance(obj, numbers.Integral) or whole):
         got = repr(obj) if isinstance(obj, float) else kind(obj)
@@ -175,6 +184,15 @@ def vector(obj: Any, path: str, n: int | None = None) -> np.ndarray:
 
 def matrix(obj: Any, path: str, rows: int | None, cols: int) -> np.ndarray:
     """A list of rows; `rows=None` accepts any number of rows."""
+    if (type(obj) is list and obj and (rows is None or len(obj) == rows)
+            and all(type(r) is list and len(r) == cols for r in obj)
+            and set(itertools.chain.from_iterable(map(map, [type] * len(obj), obj))) <= {float, int}):
+        try:  # the common case (a result file's covariances), checked at once
+            out = np.array(obj, dtype=np.float64)
+        except OverflowError:  # an integer beyond float64: the rows below name it
+            out = np.full(1, np.inf)
+        if np.all(np.isfinite(out)):
+            return out
     items = as_list(obj, path)
     lens = {len(as_list(r, f"{path}[{i}]")) for i, r in enumerate(items)}
     if rows is not None and len(lens) <= 1 and (len(items) != rows or lens - {cols}):
@@ -216,134 +234,28 @@ def floats(a: Any) -> Any:
 
 
 def dumps(obj: Any, indent: int = 0, width: int = 100) -> str:
-    """JSON text; objects and lists of lists/objects are spread over lines when long (one item per
-    line, one more space of indent per level), everything else on one line.
-
-    Linear in the text: each value is encoded once (a result file of a 1700-step log holds about
-    25 million association lists, and encoding every subtree again at each level took minutes).
-    """
-    if isinstance(obj, dict):
-        return _object_text([(_key(k), dumps(v, indent + 1, width)) for k, v in obj.items()], indent, width)
-    if not (isinstance(obj, list) and any(isinstance(x, (dict, list)) for x in obj)):
-        return json.dumps(obj, allow_nan=False)
-    if all(type(x) is list for x in obj):
-        text = json.dumps(obj, allow_nan=False)
-        if len(text) + indent <= width:
-            return text
-        if '"' not in text and "{" not in text and text.count("[") == len(obj) + 1:
-            # A list of flat lists of numbers (associations, matrices): one item per line, cut
-            # from the one-line text, whose "], [" then only separates items.
-            inner = " " * (indent + 1)
-            cut = text[2:-2].replace("], [", "],\n" + inner + "[")
-            return "[\n" + inner + "[" + cut + "]\n" + " " * indent + "]"
-    return _list_text([dumps(x, indent + 1, width) for x in obj], indent, width)
-
-
-def _object_text(parts: list[tuple[str, str]], indent: int, width: int) -> str:
-    """An object's text from its keys' and values' texts (values already at ``indent + 1``)."""
-    if not parts:
-        return "{}"
-    if not any("\n" in v for _, v in parts):
-        text = "{" + ", ".join(f"{k}: {v}" for k, v in parts) + "}"
-        if len(text) + indent <= width:
-            return text
+    """JSON text, readable and linear in its length: a value whose one-line text fits in ``width``
+    (indent included) stays on one line; a longer object has one key per line (its values laid out
+    by the same rule), a longer list of objects or lists one item per line, each item on one line
+    (a scenario's steps, a matrix's rows, a result step's components)."""
+    text = json.dumps(obj, allow_nan=False)
+    if len(text) + indent <= width:
+        return text
     inner = " " * (indent + 1)
-    return "{\n" + ",\n".join(f"{inner}{k}: {v}" for k, v in parts) + "\n" + " " * indent + "}"
-
-
-def _list_text(items: list[str], indent: int, width: int) -> str:
-    """A list's text from its items' texts (at ``indent + 1``): one line if short, else one item per line."""
-    if not any("\n" in x for x in items):
-        text = "[" + ", ".join(items) + "]"
-        if len(text) + indent <= width:
-            return text
-    return "[\n" + ",\n".join(" " * (indent + 1) + x for x in items) + "\n" + " " * indent + "]"
-
-
-def _key(k: Any) -> str:
-    """An object key as JSON text: a string, or the JSON text of any other key as a string (as
-    ``json.dumps`` writes ``{1: 2}``)."""
-    return json.dumps(k if isinstance(k, str) else json.dumps(k))
+    if isinstance(obj, dict) and obj:
+        # a key that is not a string is written as json.dumps writes it: {1: 2} -> {"1": 2}
+        items = [f"{json.dumps(k if isinstance(k, str) else json.dumps(k))}: {dumps(v, indent + 1, width)}"
+                 for k, v in obj.items()]
+    elif isinstance(obj, list) and any(isinstance(x, (dict, list)) for x in obj):
+        items = [json.dumps(x, allow_nan=False) for x in obj]
+    else:
+        return text
+    return "[{"[isinstance(obj, dict)] + "\n" + ",\n".join(inner + x for x in items) + "\n" + " " * indent + "]}"[isinstance(obj, dict)]
 
 
 def write_json(obj: Any, path: str | os.PathLike) -> None:
     with open(path, "w", encoding="utf-8") as f:
         f.write(dumps(obj) + "\n")
-
-
-class StreamedList:
-    """Writes a JSON file whose top-level ``key`` is a long list of objects, one item at a time.
-
-    :meth:`append` encodes an item and writes it to a temporary file beside ``path``, so that the
-    items need not all be held in memory (a result file of a whole log holds millions of lists);
-    :meth:`close` then writes ``head`` with that list in place of ``head[key]``, byte for byte the
-    text :func:`write_json` gives the whole object, and moves it to ``path`` (a reader never sees
-    half a file). :meth:`discard` (or leaving a ``with`` block on an exception) removes the
-    temporary file and writes nothing.
-    """
-
-    def __init__(self, path: str | os.PathLike, key: str, width: int = 100):
-        self.path, self.key, self.width = os.fspath(path), key, width
-        if os.path.isdir(self.path):
-            raise IsADirectoryError(f"{self.path!r} is a folder")
-        folder, name = os.path.split(os.path.abspath(self.path))
-        self._file = tempfile.NamedTemporaryFile("w", encoding="utf-8", dir=folder, prefix=f".{name}.",
-                                                 suffix=".partial", delete=False)
-        self._count = 0
-        self._short: list[str] | None = []  # the items' texts while they could still fit on one line
-
-    def __enter__(self) -> StreamedList:
-        return self
-
-    def __exit__(self, kind, value, tb) -> None:
-        if kind is not None:
-            self.discard()
-
-    def __len__(self) -> int:
-        return self._count
-
-    def append(self, item: Any) -> None:
-        text = dumps(item, 2, self.width)  # the list is a value of the top-level object: indent 1
-        self._file.write(("," if self._count else "") + "\n  " + text)
-        self._count += 1
-        if self._short is not None:
-            self._short.append(text)
-            if "\n" in text or sum(map(len, self._short)) + 2 * len(self._short) > self.width:
-                self._short = None
-
-    def close(self, head: dict) -> None:
-        """Write ``head`` (with ``head[key]`` replaced by the appended items) to ``path``."""
-        if self.key not in head:
-            self.discard()
-            raise ValueError(f"StreamedList.close: head has no key {self.key!r} for the streamed list")
-        self._file.close()
-        marker = "\n\x00"  # a value with a line break keeps the object on many lines, as the list does
-        items = self._short if self._count == 0 or self._short is not None else None
-        listed = _list_text(items, 1, self.width) if items else "[]"
-        parts = [(_key(k), marker if k == self.key else dumps(v, 1, self.width)) for k, v in head.items()]
-        if items is not None and "\n" not in listed:
-            parts = [(k, listed if v == marker else v) for k, v in parts]
-        text = _object_text(parts, 0, self.width) + "\n"
-        before, _, after = text.partition(marker)
-        try:
-            with open(self._file.name + ".json", "w", encoding="utf-8") as out:
-                out.write(before)
-                if marker in text:
-                    out.write("[")
-                    with open(self._file.name, encoding="utf-8") as streamed:
-                        shutil.copyfileobj(streamed, out)
-                    out.write("\n ]")
-                out.write(after)
-            os.replace(self._file.name + ".json", self.path)
-        finally:
-            for leftover in (self._file.name, self._file.name + ".json"):
-                if os.path.exists(leftover):
-                    os.remove(leftover)
-
-    def discard(self) -> None:
-        self._file.close()
-        if os.path.exists(self._file.name):
-            os.remove(self._file.name)
 
 
 def read_json(path: str | os.PathLike) -> Any:
