@@ -210,8 +210,7 @@ def _score(pairs: list[tuple[int, int]], known_map: bool) -> dict:
 def association_accuracy(s: Scenario, result: Result, online: list[list[int]] | None = None) -> dict:
     """``final`` (the last step's best component's history) and ``online`` (each step's best component,
     that step's associations) scores against ``true_object``. ``online[j]``: step ``j + 1``'s
-    associations of that step's best component, where ``result`` keeps the last step's only
-    (``hybridslam.run(..., keep_associations=False)``)."""
+    associations of that step's best component (default: read from ``result``)."""
     known_map = s.discovery is None
     final = result.steps[-1].components[0].associations
     if online is None:

@@ -177,8 +177,8 @@ MALFORMED_2 = [
     ("last_not_whole", (*_c(2), "associations"), None,
      "steps[2].components[0].associations: missing (the last step lists every component's whole history)"),
     ("last_not_its_parents", (*_c(2), "associations"), [[0], [2], []],
-     "steps[2].components[0].associations: its first 2 lists are not the history of its parent, "
-     "steps[1].components[0]"),
+     ("steps[2].components[0].associations: its first 2 lists are not the history of its parent, "
+      "steps[1].components[0]")),
     ("whole_length", (*_c(2), "associations"), [[1], [2]],
      "steps[2].components[0].associations: expected 3 lists (one per step so far), got 2"),
 ]

@@ -626,7 +626,8 @@ def _rewrite(result: Result, history: np.ndarray, classes: np.ndarray, poses: np
     counts = [len(a) for a in top.associations]
     assoc = [history[j, :c].astype(np.int64) for j, c in enumerate(counts)]
     keep = max(len(top.classes), num)  # the run's slots, or more where re-opening needed more (_start)
-    comp = dataclasses.replace(top, associations=assoc, classes=[int(c) for c in classes[:keep]])
+    # parent=None: the rewritten history need not extend the old parent's (writers link it again)
+    comp = dataclasses.replace(top, associations=assoc, classes=[int(c) for c in classes[:keep]], parent=None)
     steps = list(result.steps[:-1]) + [dataclasses.replace(last, components=[comp] + list(last.components[1:]))]
     return dataclasses.replace(
         result, steps=steps, trajectory=np.asarray(poses, float), objects=np.asarray(objects, float)[:keep],

@@ -250,7 +250,8 @@ def dumps(obj: Any, indent: int = 0, width: int = 100) -> str:
         items = [json.dumps(x, allow_nan=False) for x in obj]
     else:
         return text
-    return "[{"[isinstance(obj, dict)] + "\n" + ",\n".join(inner + x for x in items) + "\n" + " " * indent + "]}"[isinstance(obj, dict)]
+    opening, closing = ("{", "}") if isinstance(obj, dict) else ("[", "]")
+    return opening + "\n" + ",\n".join(inner + x for x in items) + "\n" + " " * indent + closing
 
 
 def write_json(obj: Any, path: str | os.PathLike) -> None:

@@ -198,11 +198,12 @@ def _poses(raw: list) -> tuple[np.ndarray, np.ndarray] | None:
         means, covs = [c["pose_mean"] for c in raw], [c["pose_cov"] for c in raw]
     except (TypeError, KeyError, IndexError):
         return None
-    rows = list(itertools.chain.from_iterable(c for c in covs if type(c) is list))
-    if not (all(type(m) is list and len(m) == 3 for m in means) and len(rows) == 3 * len(covs)
-            and all(type(c) is list and len(c) == 3 for c in covs) and all(type(r) is list and len(r) == 3 for r in rows)
-            and set(map(type, itertools.chain(itertools.chain.from_iterable(means),
-                                              itertools.chain.from_iterable(rows)))) <= {float, int}):
+    if not (all(type(m) is list and len(m) == 3 for m in means)
+            and all(type(c) is list and len(c) == 3 for c in covs)):
+        return None
+    rows = list(itertools.chain.from_iterable(covs))
+    numbers = itertools.chain(itertools.chain.from_iterable(means), itertools.chain.from_iterable(rows))
+    if not (all(type(r) is list and len(r) == 3 for r in rows) and set(map(type, numbers)) <= {float, int}):
         return None
     try:
         mean, cov = np.array(means, dtype=np.float64), np.array(covs, dtype=np.float64)
