@@ -88,6 +88,11 @@ def test_same_seed_same_result(scenario_path, tmp_path):
     estimator = hs.make_estimator("hybrid", samples=50, capacity=8)
     api = hs.run(estimator, hs.load_scenario(scenario_path), seed=7).result
     assert hs.load_result(paths[0]).steps == api.steps
+    assert a["format"] == "hybridslam-result/2" and "step_associations" in json.dumps(a["steps"][1])
+    old = tmp_path / "format1.json"  # for readers of format 1 only
+    assert cli.main(["run", scenario_path, "-o", str(old), *SMALL, "--seed", "7", "--result-format", "1"]) == 0
+    assert json.loads(old.read_text())["format"] == "hybridslam-result/1"
+    assert hs.load_result(old).steps == api.steps
     slim = hs.run(estimator, hs.load_scenario(scenario_path), seed=7, keep_associations=False).result
     assert slim.steps == api.steps  # the same histories, held as links to the previous step's
     assert any(isinstance(c.associations, hs.io.result.History) for step in slim.steps[1:] for c in step.components)
