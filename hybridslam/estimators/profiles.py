@@ -156,8 +156,9 @@ def recommended(scenario: Scenario, estimator: str = "hybrid", profile: str = "a
                   f"paper's configuration")
     else:
         kind = "large"
-        reason = (f"more than {EXACT_MAX_OBJECTS} objects or {EXACT_MAX_DETECTIONS} detections per step: the "
-                  f"settings of the README's hallway and real-data runs")
+        what = (f"{slots} objects, more than {EXACT_MAX_OBJECTS}" if slots > EXACT_MAX_OBJECTS else
+                f"{detections} detections per step, more than {EXACT_MAX_DETECTIONS}")
+        reason = f"{what}: the README's hallway and real-data settings"
         options.update(_LARGE.get(estimator, {}))
         if estimator == "hybrid" and scenario.discovery is not None and scenario.num_steps <= LONG_RUN_STEPS:
             if has_classes(scenario):

@@ -45,12 +45,13 @@ def estimator_names() -> tuple[str, ...]:
     return tuple(ESTIMATORS)
 
 
-def make_estimator(name: str, scenario: Scenario | None = None, profile: str = "auto",
+def make_estimator(name: str, scenario: Scenario | None = None, profile: str | None = None,
                    **options: Any) -> AbstractEstimator:
     """The estimator ``name`` with ``options`` (``None`` values mean "the default").
 
     With ``scenario``, the options not given are those :func:`.profiles.recommended` chooses for
-    that file (``profile="paper"``: the estimator's own defaults), as ``hybridslam run`` does;
+    that file (``profile="paper"``: the estimator's own defaults; ``None``: ``"auto"``), as
+    ``hybridslam run`` does;
     loop closure during the run, which that profile may also choose, is not part of an estimator:
     ``recommended(scenario).close_loops``. Without ``scenario``, the estimator's own defaults.
 
@@ -67,7 +68,7 @@ def make_estimator(name: str, scenario: Scenario | None = None, profile: str = "
     if name not in ESTIMATORS:
         raise ValueError(f"estimator: unknown {name!r} (known: {', '.join(ESTIMATORS)})")
     if scenario is not None:
-        options = recommended(scenario, name, profile).merged(**options)
+        options = recommended(scenario, name, profile or "auto").merged(**options)
     given = {k: v for k, v in options.items() if v is not None}
     known = _OPTIONS[name]
     for option in given:
