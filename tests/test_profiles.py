@@ -29,7 +29,8 @@ def _twelve_objects(steps: int = 3) -> hs.Scenario:
 
 
 def test_the_paper_files_keep_the_estimators_own_defaults():
-    for scenario in (hs.simulate(seed=0, steps=10), hs.simulate(seed=1, steps=40, setup=hs.PaperSetup(max_detections=4))):
+    four = hs.PaperSetup(max_detections=4)  # the benchmark's paper layout
+    for scenario in (hs.simulate(seed=0, steps=10), hs.simulate(seed=1, steps=40, setup=four)):
         for name in hs.ESTIMATORS:
             p = hs.recommended(scenario, name)
             assert (p.kind, p.options, p.close_loops, p.flags()) == ("paper", {}, None, "")
@@ -83,7 +84,8 @@ def _stub(slots: int, detections: int, steps: int, unknown: bool, classes: int, 
     objects = 0 if unknown else slots
     return BASE.replace(
         object_prior_means=np.zeros((objects, 3)), object_prior_covs=np.broadcast_to(np.eye(3), (objects, 3, 3)),
-        class_prior=np.full((objects, classes), 1.0 / classes), discovery=Discovery(slots, -3.0, 1.0) if unknown else None,
+        class_prior=np.full((objects, classes), 1.0 / classes),
+        discovery=Discovery(slots, -3.0, 1.0) if unknown else None,
         steps=(seen,) + (Step(np.zeros(3), ()),) * (steps - 1), num_classes=classes, classifier=Classifier(model))
 
 

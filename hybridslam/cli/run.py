@@ -97,12 +97,13 @@ def chosen_settings(args: argparse.Namespace, profile: Profile) -> dict:
 def settings_note(scenario: Scenario, profile: Profile, chosen: dict, close_loops: int | None) -> str:
     """The line ``run`` prints about the settings it chose for the file (:mod:`hybridslam.estimators.profiles`)."""
     flags = Profile(profile.estimator, profile.kind, chosen, close_loops, profile.reason).flags()
-    if profile.reason.startswith("--profile"):
+    if profile.options == {} and profile.reason.startswith("--profile"):  # recommended(..., "paper")
         return f"settings: {profile.reason}"
     head = f"settings for {file_summary(scenario)}: "
     if not flags and not profile.options and profile.close_loops is None:
         return head + f"the {profile.estimator} estimator's own defaults ({profile.reason})"
     overridden = [f"--{k.replace('_', '-')}" for k in profile.options if k not in chosen]
+    overridden += ["--close-loops"] if profile.close_loops is not None and close_loops is None else []
     return (head + (flags or "none of the chosen settings") + f" ({profile.reason}"
             + (f"; overridden: {', '.join(overridden)}" if overridden else "")
             + "; explicit flags override them; --profile paper for the estimator's own defaults)")
@@ -204,8 +205,8 @@ def add_parser(sub) -> None:
     p.add_argument("--close-loops", type=int, nargs="?", const=20, default=None, metavar="GAP",
                    help="hybrid, full smoother, unknown map: after each step search the best component's map for "
                         "loop closures (an object first seen more than GAP steps, default 20, after another's last "
-                        "detection) and add what is found as a hypothesis (hybridslam.estimators.hybrid.loops); --profile auto "
-                        "adds it on larger unknown-map files with classes")
+                        "detection) and add what is found as a hypothesis (hybridslam.estimators.hybrid.loops); "
+                        "--profile auto adds it on larger unknown-map files with classes")
     p.add_argument("--no-close-loops", action="store_true",
                    help="no loop closure during the run, where the settings chosen for the file would add it")
     p.add_argument("--profile", choices=PROFILES, default="auto",

@@ -3,10 +3,11 @@
 Each estimator's own defaults (``Hybrid()``: every object a candidate of every detection,
 ``laplace-is`` weights, the low-variance estimate of Eq. 16, 64 components, the full smoother) are
 the reference configuration of the paper's setup (Tchuiev et al. 2019, Sec. V: Algorithm 1 with
-every association enumerated), and the golden files pin them. On the paper's files (6 objects, at most 2-4 detections per step, tens of steps)
-they cost a few ms per step. Beyond them they do not serve: on a 75-step hallway file (100 object
-slots, unknown map) they take 2-3 minutes and end 1.5 m off, where the settings the README's
-hallway and real-data studies use take well under a minute and end 0.7 m off (``docs/settings.md``).
+every association enumerated), and the golden files pin them. On the paper's files (6 objects, at
+most 2-4 detections per step, tens of steps) they cost a few ms per step. Beyond them they do not
+serve: on a 75-step hallway file (100 object slots, unknown map) they take 2-3 minutes and end
+1.5 m off, where the settings of the README's hallway and real-data studies take under a minute
+and end 0.7 m off (``docs/settings.md``).
 
 :func:`recommended` is a pure function of properties every scenario file has (object slots,
 detections per step, steps, classes, whether the map is known), never of a dataset's name, so a
