@@ -62,6 +62,8 @@ from .estimators import Multimodal as Multimodal
 from .estimators import Sampled as Sampled
 from .estimators import StepInfo as StepInfo
 from .estimators import make_estimator as make_estimator
+from .estimators import Profile as Profile
+from .estimators import recommended as recommended
 from .estimators.hybrid.branching import Beam as Beam
 from .estimators.hybrid.branching import Exhaustive as Exhaustive
 from .estimators.hybrid.weighers import make_weigher as make_weigher

@@ -11,11 +11,13 @@ from ..analysis.map_error import map_error
 from ..analysis.trajectory import error_summary
 from ..driver import run
 from ..estimators.base import AbstractEstimator, StepInfo
+from ..estimators.profiles import LONG_RUN_STEPS, PROFILES, Profile, file_summary, recommended
 from ..estimators.smoothing import Full
 from ..io.result import ResultWriter, StepRecord
 from ..io.scenario import Scenario, ScenarioError, load_scenario
 from .common import (
     CLASSIFIERS,
+    ESTIMATOR_OPTIONS,
     CLIError,
     add_estimator_options,
     add_result_format_option,
@@ -65,9 +67,6 @@ class WarningThrottle:
                 warn(f"and at {count - REPEATS} more step(s): {self.example[kind]}")
 
 
-LONG_RUN_STEPS = 500  # a full smoother's steps past this many poses cost several times a short run's
-
-
 def closure_summary(hook) -> str:
     """The line ``hybridslam run --close-loops`` prints after the run: each added hypothesis's
     changes against its parent (:class:`~hybridslam.estimators.hybrid.loops.ClosureHypothesis`)."""
@@ -90,10 +89,35 @@ def long_run_note(estimator: AbstractEstimator, scenario: Scenario) -> str | Non
             f"Whole logs)")
 
 
+def chosen_settings(args: argparse.Namespace, profile: Profile) -> dict:
+    """The profile's options that no flag of ``args`` overrides (:meth:`Profile.merged`)."""
+    explicit = {name: getattr(args, name, None) for name in ESTIMATOR_OPTIONS}
+    return {k: v for k, v in profile.merged(**explicit).items() if explicit.get(k) is None}
+
+
+def settings_note(scenario: Scenario, profile: Profile, chosen: dict, close_loops: int | None) -> str:
+    """The line ``run`` prints about the settings it chose for the file (:mod:`hybridslam.estimators.profiles`)."""
+    flags = Profile(profile.estimator, profile.kind, chosen, close_loops, profile.reason).flags()
+    if profile.options == {} and profile.reason.startswith("--profile"):  # recommended(..., "paper")
+        return f"settings: {profile.reason}"
+    head = f"settings for {file_summary(scenario)}: "
+    if not flags and not profile.options and profile.close_loops is None:
+        return head + f"the {profile.estimator} estimator's own defaults ({profile.reason})"
+    overridden = [f"--{k.replace('_', '-')}" for k in profile.options if k not in chosen]
+    overridden += ["--close-loops"] if profile.close_loops is not None and close_loops is None else []
+    return (head + (flags or "none of the chosen settings") + f" ({profile.reason}"
+            + (f"; overridden: {', '.join(overridden)}" if overridden else "")
+            + "; explicit flags override them; --profile paper for the estimator's own defaults)")
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     """Run the estimator over a scenario file, print a per-step table, write the result file."""
     scenario = load_scenario(args.scenario)
-    estimator = estimator_from_args(args, classifier=args.classifier)
+    if args.close_loops is not None and args.no_close_loops:
+        raise CLIError("--no-close-loops: not with --close-loops")
+    profile = recommended(scenario, args.estimator, args.profile)
+    chosen = chosen_settings(args, profile)
+    estimator = estimator_from_args(args, classifier=args.classifier, **chosen)
     try:
         estimator.init(scenario)  # every setting the scenario rejects, before compiling anything
     except ValueError as e:
@@ -104,6 +128,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.plot is not None:
         check_writable(args.plot)
     hook = None
+    loops = None if args.close_loops is not None or args.no_close_loops else profile.loops(smoother=args.smoother)
+    if loops is not None:
+        hook = profile.between_steps(estimator, scenario, loops)
+        loops = None if hook is None else loops
+    print(settings_note(scenario, profile, chosen, loops))
     if args.close_loops is not None:
         from ..estimators.hybrid.loops import OnlineLoopClosure
         from ..estimators.loop_closure import LoopClosureSettings
@@ -177,9 +206,17 @@ def add_parser(sub) -> None:
     p.add_argument("--close-loops", type=int, nargs="?", const=20, default=None, metavar="GAP",
                    help="hybrid, full smoother, unknown map: after each step search the best component's map for "
                         "loop closures (an object first seen more than GAP steps, default 20, after another's last "
-                        "detection) and add what is found as a hypothesis (hybridslam.estimators.hybrid.loops)")
+                        "detection) and add what is found as a hypothesis (hybridslam.estimators.hybrid.loops); "
+                        "--profile auto adds it on larger unknown-map files with classes")
+    p.add_argument("--no-close-loops", action="store_true",
+                   help="no loop closure during the run, where the settings chosen for the file would add it")
+    p.add_argument("--profile", choices=PROFILES, default="auto",
+                   help="auto (default): the options not given are chosen by the file (docs/settings.md: the "
+                        "paper's configuration on small files; capacity 16, gate 3, linearized weights and, on an "
+                        "unknown map with classes, --close-loops on larger ones; lag:50 past 500 steps); paper: "
+                        "the estimator's own defaults, whatever the file")
     p.add_argument("--plot", default=None, metavar="PNG",
                    help="also draw the run (map and trajectories, error and components per step) to this image")
     add_result_format_option(p)
-    add_estimator_options(p)
+    add_estimator_options(p, capacity_default="64, or 16 where --profile auto chooses it")
     p.set_defaults(func=cmd_run)

@@ -24,3 +24,5 @@ from .ml import ML as ML
 from .multimodal import Multimodal as Multimodal
 from .registry import ESTIMATORS as ESTIMATORS
 from .registry import make_estimator as make_estimator
+from .profiles import Profile as Profile
+from .profiles import recommended as recommended

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from ..io.scenario import Scenario
 from .base import AbstractEstimator
 from .gpda import GPDA
 from .hybrid.branching import Beam, Exhaustive
@@ -13,6 +14,7 @@ from .maxmix import MaxMixture
 from .ml import ML
 from .smoothing import parse_smoother
 from .multimodal import Multimodal
+from .profiles import recommended
 
 ESTIMATORS: dict[str, type[AbstractEstimator]] = {
     "hybrid": Hybrid,
@@ -43,8 +45,15 @@ def estimator_names() -> tuple[str, ...]:
     return tuple(ESTIMATORS)
 
 
-def make_estimator(name: str, **options: Any) -> AbstractEstimator:
+def make_estimator(name: str, scenario: Scenario | None = None, profile: str | None = None,
+                   **options: Any) -> AbstractEstimator:
     """The estimator ``name`` with ``options`` (``None`` values mean "the default").
+
+    With ``scenario``, the options not given are those :func:`.profiles.recommended` chooses for
+    that file (``profile="paper"``: the estimator's own defaults; ``None``: ``"auto"``), as
+    ``hybridslam run`` does;
+    loop closure during the run, which that profile may also choose, is not part of an estimator:
+    ``recommended(scenario).close_loops``. Without ``scenario``, the estimator's own defaults.
 
     Options: ``classifier``, ``gn_max_steps``, ``max_detections`` (every estimator); ``capacity``
     (hybrid, multimodal); ``samples`` (the draws of the hybrid's weights or of multimodal's Monte
@@ -58,6 +67,8 @@ def make_estimator(name: str, **options: Any) -> AbstractEstimator:
     """
     if name not in ESTIMATORS:
         raise ValueError(f"estimator: unknown {name!r} (known: {', '.join(ESTIMATORS)})")
+    if scenario is not None:
+        options = recommended(scenario, name, profile or "auto").merged(**options)
     given = {k: v for k, v in options.items() if v is not None}
     known = _OPTIONS[name]
     for option in given:
