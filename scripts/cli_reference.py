@@ -67,7 +67,8 @@ def _section(prog: str, summary: str, parser: argparse.ArgumentParser, level: in
         lines += ["| argument | value | default | what it does |", "|---|---|---|---|"]
         for a in rows:
             names = ", ".join(f"`{o}`" for o in a.option_strings) or f"`{(a.metavar or a.dest).upper()}`"
-            default = "" if a.nargs == 0 or a.default is None or a.default is False or a.default == argparse.SUPPRESS or a.required else f"`{a.default}`"
+            unset = a.nargs == 0 or a.default is None or a.default is False or a.default == argparse.SUPPRESS
+            default = "" if unset or a.required else f"`{a.default}`"
             value = _value(a)
             lines.append(f"| {names} | {f'`{value}`' if value else ''} | {default} | {_cell(a.help or '')} |")
         lines.append("")
