@@ -147,7 +147,7 @@ def scenario(folder: str, dataset: str, robot: int, start: float, duration: floa
              motion_noise: str = "steps") -> tuple[str, Scenario]:
     """The imported scenario (written under ``folder/scenarios`` the first time, read back after);
     ``motion_noise``: the importer's ``motion_noise_from``. A file written by an importer that
-    calibrated the noise otherwise (before 2026-11-26, thirteenth session, or with another
+    calibrated the noise otherwise (before 2026-11-26, or with another
     ``motion_noise``) is imported anew."""
     name = scenario_name(dataset, robot, start, duration, map_, motion_noise)
     path = os.path.join(folder, "scenarios", name)
@@ -331,7 +331,7 @@ def _row(r: dict) -> dict:
         row[f"num_objects{suffix}"] = a["num_objects"]
         row[f"duplicate_objects{suffix}"] = a["duplicate_objects"]
         row[f"mixed_objects{suffix}"] = a.get("mixed_objects", "")  # studies before 2026-11-26 lack it
-    row["map_error_mean_m"] = r.get("map_error", {}).get("mean_m", "")  # (thirteenth session on)
+    row["map_error_mean_m"] = r.get("map_error", {}).get("mean_m", "")  # studies before 2026-11-26 lack it
     row["map_error_median_m"] = r.get("map_error", {}).get("median_m", "")
     row.update(detections=r["detections"], num_steps=r["num_steps"], step_ms_median=r["step_ms_median"],
                step_ms_mean=r["step_ms_mean"], compile_s=r["compile_s"], wall_s=r["wall_s"],

@@ -177,7 +177,7 @@ def _collector_paused():
 
     Tracing a step allocates a few hundred thousand short-lived objects, and the collector's passes
     over the whole heap (JAX's modules included) cost a fifth of the tracing: the paper program's
-    trace and lowering 1.75, 1.95 → 1.42, 1.56 s (2026-11-26, twelfth session; alternating
+    trace and lowering 1.75, 1.95 → 1.42, 1.56 s (2026-11-26; alternating
     processes, ``gc.freeze`` in between bought half of that). The garbage the block leaves is
     reference cycles of the tracer, collected at the collector's next pass after it.
     """

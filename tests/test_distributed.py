@@ -1,5 +1,5 @@
 """Several processes: a study across two local processes (``jax.distributed`` on CPU, gloo collectives)
-gives the same table as one process. The README's cluster recipe runs the same code under SLURM."""
+gives the same table as one process. The cluster recipe of docs/sweeps.md runs the same code under SLURM."""
 
 from __future__ import annotations
 

@@ -98,7 +98,7 @@ def test_mode_search_is_the_dense_gauss_newton_on_a_manifold():
 
 def test_laplace_is_weights_are_stable_across_seeds(scenario):
     """Paper prior (σ = 10 m): two seeds give nearly the same association posterior at every step
-    (the paper's sampled estimator disagrees on the top hypothesis in 6 of 20 such runs: README)."""
+    (the paper's sampled estimator disagrees on the top hypothesis in 6 of 20 such runs: docs/weights.md)."""
     runs = [
         hs.run_estimator(scenario, classifier="none", weights="laplace-is", seed=s, capacity=8,
                         samples=SAMPLES, max_detections=SLOTS).result

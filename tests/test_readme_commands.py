@@ -1,4 +1,5 @@
-"""Every ``hybridslam`` command line the README documents parses with the real command-line parser.
+"""Every ``hybridslam`` command line the README and the documentation pages give parses with the real
+command-line parser.
 
 The README's commands are what users copy. A renamed or removed option would make them fail; this
 test reads every ``hybridslam ...`` line of the README's ``bash`` blocks (continuation lines joined,
@@ -12,25 +13,17 @@ from __future__ import annotations
 
 import re
 import shlex
-from pathlib import Path
 
 import pytest
 
 from hybridslam.cli import build_parser
 
-README = Path(__file__).resolve().parent.parent / "README.md"
+from .docblocks import all_blocks, commands
 
 
 def _commands() -> list[str]:
-    text = README.read_text(encoding="utf-8")
-    lines = []
-    for block in re.findall(r"```bash\n(.*?)```", text, flags=re.S):
-        joined = re.sub(r"\\\n\s*", " ", block)
-        for line in joined.splitlines():
-            line = line.split("  #")[0].strip()
-            if line.startswith("hybridslam ") or "&& hybridslam " in line:
-                lines.append(line[line.index("hybridslam "):])
-    return lines
+    """Every ``hybridslam ...`` command of the README's and the documentation pages' bash blocks."""
+    return list(dict.fromkeys(c for b in all_blocks("bash") for c in commands(b) if c.startswith("hybridslam ")))
 
 
 def _concrete(line: str) -> list[str]:

@@ -1,25 +1,29 @@
-"""Every command line of the README runs, in the README's order, as a user types it, and prints what
-the README says it prints.
+"""Every code block of the README and of the documentation pages runs, in the pages' order, as a
+user types it, and the README's commands print what the README says they print.
 
-The commands run as subprocesses through the shell, in one scratch folder, so each one's output is
-the next one's input (``simulate`` writes the ``scenario.json`` that ``run`` reads; ``sweep``
-writes the ``runs/sweep`` that ``plot`` draws). Two inputs a fresh machine lacks are supplied:
+The pages are those of ``tests/docblocks.py`` (the README first, then the site's navigation). Their
+``bash`` commands run as subprocesses through the shell, in one scratch folder, so each one's output
+is the next one's input (``simulate`` writes the ``scenario.json`` that ``run`` reads; ``sweep``
+writes the ``runs/sweep`` that ``plot`` draws); a command that two pages share runs once. Each
+page's ``python`` blocks run in order as one script in the same folder. A block after
+``<!-- skip-test: REASON -->`` is not run (``tests/test_docs_blocks.py`` reports it). Two inputs a
+fresh machine lacks are supplied:
 
 * ``MRCLAM_Dataset7``: the real dataset when ``$MRCLAM_DATASET`` names it, else the committed
   45 s excerpt of dataset 7, robot 1 (``tests/data/mrclam``). The excerpt is shorter than the
-  README's window, so on it ``--start 20 --duration 100`` becomes ``--start 0 --duration 40``;
+  pages' window, so on it ``--start 20 --duration 100`` becomes ``--start 0 --duration 40``;
   nothing else of any command line is changed.
 * ``logs/``: the user's own scenario files for ``sweep --scenarios 'logs/*.json'``; here the two
-  files the README's ``import`` lines wrote.
+  files the MRCLAM page's ``import`` lines wrote.
 
-``python3 ...`` lines of scripts (the MRCLAM study on five robots, minutes of work per robot) are
-checked against the script's own ``--help``: every option the README gives exists. The install
-and test lines (``pip``, ``pytest``, ``mypy``) are what CI itself runs.
+``python3 experiments/...`` and ``python3 scripts/...`` lines (studies of minutes to hours) are
+checked against the script's own ``--help``: every option the page gives exists. The install,
+test and docs-build lines (``pip``, ``pytest``, ``mypy``, ``mkdocs``) are what CI itself runs.
 
-Marked ``readme`` (about 5 minutes on 2 cores; the default study alone is 1.5 minutes of it), so
-``python3 -m pytest -q`` skips it and ``.ci/run`` runs it after the suite:
-``python3 -m pytest -q -m readme``. A README command without an entry in ``EXPECT`` fails here:
-every documented command is run.
+Marked ``readme`` (minutes on 2 cores; the default study alone about 1.5 of them), so ``python3 -m
+pytest -q`` skips it and ``.ci/run`` runs it after the suite: ``python3 -m pytest -q -m readme``. A
+README command without an entry in ``EXPECT`` fails here: every command of the README is checked
+for what it prints.
 """
 
 from __future__ import annotations
@@ -37,37 +41,18 @@ import pytest
 
 import hybridslam as hs
 
+from .docblocks import PAGES, README, ROOT, blocks, commands, kind
+
 pytestmark = pytest.mark.readme
 
-ROOT = Path(__file__).resolve().parent.parent
-README = ROOT / "README.md"
 EXCERPT = ROOT / "tests" / "data" / "mrclam"
 
+# Every page's commands that this test runs or checks, in order, each once; the README's alone.
+COMMANDS = list(dict.fromkeys(c for p in PAGES for b in blocks(p) if b.lang == "bash" and b.skip is None
+                              for c in commands(b) if kind(c) in ("run", "script")))
+README_COMMANDS = [c for b in blocks(README) if b.lang == "bash" for c in commands(b) if kind(c) == "run"]
+PYTHON_PAGES = [p for p in PAGES if any(b.lang == "python" and b.skip is None for b in blocks(p))]
 
-def _readme_lines() -> list[str]:
-    """The command lines of the README's ``bash`` blocks, in order (continuations joined, comments dropped)."""
-    text = README.read_text(encoding="utf-8")
-    lines = []
-    for block in re.findall(r"```bash\n(.*?)```", text, flags=re.S):
-        for line in re.sub(r"\\\n\s*", " ", block).splitlines():
-            line = line.split("  #")[0].strip()
-            if line and not line.startswith("#"):
-                lines.append(line)
-    return lines
-
-
-def _steps(line: str) -> list[str]:
-    """The ``&&``-separated commands of a line that this test runs or checks (not installs, tests, SLURM)."""
-    keep = []
-    for part in (p.strip() for p in line.split("&&")):
-        if part.startswith("hybridslam ") and "[" not in part:  # a synopsis line is not a command
-            keep.append(part)
-        elif re.match(r"python3 (experiments|scripts)/", part):
-            keep.append(part)
-    return keep
-
-
-COMMANDS = [step for line in _readme_lines() for step in _steps(line)]
 
 
 def _scenario(path: str, **expect):
@@ -91,8 +76,9 @@ RUN_TABLE = [r"^\s+k\s+det\s+alive\s+entropy\s+det_cov\s+err_wmax\s+err_wavg\s+s
              r"last pose [\d.]+$"]
 
 
-# For each README command: the lines its stdout must hold (regular expressions, multiline) and a
-# check of the files it writes.
+# For each README command (and some of the pages'): the lines its stdout must hold (regular
+# expressions, multiline) and a check of the files it writes. Other commands of the pages must exit
+# 0 without a traceback.
 EXPECT: dict[str, tuple[list[str], object]] = {
     "hybridslam sweep -o runs/sweep": (
         [r"^\s*alpha\s+model\s+tracks\s+H\(w\)", r"^wrote runs/sweep/table.csv", r"^sweep finished in [\d.]+ s"],
@@ -116,11 +102,9 @@ EXPECT: dict[str, tuple[list[str], object]] = {
     "hybridslam import mrclam MRCLAM_Dataset7 --robot 1 --start 20 --duration 100 --unknown-map -o robot1-slam.json": (
         [r"^wrote robot1-slam.json: .* unknown map of 15 landmarks \(25 object slots: --max-objects\)$"],
         lambda: _scenario("robot1-slam.json", num_objects=0)),
-    "hybridslam run robot1.json -o robot1-result.json --estimator max-mixture": (
-        [r"estimator=max-mixture;", *RUN_TABLE, r"^wrote robot1-result.json$"],
-        lambda: _result("robot1-result.json", smoother="full")),
-    "hybridslam run robot1.json -o robot1-hybrid.json --capacity 16 --gate 3 --weights linearized": (
-        [r"estimator=hybrid;.*weights=linearized.*capacity=16", *RUN_TABLE, r"^wrote robot1-hybrid.json$"],
+    "hybridslam run robot1.json -o robot1-hybrid.json --capacity 16 --gate 3 --weights linearized --plot robot1-hybrid.png": (
+        [r"estimator=hybrid;.*weights=linearized.*capacity=16", *RUN_TABLE, r"^wrote robot1-hybrid.json$",
+         r"^wrote robot1-hybrid.png$"],
         lambda: _result("robot1-hybrid.json", smoother="full")),
     "hybridslam sweep --scenarios 'logs/*.json' --estimator max-mixture -o runs/logs": (
         [r"^sweep: 2 scenario file\(s\)", r"^wrote runs/logs/table.csv", r"^sweep finished in"],
@@ -157,14 +141,14 @@ def _environment() -> dict[str, str]:
 
 
 def test_every_readme_command_has_an_expectation():
-    assert "hybridslam sweep -o runs/sweep" in COMMANDS  # the main job
-    missing = [c for c in COMMANDS if c not in EXPECT and not c.startswith("python3 ")]
+    assert "hybridslam sweep -o runs/sweep" in README_COMMANDS  # the main job
+    missing = [c for c in README_COMMANDS if c not in EXPECT]
     assert not missing, f"README commands without an entry in EXPECT (add one): {missing}"
     unused = [c for c in EXPECT if c not in COMMANDS]
-    assert not unused, f"EXPECT entries the README no longer documents (remove them): {unused}"
+    assert not unused, f"EXPECT entries no page documents any more (remove them): {unused}"
 
 
-@pytest.mark.parametrize("command", list(dict.fromkeys(COMMANDS)))
+@pytest.mark.parametrize("command", COMMANDS)
 def test_readme_command_runs(command, workdir, monkeypatch):
     monkeypatch.chdir(workdir)
     if command.startswith("python3 "):
@@ -176,10 +160,24 @@ def test_readme_command_runs(command, workdir, monkeypatch):
     proc = subprocess.run(_shell_line(command), shell=True, capture_output=True, text=True, env=_environment())
     assert proc.returncode == 0, f"{command}\nexit {proc.returncode}\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
     assert "Traceback" not in proc.stderr, proc.stderr
+    if command not in EXPECT:
+        return
     printed, check_files = EXPECT[command]
     for pattern in printed:
         assert re.search(pattern, proc.stdout, flags=re.M), f"{command}: no line matches {pattern!r}:\n{proc.stdout}"
     check_files()  # type: ignore[operator]
+
+
+@pytest.mark.parametrize("page", PYTHON_PAGES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_python_blocks_run(page, workdir):
+    """A page's Python blocks, in order, as one script in the scratch folder (after the commands,
+    so the files they name exist); a failure names the block's line."""
+    script = "\n".join(f"# --- {b.name}\n__block__ = {b.name!r}\n{b.code}" for b in blocks(page)
+                       if b.lang == "python" and b.skip is None)
+    env = _environment()
+    env["MPLBACKEND"] = "Agg"
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=workdir, env=env)
+    assert proc.returncode == 0, f"{page.name}: exit {proc.returncode}\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
 
 
 def _check_options(command: str) -> None:

@@ -79,14 +79,14 @@ def long_run_note(estimator: AbstractEstimator, scenario: Scenario) -> str | Non
     """The note ``run`` prints before a long file under the full smoother, else ``None``.
 
     The full smoother re-solves the whole trajectory at every step, so its steps slow as the run
-    goes (README, Real data, "Whole logs": 871 s of MRCLAM, the hybrid belief from 20 to about 550 ms
+    goes (docs/studies/mrclam.md, "Whole logs": 871 s of MRCLAM, the hybrid belief from 20 to about 550 ms
     per step, past the log's 0.5 s steps near the end); ``lag:L`` keeps them bounded.
     """
     if not isinstance(getattr(estimator, "smoother", None), Full) or scenario.num_steps <= LONG_RUN_STEPS:
         return None
     return (f"note: {scenario.num_steps} steps under the full smoother, which re-solves the whole trajectory at "
-            f"every step: the steps slow as the run goes; --smoother lag:50 keeps them bounded (README, Real data, "
-            f"Whole logs)")
+            f"every step: the steps slow as the run goes; --smoother lag:50 keeps them bounded "
+            f"(docs/studies/mrclam.md, Whole logs)")
 
 
 def chosen_settings(args: argparse.Namespace, profile: Profile) -> dict:

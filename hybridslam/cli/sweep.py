@@ -126,7 +126,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         print("\nmean over scenario files at each file's last step")
         print(summary_table(rows, list(dict.fromkeys(r["model"] for r in rows))))
     total = time.perf_counter() - t_start
-    print(f"\nsweep finished in {total:.1f} s (this session: compile {compile_s:.1f} s, batched runs "
+    print(f"\nsweep finished in {total:.1f} s (this run: compile {compile_s:.1f} s, batched runs "
           f"{run_s:.1f} s; {len(rows)} track-steps in the table)")
     return 0
 

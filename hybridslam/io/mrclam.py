@@ -61,7 +61,7 @@ What the data hold (datasets 6 and 7, all robots), and what the import does abou
   accordingly. ``generator.calibration.odometry_drift_sd_per_step``
   reports it; ``motion_noise_from="drift"`` writes a ``motion_cov`` that grows as fast (on
   dataset 7's unknown map it halves the duplicate landmarks; on the known map it costs accuracy:
-  README, Real data).
+  docs/studies/mrclam.md).
 * Odometry records have gaps of up to ~1 s (the last command is held) and duplicated times;
   the ground truth of some robots ends minutes before their odometry (dataset 6, robot 1).
   ``generator.data`` holds the longest gaps in the window.

@@ -6,7 +6,7 @@ rows, an uncertain map (``Σ_o = diag(0.05, 0.05, 0.5e-3)``), a highly uncertain
 ``Σ_v = diag(0.1, 0.05)``, classifier Eq. 18 with ``alpha = 0.25``, ``K = 15``. Every track
 starts at the same pose and wanders smoothly (a random walk on the heading). Measurements are
 sampled from the models, ground truth is recorded. The paper does not publish its map, so the
-layout here is ours (see README).
+layout here is ours (see docs/studies/paper.md).
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 Component ``i`` is the pair (weight ``w^C_β1:k``, Gaussian ``b[X_k]^C_β1:k``) of Eq. 5. The
 continuous state of a component is the joint Gaussian over the current robot pose and all object
 poses, laid out as ``[x_k (3), x^o_1 (3), ..., x^o_N (3)]`` (``D = 3 + 3N``); past robot poses are
-marginalized out as the filter moves (see README, "Model conventions"). ``classes[i, n]`` is the
+marginalized out as the filter moves (see docs/model.md). ``classes[i, n]`` is the
 class realization of object ``n`` or ``-1`` while the component has not associated it yet (lazy
 realizations, Sec. IV-D). ``history[i, j]`` is ``β_{j+1}`` (object index per detection slot,
 ``-1`` for an empty slot).

@@ -147,7 +147,7 @@ class LaplaceIS(AbstractWeigher):
     within ``screen_nats`` of the best (``e^-15 ≈ 3e-7``: ten nats below the pruning threshold
     ``w_max/150 ≈ e^-5``, room for the linearization's error) get ``samples`` draws each; the rest
     would be pruned anyway. 64 draws per child estimate Eq. 16 about as well as the paper's sampled
-    estimator with several thousand (README, "Weights").
+    estimator with several thousand (docs/weights.md).
     """
 
     samples: int = eqx.field(default=64, static=True)

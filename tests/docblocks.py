@@ -1,0 +1,91 @@
+"""The code blocks of the README and the documentation pages, as the tests run them.
+
+A page's ```` ```python ```` and ```` ```bash ```` blocks are its examples. Every one of them is run by
+``tests/test_readme_run.py`` (marker ``readme``) unless the line before it is an HTML comment
+``<!-- skip-test: REASON -->`` (a block that needs a GPU, SLURM or several hosts); the quick tests
+of ``tests/test_docs_blocks.py`` check that every block is one the runner knows how to run, that
+each skipped one says why, and that the names and options the blocks use exist.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+README = ROOT / "README.md"
+
+# The order the runner takes the pages in: the README first, then the site's navigation order, so
+# that a page's commands find the files an earlier page wrote (logs/ from the MRCLAM imports).
+PAGES = [README] + [ROOT / "docs" / p for p in (
+    "index.md", "tutorial.md", "installation.md", "studies/paper.md", "studies/hallway.md",
+    "studies/mrclam.md", "estimators.md", "weights.md", "model.md", "sweeps.md", "gradients.md",
+    "planning.md", "learned_classifier.md", "cli.md", "api.md", "file_format.md", "performance.md",
+    "limits.md", "layout.md")]
+
+_FENCE = re.compile(r"^(?P<indent>[ \t]*)```(?P<lang>[\w-]*)[^\n]*\n(?P<body>.*?)^(?P=indent)```[ \t]*$", re.M | re.S)
+_SKIP = re.compile(r"<!--\s*skip-test:\s*(?P<reason>.*?)\s*-->\s*$")
+
+
+@dataclass(frozen=True)
+class Block:
+    page: Path
+    line: int  # 1-based line of the opening fence
+    lang: str
+    code: str
+    skip: str | None  # the reason of a preceding <!-- skip-test: ... -->, or None
+
+    @property
+    def name(self) -> str:
+        return f"{self.page.relative_to(ROOT)}:{self.line}"
+
+
+def blocks(page: Path) -> list[Block]:
+    """Every fenced block of a page, in order (indented ones in lists included)."""
+    text = page.read_text(encoding="utf-8")
+    out = []
+    for m in _FENCE.finditer(text):
+        line = text.count("\n", 0, m.start()) + 1
+        before = text[:m.start()].rstrip("\n").rsplit("\n", 1)[-1]
+        skip = _SKIP.search(before)
+        indent = m.group("indent")
+        code = "\n".join(s[len(indent):] if s.startswith(indent) else s for s in m.group("body").split("\n"))
+        out.append(Block(page, line, m.group("lang"), code, skip.group("reason") if skip else None))
+    return out
+
+
+def all_blocks(lang: str | None = None) -> list[Block]:
+    return [b for p in PAGES for b in blocks(p) if lang is None or b.lang == lang]
+
+
+def command_lines(block: Block) -> list[str]:
+    """A bash block's command lines (continuations joined, comments dropped)."""
+    lines = []
+    for line in re.sub(r"\\\n\s*", " ", block.code).splitlines():
+        line = line.split("  #")[0].strip()
+        if line and not line.startswith("#"):
+            lines.append(line)
+    return lines
+
+
+def is_synopsis(command: str) -> bool:
+    """``hybridslam sweep [-o runs/sweep] [--alphas ...]``: a usage line, parsed but not run."""
+    return "[" in command
+
+
+def kind(command: str) -> str:
+    """What the runner does with one ``&&``-separated command: ``run`` (a hybridslam command),
+    ``script`` (an experiments/ or scripts/ line, checked against its --help), ``ci`` (install, test,
+    docs build: what CI runs itself) or ``unknown`` (a test failure: mark its block skip-test)."""
+    if command.startswith("hybridslam "):
+        return "synopsis" if is_synopsis(command) else "run"
+    if re.match(r"python3 (experiments|scripts)/", command):
+        return "script"
+    if re.match(r"(python3 -m (pip|pytest|mypy)\b|mkdocs )", command):
+        return "ci"
+    return "unknown"
+
+
+def commands(block: Block) -> list[str]:
+    return [part.strip() for line in command_lines(block) for part in line.split("&&")]
