@@ -79,3 +79,18 @@ def test_run_many_compiles_once_and_equals_single_runs(monkeypatch):
 def test_run_many_checks_its_seeds():
     with pytest.raises(ValueError, match="2 seeds for 1 scenarios"):
         hs.run_many(TINY, [hs.simulate(0, steps=2)], seed=[1, 2])
+
+
+def test_cpu_split_only_before_the_backend_starts_and_when_nobody_chose(monkeypatch):
+    """`split_cpu_into_cores` sets no count once JAX's backends run (as here), for one core, or when
+    XLA_FLAGS already names one."""
+    from hybridslam.studies import strategies
+
+    devices = len(jax.devices())
+    monkeypatch.setenv(strategies.CPU_DEVICES_ENV, "3")
+    assert strategies.split_cpu_into_cores() == 0 and len(jax.devices()) == devices
+    monkeypatch.setenv(strategies.CPU_DEVICES_ENV, "1")
+    assert strategies.split_cpu_into_cores() == 0
+    monkeypatch.setenv(strategies.CPU_DEVICES_ENV, "4")
+    monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
+    assert strategies.split_cpu_into_cores() == 0

@@ -1,16 +1,20 @@
-"""Many runs at once: a batch of tracks as one compiled, vmapped, sharded computation.
+"""Many runs at once: a batch of tracks as one compiled, sharded computation.
 
 :func:`run_batch` takes an estimator and a :class:`Batch` (``B`` initial states stacked on a
 leading axis, each carrying its own model, so tracks may differ in alpha, K or covariances, and
-the ``B`` tracks' inputs) and runs every step of every track in one call: ``jax.vmap`` over tracks
-of the driver's ``lax.scan`` over steps (:func:`hybridslam.driver.scan`), so a track gets exactly
-the numbers :func:`hybridslam.run` gives it alone. The batch axis is sharded over a
-``jax.sharding.Mesh`` of all devices (one CPU, several GPUs, several hosts after
-``jax.distributed.initialize()``), padded to a multiple of the device count. With several
-processes, every process runs the same study and gets the whole trace back
-(``process_allgather``); only process 0 writes files (:mod:`hybridslam.studies.study`).
+the ``B`` tracks' inputs) and runs every step of every track in one call: the driver's ``lax.scan``
+over steps (:func:`hybridslam.driver.scan`) of every track, so a track gets the numbers
+:func:`hybridslam.run` gives it alone. How the tracks share the program is a
+:mod:`~hybridslam.studies.strategies` choice made by backend: one ``jax.vmap`` over the tracks on an
+accelerator (:class:`~hybridslam.studies.strategies.VmapBatches`), a ``lax.map`` over them on a CPU
+(:class:`~hybridslam.studies.strategies.MapBatches`), where a vmap would make every track run every
+branch of every other. The batch axis is sharded over a ``jax.sharding.Mesh`` of all devices (one
+CPU or one per core, several GPUs, several hosts after ``jax.distributed.initialize()``), padded to
+a multiple of the device count. With several processes, every process runs the same study and
+gets the whole trace back (``process_allgather``); only process 0 writes files
+(:mod:`hybridslam.studies.study`).
 
-The vmap axis is named (:data:`BATCH_AXIS`) and the estimator is told so
+Under a vmap the axis is named (:data:`BATCH_AXIS`) and the estimator is told so
 (``estimator.with_batch_axis``): the hybrid belief then still skips chunks of component slots that
 are empty in every track (:func:`hybridslam.inference.batching.map_live`), so a batch pays for its
 largest live set, not for the capacity.

@@ -21,6 +21,7 @@ vmapped program may round differently).
 from __future__ import annotations
 
 import dataclasses
+import os
 from typing import Any, ClassVar
 
 import jax
@@ -48,7 +49,7 @@ class VmapBatches:
 
     def run(self, estimator: AbstractEstimator, batch: Any) -> tuple:
         """Every track's :func:`track_outputs`, stacked on a leading axis ``B``."""
-        one = lambda s, i, k: track_outputs(estimator.with_batch_axis(BATCH_AXIS), s, i, k)  # noqa: E731
+        one = lambda s, i, k: track_outputs(estimator.with_batch_axis(BATCH_AXIS), s, i, k)
         return jax.vmap(one, axis_name=BATCH_AXIS)(batch.state, batch.inputs, batch.key)
 
     def describe(self) -> str:
@@ -90,7 +91,9 @@ class MapBatches:
         if self.mesh is None or self.mesh.size == 1:
             return local(batch)
         spec = PartitionSpec(BATCH_AXIS)
-        return jax.shard_map(local, mesh=self.mesh, in_specs=(spec,), out_specs=spec)(batch)
+        # check_vma off: the step's lax.conds return zeros built outside the map (unvarying across
+        # devices) beside per-device values, which the checker rejects; no collective crosses devices.
+        return jax.shard_map(local, mesh=self.mesh, in_specs=(spec,), out_specs=spec, check_vma=False)(batch)
 
     def describe(self) -> str:
         return f"map:{self.chunk}"
@@ -122,3 +125,32 @@ def parse_strategy(text: str | None) -> BatchStrategy:
         except ValueError:
             pass
     raise ValueError(f"--batching {text!r}: expected auto, vmap, map or map:N (N tracks vmapped per chunk)")
+
+
+CPU_DEVICES_ENV = "HYBRIDSLAM_CPU_DEVICES"  # how many CPU devices a study splits the host into (0: JAX's default)
+
+
+def split_cpu_into_cores() -> int:
+    """Give JAX one CPU device per core (``jax_num_cpu_devices``), so that a study's
+    :class:`MapBatches` maps over a share of the tracks on every core at once (a sharded program's
+    devices run in parallel; one CPU device runs the whole ``lax.map`` on one core).
+
+    Only before JAX starts its backends (the CLI calls it first thing), and only where nobody chose a
+    count already (``jax_num_cpu_devices``, ``--xla_force_host_platform_device_count`` in
+    ``XLA_FLAGS``). ``$HYBRIDSLAM_CPU_DEVICES`` overrides the core count (``0`` or ``1``: leave JAX's
+    single CPU device). Accelerators are untouched (the CPU devices are then not the default ones).
+    Returns the count set, or 0 when it set none.
+    """
+    given = os.environ.get(CPU_DEVICES_ENV, "").strip()
+    try:
+        count = int(given) if given else len(os.sched_getaffinity(0))
+    except (ValueError, AttributeError):
+        count = int(given) if given.isdigit() else (os.cpu_count() or 1)
+    if (count <= 1 or jax.config.jax_num_cpu_devices != -1  # type: ignore[attr-defined]
+            or "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", "")):
+        return 0
+    try:
+        jax.config.update("jax_num_cpu_devices", count)
+    except RuntimeError:  # the backends have started: too late, keep one device
+        return 0
+    return count
