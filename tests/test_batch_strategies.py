@@ -94,3 +94,6 @@ def test_cpu_split_only_before_the_backend_starts_and_when_nobody_chose(monkeypa
     monkeypatch.setenv(strategies.CPU_DEVICES_ENV, "4")
     monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
     assert strategies.split_cpu_into_cores() == 0
+    monkeypatch.setenv(strategies.CPU_DEVICES_ENV, "four")
+    with pytest.raises(ValueError, match="HYBRIDSLAM_CPU_DEVICES='four'"):
+        strategies.split_cpu_into_cores()

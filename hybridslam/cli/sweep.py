@@ -67,7 +67,10 @@ def _spec(args: argparse.Namespace, models, estimator) -> tuple[study.AlphaStudy
 def cmd_sweep(args: argparse.Namespace) -> int:
     """A study: alphas x models x simulated tracks (Fig. 5), or runs over scenario files; resumable."""
     if args.batching in ("auto", "map") or args.batching.startswith("map:"):
-        split_cpu_into_cores()  # before anything starts JAX's backends: the tracks then run on every core
+        try:
+            split_cpu_into_cores()  # before anything starts JAX's backends: the tracks then run on every core
+        except ValueError as e:
+            raise CLIError(str(e)) from None
     capacity = args.capacity
     if capacity is None and args.estimator in ("hybrid", "multimodal"):
         capacity = SWEEP_CAPACITY

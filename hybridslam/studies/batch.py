@@ -127,7 +127,7 @@ def batch_inputs(estimator: AbstractEstimator, scenarios: Sequence[Scenario], se
     return Batch(
         state=_stack(states),
         inputs=_stack([inputs_from_scenario(s, slots, num_steps=steps) for s in scenarios]),
-        key=jnp.stack([jax.random.PRNGKey(seed) for seed in seeds]),
+        key=jnp.asarray(np.stack([np.asarray(jax.random.PRNGKey(seed)) for seed in seeds])),
     )
 
 
@@ -215,7 +215,11 @@ def run_batch(estimator: AbstractEstimator, batch: Batch, mesh: Mesh | None = No
             strategy = dataclasses.replace(strategy, chunk=width_per_device)
         width = width_per_device * mesh.size
         pad = slices * width - size
-        padded = jax.tree.map(lambda x, pad=pad: jnp.concatenate([x, jnp.repeat(x[:1], pad, axis=0)]), batch)
+        # Padded and sliced on the host: on device arrays every leaf's concatenate and slice is an eager
+        # op that compiles a small program of its own (a batched hybrid state has dozens of leaves;
+        # 8 hard files' warm sweep, under load: 30 s of its 144 s), and none is kept on disk.
+        padded = jax.tree.map(lambda x, pad=pad: np.concatenate([x, np.repeat(x[:1], pad, axis=0)]),
+                              jax.device_get(batch))
         first = jax.device_put(jax.tree.map(lambda x, width=width: x[:width], padded),
                                NamedSharding(mesh, PartitionSpec(BATCH_AXIS)))
         executable, seconds = compiled(_run_batch, estimator, first, strategy)

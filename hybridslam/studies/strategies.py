@@ -139,13 +139,13 @@ def split_cpu_into_cores() -> int:
     count already (``jax_num_cpu_devices``, ``--xla_force_host_platform_device_count`` in
     ``XLA_FLAGS``). ``$HYBRIDSLAM_CPU_DEVICES`` overrides the core count (``0`` or ``1``: leave JAX's
     single CPU device). Accelerators are untouched (the CPU devices are then not the default ones).
-    Returns the count set, or 0 when it set none.
+    Returns the count set, or 0 when it set none; a ``ValueError`` naming the variable for a bad value.
     """
     given = os.environ.get(CPU_DEVICES_ENV, "").strip()
-    try:
-        count = int(given) if given else len(os.sched_getaffinity(0))
-    except (ValueError, AttributeError):
-        count = int(given) if given.isdigit() else (os.cpu_count() or 1)
+    if given and not given.isdigit():
+        raise ValueError(f"{CPU_DEVICES_ENV}={given!r}: expected a number of CPU devices (0 or 1: one)")
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    count = int(given) if given else cores
     if (count <= 1 or jax.config.jax_num_cpu_devices != -1  # type: ignore[attr-defined]
             or "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", "")):
         return 0
