@@ -12,6 +12,8 @@ from hybridslam import driver
 from hybridslam.studies import batch as sweep
 from hybridslam.studies.strategies import MapBatches, VmapBatches, default_strategy, parse_strategy
 
+from .scripts import load_script
+
 TINY = hs.Hybrid(weights=hs.Linearized(), smoother=hs.Filter(), capacity=4, classifier="mirror", max_detections=2)
 
 
@@ -97,3 +99,20 @@ def test_cpu_split_only_before_the_backend_starts_and_when_nobody_chose(monkeypa
     monkeypatch.setenv(strategies.CPU_DEVICES_ENV, "four")
     with pytest.raises(ValueError, match="HYBRIDSLAM_CPU_DEVICES='four'"):
         strategies.split_cpu_into_cores()
+
+
+def test_hard_files_are_the_issue_s_files(tmp_path):
+    """bench_goals' files-hard workload: paper layout, a tight robot prior, `mirror` at alpha 0.25,
+    10 steps of at most 4 detections, seeded (the same files twice)."""
+    bench = load_script("scripts/bench_goals.py", "bench_goals")
+    paths = bench.hard_files(str(tmp_path), count=6)
+    (tmp_path / "again").mkdir()
+    again = bench.hard_files(str(tmp_path / "again"), count=1)
+    scenarios = [hs.load_scenario(p) for p in paths]
+    for s in scenarios:
+        np.testing.assert_allclose(np.diag(s.robot_prior_cov), [1.0, 1.0, 0.04])
+        assert s.num_steps == 10 and s.num_objects == 6 and s.max_detections <= 4
+        assert s.classifier.model == "mirror" and s.classifier.alpha == 0.25
+    assert max(s.max_detections for s in scenarios) >= 3
+    with open(again[0], encoding="utf-8") as a, open(paths[0], encoding="utf-8") as b:
+        assert a.read() == b.read()
