@@ -48,6 +48,7 @@ from .driver import inputs_from_scenario as inputs_from_scenario
 from .driver import run as run
 from .driver import run_estimator as run_estimator
 from .driver import scan as scan
+from .studies.many import run_many as run_many
 from .estimators import ESTIMATORS as ESTIMATORS
 from .estimators import GPDA as GPDA
 from .estimators import ML as ML

@@ -15,9 +15,14 @@ Workloads:
   200 steps; ``--mrclam DIR`` names a dataset folder, e.g. ``MRCLAM_Dataset7``; skipped without it).
 * ``files``: 16 ten-step paper-layout files through the study machinery (``hybridslam sweep
   --scenarios``): seconds of batched work after compilation.
+* ``files-hard``: 64 ten-step files as users bring them (:func:`hard_files`: the paper's layout, a
+  tight robot prior, up to 4 detections per step) through ``hybridslam sweep --scenarios DIR
+  --samples 1000`` in a fresh process, once per ``--batching`` strategy, each twice on one
+  persistent compilation cache (cold, then warm: the issue's end to end), beside the same files one
+  at a time (``hs.run_many``: one compile, then each file's steps as ``hybridslam.run`` runs them).
 
-    python scripts/bench_goals.py [--workloads paper4,paper,hallway,mrclam,files] [--mrclam DIR] [--repeats 2]
-        [--smoothers full,lag:10,filter]
+    python scripts/bench_goals.py [--workloads paper4,paper,hallway,mrclam,files,files-hard] [--mrclam DIR]
+        [--repeats 2] [--smoothers full,lag:10,filter] [--batching auto,vmap] [--hard-files 64]
 """
 
 from __future__ import annotations
@@ -25,6 +30,10 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
+import re
+import resource
+import subprocess
+import sys
 import tempfile
 import time
 
@@ -69,13 +78,81 @@ def _row(workload, name, smoother, scenario, options, repeats):
           f"{'' if goal is None else goal:>8} {verdict:<6} {errors}", flush=True)
 
 
+# Files as users bring them to `hybridslam sweep --scenarios` (issue 48): the paper's layout, a robot
+# prior as tight as a known start (variances 1, 1, 0.04, not the simulator's 100, 100, 0.04), the
+# `mirror` classifier at alpha 0.25, a detector that sees up to 4 objects within 9 m (1-3 per step
+# mostly: over 64 files of 10 steps 10 steps see none, 97 one, 380 two, 140 three, 13 four).
+HARD_SETUP = hs.PaperSetup(robot_cov=(1.0, 1.0, 0.04), max_detections=4, max_range=9.0)
+
+
+def hard_files(folder: str, count: int = 64, steps: int = 10, seed: int = 1000) -> list[str]:
+    """``count`` scenario files of :data:`HARD_SETUP` written into ``folder`` (seeds ``seed``,
+    ``seed + 1``, ...); their paths."""
+    paths = []
+    for i in range(count):
+        path = os.path.join(folder, f"hard{i:03d}.json")
+        hs.save_scenario(hs.simulate(seed + i, steps=steps, alpha=0.25, setup=HARD_SETUP), path)
+        paths.append(path)
+    return paths
+
+
+def _children_cpu() -> float:
+    """CPU seconds (user + system) of the finished child processes so far: on a shared machine a
+    process's wall time is mostly waiting, its CPU time much less so."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def _files_hard(count: int, strategies: list[str]) -> None:
+    """The ``files-hard`` workload (module docstring): one line per (strategy, cold or warm cache) and
+    one for the one-at-a-time runs."""
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = os.path.join(tmp, "files")
+        os.makedirs(folder)
+        paths = hard_files(folder, count)
+        steps = sum(hs.load_scenario(p).num_steps for p in paths)
+        print(f"# files-hard: {count} files, {steps} track-steps; hybrid capacity 16, laplace-is 1000 draws, full "
+              f"smoother (hybridslam sweep's defaults with --samples 1000)", flush=True)
+        for batching in strategies:
+            env = dict(os.environ, HYBRIDSLAM_CACHE_DIR=os.path.join(tmp, f"cache-{batching}"))
+            env.pop("JAX_COMPILATION_CACHE_DIR", None)
+            for label in ("cold", "warm"):
+                out = os.path.join(tmp, f"out-{batching}-{label}")
+                cmd = [sys.executable, "-m", "hybridslam", "sweep", "--scenarios", folder, "--samples", "1000",
+                       "--batching", batching, "-o", out]
+                t0, cpu0 = time.perf_counter(), _children_cpu()
+                done = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
+                wall, cpu = time.perf_counter() - t0, _children_cpu() - cpu0
+                found = re.search(r"compile ([0-9.]+) s, batched runs ([0-9.]+) s", done.stdout)
+                if done.returncode or not found:
+                    print(f"files-hard sweep --batching {batching} failed:\n{done.stdout[-2000:]}{done.stderr[-2000:]}")
+                    break
+                compile_s, run_s = float(found[1]), float(found[2])
+                print(f"files-hard hybrid sweep --batching {batching:<6} {label}: compile {compile_s:.1f} s, batched work "
+                      f"{run_s:.2f} s = {1e3 * run_s / steps:.1f} ms per track-step; end to end {wall:.1f} s "
+                      f"({cpu:.1f} CPU s)", flush=True)
+        est = hs.make_estimator("hybrid", capacity=16, samples=1000)
+        t0, cpu0 = time.perf_counter(), time.process_time()
+        runs = hs.run_many(est, [hs.load_scenario(p) for p in paths])
+        wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
+        ms = 1e3 * np.concatenate([r.result.timing["step_s"] for r in runs])
+        compile_s = sum(r.result.timing["compile_s"] for r in runs)
+        print(f"files-hard hybrid one at a time (hs.run_many): compile {compile_s:.1f} s, steps {ms.sum() / 1e3:.2f} s = "
+              f"{np.median(ms):.1f} ms median, {np.mean(ms):.1f} ms mean per step; in-process {wall:.1f} s ({cpu:.1f} CPU s)",
+              flush=True)
+        clear_compiled()
+
+
 def _paper4(seed: int) -> hs.Scenario:
     return hs.simulate(seed, steps=10, setup=hs.PaperSetup(max_detections=4, max_range=12.0))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--workloads", default="paper4,paper,hallway,mrclam,files")
+    parser.add_argument("--workloads", default="paper4,paper,hallway,mrclam,files,files-hard")
+    parser.add_argument("--batching", default="auto,vmap",
+                        help="files-hard: the sweep's --batching strategies to measure, comma-separated")
+    parser.add_argument("--hard-files", type=int, default=64, help="files-hard: how many files")
     parser.add_argument("--estimators", default="hybrid,ml,gpda,max-mixture,multimodal")
     parser.add_argument("--mrclam", default=None, help="an MRCLAM dataset folder (skip the workload without it)")
     parser.add_argument("--repeats", type=int, default=1)
@@ -136,6 +213,8 @@ def main() -> None:
                 print(f"files    hybrid       {label:<7} {record['compile_s']:>9.1f} "
                       f"{'':>10} {'':>9} {'':>8} batched work {record['run_s']:.2f} s for 16 x 10 steps "
                       f"(goal 1.1 s); end to end {wall:.1f} s", flush=True)
+    if "files-hard" in workloads:
+        _files_hard(a.hard_files, a.batching.split(","))
 
 
 if __name__ == "__main__":

@@ -18,7 +18,9 @@ in JAX's persistent cache between runs (:mod:`.cache`; ``HYBRIDSLAM_NO_CACHE=1``
 Environment: ``HYBRIDSLAM_CACHE_DIR`` (the cache's folder), ``HYBRIDSLAM_NO_CACHE=1`` (no cache),
 ``HYBRIDSLAM_BUCKETS`` (compiled sizes of the smoother's live-prefix solves, default 4; 1: the whole
 graph only), ``HYBRIDSLAM_XLA_DEFAULTS=1`` (XLA's default compile options instead of the elemental
-emitters on the CPU, :func:`hybridslam.driver.compiler_options`). Bad values are one-line errors.
+emitters on the CPU, :func:`hybridslam.driver.compiler_options`), ``HYBRIDSLAM_CPU_DEVICES`` (the CPU
+devices ``sweep`` splits the host into, default one per core,
+:func:`hybridslam.studies.strategies.split_cpu_into_cores`). Bad values are one-line errors.
 """
 
 from __future__ import annotations

@@ -13,6 +13,7 @@ from tqdm import tqdm
 from ..io.scenario import ScenarioError
 from ..studies import study
 from ..studies.batch import device_mesh
+from ..studies.strategies import parse_strategy, split_cpu_into_cores
 from .common import (
     CLASSIFIERS,
     CLIError,
@@ -65,11 +66,20 @@ def _spec(args: argparse.Namespace, models, estimator) -> tuple[study.AlphaStudy
 
 def cmd_sweep(args: argparse.Namespace) -> int:
     """A study: alphas x models x simulated tracks (Fig. 5), or runs over scenario files; resumable."""
+    if args.batching in ("auto", "map") or args.batching.startswith("map:"):
+        try:
+            split_cpu_into_cores()  # before anything starts JAX's backends: the tracks then run on every core
+        except ValueError as e:
+            raise CLIError(str(e)) from None
     capacity = args.capacity
     if capacity is None and args.estimator in ("hybrid", "multimodal"):
         capacity = SWEEP_CAPACITY
     estimator = estimator_from_args(args, capacity=capacity)
     models = _models(args.models)
+    try:
+        strategy = parse_strategy(args.batching)
+    except ValueError as e:
+        raise CLIError(str(e)) from None
     folder = args.output
     check_folder(folder)
     try:
@@ -80,7 +90,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             done = sum(c in records for c in spec.cells()) if isinstance(spec, study.AlphaStudy) else 0
         mesh = device_mesh()
         print(f"sweep: {what}; estimator={estimator.name}; {estimator.describe().split('; ', 1)[-1]}, "
-              f"seed={args.seed}; {mesh.size} device(s) ({mesh.devices.flat[0].platform}); writing to {folder}",
+              f"seed={args.seed}; {mesh.size} device(s) ({mesh.devices.flat[0].platform}, batching "
+              f"{strategy.describe()}); writing to {folder}",
               flush=True)
         t_start = time.perf_counter()
         cells = len(spec.cells()) if isinstance(spec, study.AlphaStudy) else None
@@ -106,9 +117,9 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         with bar:
             if isinstance(spec, study.AlphaStudy):
                 bar.update(done)
-                rows = study.run_alpha_study(spec, folder, mesh=mesh, on_cell=on_cell)
+                rows = study.run_alpha_study(spec, folder, mesh=mesh, on_cell=on_cell, strategy=strategy)
             else:
-                rows = study.run_file_study(spec, folder, mesh=mesh, on_cell=on_cell)
+                rows = study.run_file_study(spec, folder, mesh=mesh, on_cell=on_cell, strategy=strategy)
     except study.StudyError as e:
         raise CLIError(str(e)) from None
     except ValueError as e:
@@ -147,6 +158,10 @@ def add_parsers(sub) -> None:
     p.add_argument("--K", type=float, default=None, help=f"classifier K of Eq. 18 (default {SWEEP_DEFAULTS['K']:g})")
     p.add_argument("--scenarios", default=None, metavar="DIR_OR_GLOB",
                    help="run over these scenario files instead of simulating (files of equal shape are batched)")
+    p.add_argument("--batching", default="auto", metavar="{auto,vmap,map,map:N}",
+                   help="how a batch's tracks share its compiled program: vmap (one vmap over all of them, "
+                        "accelerators), map (one track after another, CPU), map:N (N tracks vmapped at a "
+                        "time); auto (default): map on a CPU, vmap elsewhere. Changes no number")
     add_estimator_options(p, seed_help="track t is simulated with seed + t and weighed with PRNG seed seed + t",
                           capacity_default=str(SWEEP_CAPACITY))
     p.set_defaults(func=cmd_sweep)

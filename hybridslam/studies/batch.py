@@ -1,16 +1,20 @@
-"""Many runs at once: a batch of tracks as one compiled, vmapped, sharded computation.
+"""Many runs at once: a batch of tracks as one compiled, sharded computation.
 
 :func:`run_batch` takes an estimator and a :class:`Batch` (``B`` initial states stacked on a
 leading axis, each carrying its own model, so tracks may differ in alpha, K or covariances, and
-the ``B`` tracks' inputs) and runs every step of every track in one call: ``jax.vmap`` over tracks
-of the driver's ``lax.scan`` over steps (:func:`hybridslam.driver.scan`), so a track gets exactly
-the numbers :func:`hybridslam.run` gives it alone. The batch axis is sharded over a
-``jax.sharding.Mesh`` of all devices (one CPU, several GPUs, several hosts after
-``jax.distributed.initialize()``), padded to a multiple of the device count. With several
-processes, every process runs the same study and gets the whole trace back
-(``process_allgather``); only process 0 writes files (:mod:`hybridslam.studies.study`).
+the ``B`` tracks' inputs) and runs every step of every track in one call: the driver's ``lax.scan``
+over steps (:func:`hybridslam.driver.scan`) of every track, so a track gets the numbers
+:func:`hybridslam.run` gives it alone. How the tracks share the program is a
+:mod:`~hybridslam.studies.strategies` choice made by backend: one ``jax.vmap`` over the tracks on an
+accelerator (:class:`~hybridslam.studies.strategies.VmapBatches`), a ``lax.map`` over them on a CPU
+(:class:`~hybridslam.studies.strategies.MapBatches`), where a vmap would make every track run every
+branch of every other. The batch axis is sharded over a ``jax.sharding.Mesh`` of all devices (one
+CPU or one per core, several GPUs, several hosts after ``jax.distributed.initialize()``), padded to
+a multiple of the device count. With several processes, every process runs the same study and
+gets the whole trace back (``process_allgather``); only process 0 writes files
+(:mod:`hybridslam.studies.study`).
 
-The vmap axis is named (:data:`BATCH_AXIS`) and the estimator is told so
+Under a vmap the axis is named (:data:`BATCH_AXIS`) and the estimator is told so
 (``estimator.with_batch_axis``): the hybrid belief then still skips chunks of component slots that
 are empty in every track (:func:`hybridslam.inference.batching.map_live`), so a batch pays for its
 largest live set, not for the capacity.
@@ -35,12 +39,12 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, Float, Key, UInt32
 
-from ..driver import Inputs, Trace, compiled, inputs_from_scenario, scan, trace_record
+from ..driver import Inputs, Trace, compiled, inputs_from_scenario, trace_record
 from ..estimators.base import AbstractEstimator
 from ..io.result import StepRecord
 from ..io.scenario import Scenario
+from .strategies import BATCH_AXIS, BatchStrategy, MapBatches, VmapBatches, default_strategy
 
-BATCH_AXIS = "tracks"
 MAX_TRACKS_PER_DEVICE = 64
 
 
@@ -56,14 +60,12 @@ class Batch(eqx.Module):
         return self.key.shape[0]
 
 
-def _run_batch(estimator: AbstractEstimator, batch: Batch) -> tuple[Trace, Float[Array, "B T1 3"] | None, Any]:
+def _run_batch(estimator: AbstractEstimator, batch: Batch,
+               strategy: BatchStrategy | None = None) -> tuple[Trace, Float[Array, "B T1 3"] | None, Any]:
     """Every track's trace and, for smoothers, its final smoothed trajectory and objects with their
-    count (:meth:`~hybridslam.estimators.base.AbstractEstimator.objects`; ``None`` for filters)."""
-    def one(state, inputs, key):
-        final, trace = scan(estimator, state, inputs, key)
-        return trace, estimator.trajectory(final), estimator.objects(final)
-
-    return jax.vmap(one, axis_name=BATCH_AXIS)(batch.state, batch.inputs, batch.key)
+    count (:func:`~hybridslam.studies.strategies.track_outputs`), stacked on a leading axis, run as
+    ``strategy`` says (default :class:`~hybridslam.studies.strategies.VmapBatches`)."""
+    return (VmapBatches() if strategy is None else strategy).run(estimator, batch)
 
 
 def device_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
@@ -82,17 +84,25 @@ class BatchRun:
     plan: BatchPlan | None = None  # how the batch was split to fit in memory
     trajectories: np.ndarray | None = None  # (B, T+1, 3): each track's final smoothed x_0..x_T (smoothers)
     objects: tuple[np.ndarray, np.ndarray] | None = None  # (B, N, 3) smoothed objects, (B,) how many exist
+    strategy: str = "vmap"  # how the tracks shared the program (strategies.BatchStrategy.describe())
 
 
-def batched(estimator: AbstractEstimator, scenarios: Sequence[Scenario]) -> AbstractEstimator:
-    """``estimator`` as it runs a batch of ``scenarios``: the vmap axis named, one number of
-    detection slots (the largest step of any) and one history length (the longest run) for all of
-    them, so files of different lengths and detection counts share one compiled program."""
+def shared_shapes(estimator: AbstractEstimator, scenarios: Sequence[Scenario]) -> AbstractEstimator:
+    """``estimator`` with one number of detection slots (the largest step of any of ``scenarios``)
+    and one history length (the longest run) for all of them, where it does not fix them itself: files
+    of different lengths and detection counts then share one compiled program."""
+    if not scenarios:
+        raise ValueError("shared_shapes: no scenarios")
     slots = getattr(estimator, "max_detections", None) or max(1, max(s.max_detections for s in scenarios))
     steps = getattr(estimator, "max_steps", None) or max(1, max(s.num_steps for s in scenarios))
     if hasattr(estimator, "max_detections"):
         estimator = dataclasses.replace(estimator, max_detections=slots, max_steps=steps)  # type: ignore[call-arg]
-    return estimator.with_batch_axis(BATCH_AXIS)
+    return estimator
+
+
+def batched(estimator: AbstractEstimator, scenarios: Sequence[Scenario]) -> AbstractEstimator:
+    """``estimator`` as it runs a batch of ``scenarios``: :func:`shared_shapes`, the vmap axis named."""
+    return shared_shapes(estimator, scenarios).with_batch_axis(BATCH_AXIS)
 
 
 def _stack(trees):
@@ -117,7 +127,7 @@ def batch_inputs(estimator: AbstractEstimator, scenarios: Sequence[Scenario], se
     return Batch(
         state=_stack(states),
         inputs=_stack([inputs_from_scenario(s, slots, num_steps=steps) for s in scenarios]),
-        key=jnp.stack([jax.random.PRNGKey(seed) for seed in seeds]),
+        key=jnp.asarray(np.stack([np.asarray(jax.random.PRNGKey(seed)) for seed in seeds])),
     )
 
 
@@ -170,8 +180,11 @@ class BatchPlan:
 
 
 def run_batch(estimator: AbstractEstimator, batch: Batch, mesh: Mesh | None = None,
-              on_plan=None) -> BatchRun:
+              on_plan=None, strategy: BatchStrategy | None = None) -> BatchRun:
     """Run every track of ``batch`` to its last step, sharded over ``mesh`` (default: all devices).
+
+    ``strategy``: how the tracks share the program (:mod:`hybridslam.studies.strategies`; default
+    :func:`~hybridslam.studies.strategies.default_strategy`, chosen by backend).
 
     The batch runs as equal slices of at most :data:`MAX_TRACKS_PER_DEVICE` tracks per device, and of
     as many as fit in memory: XLA's memory analysis of the compiled slice (:func:`batch_bytes`) is
@@ -182,6 +195,10 @@ def run_batch(estimator: AbstractEstimator, batch: Batch, mesh: Mesh | None = No
     """
     estimator = estimator.with_batch_axis(BATCH_AXIS)
     mesh = device_mesh() if mesh is None else mesh
+    strategy = default_strategy() if strategy is None else strategy
+    if isinstance(strategy, MapBatches):
+        strategy = dataclasses.replace(strategy, mesh=mesh)
+    chunk = strategy.chunk if isinstance(strategy, MapBatches) else 1
     size = batch.size
     budget = memory_budget(mesh)
     # Batches wider than MAX_TRACKS_PER_DEVICE run as equal slices in sequence (one executable):
@@ -192,12 +209,20 @@ def run_batch(estimator: AbstractEstimator, batch: Batch, mesh: Mesh | None = No
     while True:
         slices = -(-per_device // width_per_device)
         width_per_device = -(-per_device // slices)  # equal slices
+        if width_per_device > chunk:  # whole chunks of MapBatches (a slice narrower than one: a chunk of its own)
+            width_per_device = -(-width_per_device // chunk) * chunk
+        elif isinstance(strategy, MapBatches) and chunk > width_per_device:
+            strategy = dataclasses.replace(strategy, chunk=width_per_device)
         width = width_per_device * mesh.size
         pad = slices * width - size
-        padded = jax.tree.map(lambda x, pad=pad: jnp.concatenate([x, jnp.repeat(x[:1], pad, axis=0)]), batch)
+        # Padded and sliced on the host: on device arrays every leaf's concatenate and slice is an eager
+        # op that compiles a small program of its own (a batched hybrid state has dozens of leaves;
+        # 8 hard files' warm sweep, under load: 30 s of its 144 s), and none is kept on disk.
+        padded = jax.tree.map(lambda x, pad=pad: np.concatenate([x, np.repeat(x[:1], pad, axis=0)]),
+                              jax.device_get(batch))
         first = jax.device_put(jax.tree.map(lambda x, width=width: x[:width], padded),
                                NamedSharding(mesh, PartitionSpec(BATCH_AXIS)))
-        executable, seconds = compiled(_run_batch, estimator, first)
+        executable, seconds = compiled(_run_batch, estimator, first, strategy)
         compile_s += seconds
         need = batch_bytes(executable)
         if need <= budget or width_per_device == 1:
@@ -212,14 +237,14 @@ def run_batch(estimator: AbstractEstimator, batch: Batch, mesh: Mesh | None = No
         part = jax.tree.map(lambda x, i=i: x[i * width : (i + 1) * width], padded)
         sharded = jax.device_put(part, NamedSharding(mesh, PartitionSpec(BATCH_AXIS)))
         t0 = time.perf_counter()
-        out = jax.block_until_ready(executable(estimator, sharded))
+        out = jax.block_until_ready(executable(estimator, sharded, strategy))
         run_s += time.perf_counter() - t0
         if jax.process_count() > 1:  # several hosts: every process gets the whole batch
             _barrier(f"hybridslam-batch-{_next_barrier()}")
             out = multihost_utils.process_allgather(out, tiled=True)
         traces.append(jax.device_get(out))
     trace, trajectories, objects = jax.tree.map(lambda *xs: np.concatenate(xs)[:size], *traces)
-    return BatchRun(trace, compile_s, run_s, mesh.size, plan, trajectories, objects)
+    return BatchRun(trace, compile_s, run_s, mesh.size, plan, trajectories, objects, strategy.describe())
 
 
 _BARRIERS = itertools.count()  # barrier names must be unique; every process counts the same calls

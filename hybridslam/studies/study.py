@@ -42,6 +42,7 @@ from .records import Records as Records
 from .records import StudyError as StudyError
 from .records import cell_key, write_table, is_writer
 from .records import read_table as read_table
+from .strategies import BatchStrategy
 
 TABLE = "table.csv"
 METRICS = ("entropy", "det_cov", "err_wmax", "err_wavg", "num_components")
@@ -151,6 +152,7 @@ def _record(cell: dict, run: BatchRun, extra: dict | None = None) -> dict:
         "devices": run.num_devices,
         "batches": None if run.plan is None else run.plan.slices,
         "batch_gib": None if run.plan is None else run.plan.bytes / (1 << 30),
+        "batching": run.strategy,
     }
 
 
@@ -199,8 +201,12 @@ def alpha_rows(study: AlphaStudy, records: Records) -> list[dict]:
 Progress = Callable[[str, dict | None], None]  # (event, record): "start <cell>", "done <cell>"
 
 
-def run_alpha_study(study: AlphaStudy, folder: str, *, mesh=None, on_cell: Progress | None = None) -> list[dict]:
+def run_alpha_study(study: AlphaStudy, folder: str, *, mesh=None, on_cell: Progress | None = None,
+                    strategy: BatchStrategy | None = None) -> list[dict]:
     """Run every unfinished cell of ``study`` into ``folder``; return the table rows.
+
+    ``strategy``: how a cell's tracks share its program (:mod:`hybridslam.studies.strategies`;
+    default by backend); it changes no number, so it is not part of the records' settings.
 
     ``on_cell(cell_description, record)`` is called before (record ``None``) and after each cell
     that runs. The scenarios of one alpha are simulated once and shared by its models.
@@ -224,7 +230,8 @@ def run_alpha_study(study: AlphaStudy, folder: str, *, mesh=None, on_cell: Progr
                 # (the fields of the concrete estimator, which mypy reads as AbstractEstimator's)
                 estimator = batched(dataclasses.replace(study.estimator, classifier=resolved[model],  # type: ignore[call-arg]
                                                         max_detections=2), scenarios)
-                record = _record(cell, run_batch(estimator, batch_inputs(estimator, scenarios, seeds), mesh))
+                record = _record(cell, run_batch(estimator, batch_inputs(estimator, scenarios, seeds), mesh,
+                                                  strategy=strategy))
                 records.append(record)
                 write_table(table, ALPHA_COLUMNS, alpha_rows(study, records))
                 if on_cell:
@@ -274,8 +281,10 @@ def file_rows(cells: Sequence[dict], records: Records) -> list[dict]:
     return rows
 
 
-def run_file_study(study: FileStudy, folder: str, *, mesh=None, on_cell: Progress | None = None) -> list[dict]:
-    """Run every unfinished cell of ``study`` into ``folder``: result files in ``folder/results``, the table."""
+def run_file_study(study: FileStudy, folder: str, *, mesh=None, on_cell: Progress | None = None,
+                   strategy: BatchStrategy | None = None) -> list[dict]:
+    """Run every unfinished cell of ``study`` into ``folder``: result files in ``folder/results``, the table.
+    ``strategy``: as in :func:`run_alpha_study`."""
     scenarios = {p: load_scenario(p) for p in study.paths}  # validate every file before any run
     os.makedirs(os.path.join(folder, "results"), exist_ok=True)
     with Records(folder, study.header()) as records:  # the folder is locked until the run ends
@@ -292,7 +301,8 @@ def run_file_study(study: FileStudy, folder: str, *, mesh=None, on_cell: Progres
                 on_cell(label, None)
             estimator = batched(dataclasses.replace(study.estimator,  # type: ignore[call-arg]  # (as above)
                                                     classifier=resolve_model(cell["run_as"])), group)
-            run = run_batch(estimator, batch_inputs(estimator, group, [study.seed] * len(group)), mesh)
+            run = run_batch(estimator, batch_inputs(estimator, group, [study.seed] * len(group)), mesh,
+                            strategy=strategy)
             _write_results(study, cell, group, run, estimator, folder)
             record = _record(cell, run, {"steps": [g.num_steps for g in group]})
             records.append(record)
@@ -313,7 +323,8 @@ def _write_results(study: FileStudy, cell: dict, group: Sequence[Scenario], run:
         steps = scenario.num_steps
         result = Result(
             estimator=f"{estimator.describe(scenario)}, seed={study.seed}"
-            + f"; batched sweep of {len(group)} runs on {run.num_devices} device(s), step_s amortized",
+            + f"; batched sweep of {len(group)} runs on {run.num_devices} device(s) ({run.strategy}), "
+            "step_s amortized",
             steps=step_records(run.trace, t, scenario),
             timing={"compile_s": run.compile_s, "step_s": [per_step] * steps},
             # A file shorter than the batch's padded length: its poses after x_T are padding.
