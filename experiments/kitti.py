@@ -45,8 +45,8 @@ from matplotlib.figure import Figure
 
 from hybridslam import driver
 from hybridslam.analysis import trajectory
-from hybridslam.cli import cache
 from hybridslam.analysis.map_error import map_error
+from hybridslam.cli import cache
 from hybridslam.datasets import kitti
 from hybridslam.datasets.kitti_classifier import fit_kitti_models, heldout_scores
 from hybridslam.estimators import make_estimator
