@@ -23,11 +23,11 @@ docs/studies/kitti.md). The map is known (the static labelled objects as priors)
    static objects' detections alone, the mean association entropy, and the median ms per step.
 
 Writes ``OUTPUT/cells.jsonl`` (one record per cell; a rerun skips the cells present),
-``OUTPUT/kitti.csv``, prints the table as markdown and draws ``OUTPUT/kitti_NNNN.png``.
+``OUTPUT/results/ESTIMATOR/NNNN-MAP.json`` (result files), ``OUTPUT/kitti.csv``, prints the table as markdown and draws ``OUTPUT/kitti_NNNN.png``.
 
     python experiments/kitti.py --data /work/data/kitti -o runs/kitti [--sequences 6,8,10]
         [--train 0,1,2,3,4,5] [--every 2] [--max-range 30] [--maps known,unknown]
-        [--estimators hybrid:learned,...] [--figure-sequence 10]
+        [--estimators hybrid:learned,...] [--figure-sequence 10] [--redo] [--report-only]
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ from hybridslam.cli import cache
 from hybridslam.datasets import kitti
 from hybridslam.datasets.kitti_classifier import fit_kitti_models, heldout_scores
 from hybridslam.estimators import make_estimator
-from hybridslam.io.result import Result, parse_result
+from hybridslam.io.result import Result, load_result, parse_result, save_result
 from hybridslam.io.scenario import Classifier, Scenario, Step, save_scenario
 from hybridslam.models.learned import load_classifier, save_classifier
 
@@ -215,8 +215,8 @@ def markdown(rows: list[dict]) -> str:
 
 def figure(s: Scenario, results: dict[str, Result], path: str, title: str) -> None:
     """Map, trajectories and the hybrid (learned) belief's associations of one sequence."""
-    fig = Figure(figsize=(13, 5.5))
-    ax, bx = fig.subplots(1, 2)
+    fig = Figure(figsize=(12, 9))
+    ax, bx = fig.subplots(2, 1)
     truth = s.true_robot_poses
     ax.plot(truth[:, 0], truth[:, 1], "k-", lw=2, label="ground truth")
     dr = [truth[0]]
@@ -236,9 +236,9 @@ def figure(s: Scenario, results: dict[str, Result], path: str, title: str) -> No
     if res is not None and res.objects is not None and len(res.objects):
         o = np.asarray(res.objects)
         ax.plot(o[:, 0], o[:, 1], "r+", ms=9, label="hybrid:learned objects")
-    ax.set_aspect("equal")
-    ax.set_title(f"{title}: map and trajectories")
-    ax.legend(fontsize=7)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_title(f"{title}: map and trajectories (m)")
+    ax.legend(fontsize=7, loc="best")
     # Associations of the hybrid's final best component: each detection drawn where it falls from
     # the ground-truth pose, coloured by right / wrong / clutter.
     if res is not None:
@@ -259,8 +259,8 @@ def figure(s: Scenario, results: dict[str, Result], path: str, title: str) -> No
         ax2.plot([], [], ".", color="tab:red", label="static object, wrong / unassociated")
         ax2.plot([], [], ".", color="0.7", label="clutter, rejected")
         ax2.plot([], [], ".", color="tab:purple", label="clutter, associated")
-        ax2.set_aspect("equal")
-        ax2.legend(fontsize=7)
+        ax2.set_aspect("equal", adjustable="datalim")
+        ax2.legend(fontsize=7, loc="best")
         ax2.set_title("hybrid:learned associations (detections from the true poses)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -277,6 +277,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--maps", default="known,unknown")
     p.add_argument("--estimators", default=",".join(MAIN))
     p.add_argument("--figure-sequence", type=int, default=None)
+    p.add_argument("--report-only", action="store_true", help="print and write the table of cells.jsonl; run nothing")
+    p.add_argument("--redo", action="store_true", help="run the cells again even where cells.jsonl has them")
     a = p.parse_args(argv)
     sequences = [int(x) for x in a.sequences.split(",")]
     train = [int(x) for x in a.train.split(",")]
@@ -286,9 +288,10 @@ def main(argv: list[str] | None = None) -> int:
             p.error(f"--estimators: unknown {n!r} (known: {', '.join(ESTIMATORS)})")
     os.makedirs(a.output, exist_ok=True)
     cache.enable()  # a rerun reads the compiled steps from disk
-    models = fit_models(a.data, train, sequences, a.output)
-    for path in models.values():
-        load_classifier(path)  # fails here, not in every cell, if a file is broken
+    if not a.report_only:
+        models = fit_models(a.data, train, sequences, a.output)
+        for path in models.values():
+            load_classifier(path)  # fails here, not in every cell, if a file is broken
     cells_path = os.path.join(a.output, "cells.jsonl")
     done: dict[tuple, dict] = {}
     if os.path.exists(cells_path):
@@ -297,13 +300,13 @@ def main(argv: list[str] | None = None) -> int:
                 r = json.loads(line)
                 done[(r["sequence"], r["map"], r["estimator"], r["every"], r["max_range"])] = r
     figure_seq = a.figure_sequence if a.figure_sequence is not None else sequences[-1]
-    for seq in sequences:
+    for seq in sequences if not a.report_only else ():
         for map_ in a.maps.split(","):
             s = scenario_for(a.data, a.output, seq, map_, a.every, a.max_range)
             results: dict[str, Result] = {}
             for name in names:
                 key = (seq, map_, name, a.every, a.max_range)
-                if key in done:
+                if key in done and not a.redo:
                     continue
                 t0 = time.perf_counter()
                 record: dict = {"sequence": seq, "map": map_, "estimator": name, "every": a.every,
@@ -312,17 +315,25 @@ def main(argv: list[str] | None = None) -> int:
                     record["metrics"], result = run_cell(s, name, models)
                     if result is not None:
                         results[name] = result
+                        path = os.path.join(a.output, "results", name.replace(":", "-"), f"{seq:04d}-{map_}.json")
+                        os.makedirs(os.path.dirname(path), exist_ok=True)
+                        save_result(result, path)
                 except Exception as e:  # noqa: BLE001 - a failing cell is a result, not a crash
                     record["error"] = f"{type(e).__name__}: {e}".splitlines()[0][:300]
                 record["wall_s"] = time.perf_counter() - t0
                 print(json.dumps(row(record)), flush=True)
-                if key not in done:
+                if key not in done or a.redo:  # the last record of a cell counts
                     with open(cells_path, "a") as f:
                         f.write(json.dumps(record) + "\n")
                 done[key] = record
-            if seq == figure_seq and map_ == "known" and results:
+            if seq == figure_seq and map_ == "known":
+                for name in ("hybrid:learned", "hybrid:none", "isam2", "oracle"):
+                    path = os.path.join(a.output, "results", name.replace(":", "-"), f"{seq:04d}-{map_}.json")
+                    if name not in results and os.path.exists(path):
+                        results[name] = load_result(path)
+            if seq == figure_seq and map_ == "known" and "hybrid:learned" in results:
                 figure(s, results, os.path.join(a.output, f"kitti_{seq:04d}.png"), f"KITTI {seq:04d}, known map")
-    rows = [row(r) for r in done.values()]
+    rows = [row(r) for r in done.values() if r["sequence"] in sequences and r["map"] in a.maps.split(",")]
     rows.sort(key=lambda r: (r["sequence"], r["map"], ESTIMATORS.index(r["estimator"])))
     with open(os.path.join(a.output, "kitti.csv"), "w", newline="") as f:
         w = csv.DictWriter(f, list(rows[0]))

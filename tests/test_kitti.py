@@ -250,3 +250,28 @@ def test_learned_model_recovers_a_viewpoint_dependence_and_beats_the_viewpoint_f
     assert rows["learned"]["log_density"] > rows["viewpoint-free"]["log_density"] + 0.2
     assert rows["none"]["class_log_posterior"] == pytest.approx(-math.log(3))
     assert rows["learned"]["class_log_posterior"] > rows["none"]["class_log_posterior"]
+
+
+def test_study_scores_right_associations_and_clutter(folder):
+    """experiments/kitti.py: a static object's detection is right on its object, clutter on -1."""
+    from hybridslam.io.result import parse_result
+
+    from .scripts import load_script
+
+    study = load_script("experiments/kitti.py", "kitti_study")
+    s = import_kitti(folder, 1, end=2)  # steps 1 and 2, four detections each
+    truths = [[d.true_object for d in st.detections] for st in s.steps]
+    right = [[-1 if t is None else t for t in row] for row in truths]
+    wrong = [list(row) for row in right]
+    wrong[0][[t is None for t in truths[0]].index(True)] = 0  # one clutter detection on object 0
+    for assoc, expected, static in ((right, 1.0, 1.0), (wrong, 7 / 8, 1.0)):
+        step = {"components": [{"weight": 1.0, "associations": assoc, "classes": [0, 0],
+                                "pose_mean": [0.0, 0.0, 0.0], "pose_cov": np.eye(3).tolist()}],
+                "metrics": {"entropy": 0.0, "det_cov": 1.0, "num_components": 1}}
+        result = parse_result({"format": "hybridslam-result/1", "estimator": "test",
+                               "steps": [{**step, "k": 1, "components": [{**step["components"][0],
+                                                                          "associations": assoc[:1]}]},
+                                         {**step, "k": 2}]})
+        score = study.associations(s, result)
+        assert score["right"] == pytest.approx(expected) and score["static_accuracy"] == pytest.approx(static)
+        assert score["detections"] == 8 and score["static_detections"] == 4
