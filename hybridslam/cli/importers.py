@@ -4,6 +4,8 @@
         [--unknown-map] [--max-range R] [--fov F] [--motion-cov a,b,c] [--geometric-cov a,b]
         [--robot-prior-cov a,b,c] [--correct-range-bias] [--no-motion-compensation] [--odometry-delay S]
         [--measurement-noise-from {written,raw}] [--motion-noise-from {steps,drift}]
+    hybridslam import kitti-tracking DIR --sequence N -o FILE [--unknown-map] [--every E]
+        [--odometry {noisy-truth,orbslam3}] [--max-range R] [--fov F] [--min-logit L] (docs/studies/kitti.md)
 
 :func:`register` adds the ``import`` command to the ``hybridslam`` parser; its errors are
 :class:`~hybridslam.cli.CLIError` (one line, exit status 2) like every other command's.
@@ -114,8 +116,8 @@ def cmd_import_mrclam(args: argparse.Namespace) -> int:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add ``import`` (with its ``mrclam`` subcommand) to the ``hybridslam`` subcommands."""
-    p = subparsers.add_parser("import", help="write a real-robot log as a scenario file (MRCLAM)")
+    """Add ``import`` (with its ``mrclam`` and ``kitti-tracking`` subcommands) to the ``hybridslam`` subcommands."""
+    p = subparsers.add_parser("import", help="write a real-robot log as a scenario file (MRCLAM, KITTI tracking)")
     sources = p.add_subparsers(dest="source", required=True, metavar="{mrclam,kitti-tracking}")
     m = sources.add_parser(
         "mrclam", help="one robot of a UTIAS MRCLAM dataset folder",
