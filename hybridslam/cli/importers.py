@@ -172,18 +172,18 @@ def kitti_summary(path: str, s: Scenario) -> str:
     c, cal, fr = g["counts"], g["calibration"], g["frames"]
     n = s.num_objects if s.discovery is None else len(s.true_objects or ())
     return "\n".join([
-        f"wrote {path}: KITTI tracking {g['sequence']}, frames {fr['start']}-{fr['end']} every {fr['every']}, "
-        f"{s.num_steps} steps, {g['map']} map of {n} static objects, odometry {g['odometry']}",
-        f"detections: {c['written']} written ({c['static_object']} of static objects, {c['moving_object']} of "
+        (f"wrote {path}: KITTI tracking {g['sequence']}, frames {fr['start']}-{fr['end']} every {fr['every']}, "
+        f"{s.num_steps} steps, {g['map']} map of {n} static objects, odometry {g['odometry']}"),
+        (f"detections: {c['written']} written ({c['static_object']} of static objects, {c['moving_object']} of "
         f"moving ones ({c['moving_tracks']} moving tracks: clutter to a static map), {c['other_type']} of other "
         f"types, {c['unmatched']} matching no label); dropped {c['beyond_sensor']} beyond the sensor, "
         f"{c['below_min_logit']} below --min-logit; {c['raw_detections']} raw, {c['merged_detections']} "
-        "after merging the three detectors",
+        "after merging the three detectors"),
         f"sensor: max_range {s.max_range:g} m, fov {s.fov:g} rad",
         f"motion_cov ({cal['motion_cov']}): sd {_sds(s.motion_cov)} (m, m, rad per step)",
         f"geometric_cov ({cal['geometric_cov']}): sd {_sds(s.geometric_cov)} (m, rad)",
-        f"dead reckoning at the end: {g['dead_reckoning']['final_position_error_m']:.2f} m off the ground truth "
-        f"(path {g['dead_reckoning']['path_length_m']:.1f} m)"])
+        (f"dead reckoning at the end: {g['dead_reckoning']['final_position_error_m']:.2f} m off the ground truth "
+        f"(path {g['dead_reckoning']['path_length_m']:.1f} m)")])
 
 
 def cmd_import_kitti(args: argparse.Namespace) -> int:
