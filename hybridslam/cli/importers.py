@@ -4,6 +4,8 @@
         [--unknown-map] [--max-range R] [--fov F] [--motion-cov a,b,c] [--geometric-cov a,b]
         [--robot-prior-cov a,b,c] [--correct-range-bias] [--no-motion-compensation] [--odometry-delay S]
         [--measurement-noise-from {written,raw}] [--motion-noise-from {steps,drift}]
+    hybridslam import kitti-tracking DIR --sequence N -o FILE [--unknown-map] [--every E]
+        [--odometry {noisy-truth,orbslam3}] [--max-range R] [--fov F] [--min-logit L] (docs/studies/kitti.md)
 
 :func:`register` adds the ``import`` command to the ``hybridslam`` parser; its errors are
 :class:`~hybridslam.cli.CLIError` (one line, exit status 2) like every other command's.
@@ -17,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from ..datasets.kitti import ODOMETRY_SOURCES, KITTIError, import_kitti
 from ..io.mrclam import MOTION_NOISE_SOURCES, NOISE_SOURCES, MRCLAMError, import_mrclam
 from ..io.scenario import Scenario, save_scenario
 from .common import CLIError, check_writable
@@ -113,9 +116,9 @@ def cmd_import_mrclam(args: argparse.Namespace) -> int:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add ``import`` (with its ``mrclam`` subcommand) to the ``hybridslam`` subcommands."""
-    p = subparsers.add_parser("import", help="write a real-robot log as a scenario file (MRCLAM)")
-    sources = p.add_subparsers(dest="source", required=True, metavar="{mrclam}")
+    """Add ``import`` (with its ``mrclam`` and ``kitti-tracking`` subcommands) to the ``hybridslam`` subcommands."""
+    p = subparsers.add_parser("import", help="write a real-robot log as a scenario file (MRCLAM, KITTI tracking)")
+    sources = p.add_subparsers(dest="source", required=True, metavar="{mrclam,kitti-tracking}")
     m = sources.add_parser(
         "mrclam", help="one robot of a UTIAS MRCLAM dataset folder",
         description="One robot's log of a UTIAS MRCLAM dataset folder as a scenario: a step every --dt "
@@ -160,3 +163,83 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="calibrate motion_cov from the per-step odometry errors (default) or from their "
                         "sums over 5 s (drift: larger, as the errors are correlated in time)")
     m.set_defaults(func=cmd_import_mrclam)
+    register_kitti(sources)
+
+
+def kitti_summary(path: str, s: Scenario) -> str:
+    """The lines ``hybridslam import kitti-tracking`` prints about the scenario it wrote to ``path``."""
+    g = s.metadata["generator"]
+    c, cal, fr = g["counts"], g["calibration"], g["frames"]
+    n = s.num_objects if s.discovery is None else len(s.true_objects or ())
+    return "\n".join([
+        (f"wrote {path}: KITTI tracking {g['sequence']}, frames {fr['start']}-{fr['end']} every {fr['every']}, "
+        f"{s.num_steps} steps, {g['map']} map of {n} static objects, odometry {g['odometry']}"),
+        (f"detections: {c['written']} written ({c['static_object']} of static objects, {c['moving_object']} of "
+        f"moving ones ({c['moving_tracks']} moving tracks: clutter to a static map), {c['other_type']} of other "
+        f"types, {c['unmatched']} matching no label); dropped {c['beyond_sensor']} beyond the sensor, "
+        f"{c['below_min_logit']} below --min-logit; {c['raw_detections']} raw, {c['merged_detections']} "
+        "after merging the three detectors"),
+        f"sensor: max_range {s.max_range:g} m, fov {s.fov:g} rad",
+        f"motion_cov ({cal['motion_cov']}): sd {_sds(s.motion_cov)} (m, m, rad per step)",
+        f"geometric_cov ({cal['geometric_cov']}): sd {_sds(s.geometric_cov)} (m, rad)",
+        (f"dead reckoning at the end: {g['dead_reckoning']['final_position_error_m']:.2f} m off the ground truth "
+        f"(path {g['dead_reckoning']['path_length_m']:.1f} m)")])
+
+
+def cmd_import_kitti(args: argparse.Namespace) -> int:
+    """Write one KITTI tracking sequence as a scenario file and print a summary."""
+    motion = _variances(args.motion_cov, 3, "--motion-cov")
+    geometric = _variances(args.geometric_cov, 2, "--geometric-cov")
+    check_writable(args.output)
+    try:
+        scenario = import_kitti(
+            args.dataset, args.sequence, unknown_map=args.unknown_map, start=args.start, end=args.end,
+            every=args.every, odometry=args.odometry, seed=args.seed, max_range=args.max_range, fov=args.fov,
+            min_logit=args.min_logit, merge_radius=args.merge_radius, match_iou=args.match_iou,
+            static_tolerance=args.static_tolerance, motion_cov=motion, geometric_cov=geometric,
+            max_objects=args.max_objects)
+    except KITTIError as e:
+        raise CLIError(str(e)) from None
+    save_scenario(scenario, args.output)
+    print(kitti_summary(args.output, scenario))
+    return 0
+
+
+def register_kitti(sources: argparse._SubParsersAction) -> None:
+    """Add ``import kitti-tracking``."""
+    k = sources.add_parser(
+        "kitti-tracking", help="one KITTI tracking sequence with PointRCNN detections",
+        description="One KITTI tracking sequence as a scenario: planar IMU poses, PointRCNN detections "
+                    "(three detectors merged) as range, bearing and class scores, the static labelled "
+                    "objects as the map (docs/studies/kitti.md says how to assemble DIR).")
+    k.add_argument("dataset", metavar="DIR",
+                   help="folder with label_02/, calib/, detections/pointrcnn_{Car,Pedestrian,Cyclist}_val/, "
+                        "egomotion/ and orbslam3/NNNN/CameraTrajectory.txt")
+    k.add_argument("--sequence", type=int, required=True, help="sequence number (0 for 0000)")
+    k.add_argument("-o", "--output", required=True, help="scenario file to write")
+    k.add_argument("--unknown-map", action="store_true",
+                   help="no prior objects: a discovery section, the static objects under true_objects")
+    k.add_argument("--max-objects", type=int, default=None, metavar="N",
+                   help="with --unknown-map: object slots (default: the static objects + 20)")
+    k.add_argument("--start", type=int, default=0, help="frame of x_0 (default 0)")
+    k.add_argument("--end", type=int, default=None, help="last frame (default: the sequence's last)")
+    k.add_argument("--every", type=int, default=1, help="frames per step (default 1: 10 Hz)")
+    k.add_argument("--odometry", choices=ODOMETRY_SOURCES, default="noisy-truth",
+                   help="noisy-truth (default): ground-truth increments plus wheel-odometry-level noise; "
+                        "orbslam3: ORB-SLAM3 increments, motion_cov calibrated against the ground truth")
+    k.add_argument("--seed", type=int, default=0, help="seed of the noisy-truth odometry (default 0)")
+    k.add_argument("--max-range", type=float, default=30.0, help="sensor range in metres (default 30)")
+    k.add_argument("--fov", type=float, default=1.6, help="field of view in radians (default 1.6)")
+    k.add_argument("--min-logit", type=float, default=None,
+                   help="drop detections whose strongest logit is below this (default: keep all)")
+    k.add_argument("--merge-radius", type=float, default=1.0,
+                   help="boxes of different detectors closer than this (m) are one detection (default 1)")
+    k.add_argument("--match-iou", type=float, default=0.25,
+                   help="3D IoU a detection needs with a label to be matched (ground truth; default 0.25)")
+    k.add_argument("--static-tolerance", type=float, default=1.0,
+                   help="a track is static when every world position is this close (m) to its median")
+    k.add_argument("--motion-cov", default=None, metavar="VXX,VYY,VTT",
+                   help="odometry variances per step (m^2, m^2, rad^2)")
+    k.add_argument("--geometric-cov", default=None, metavar="VRR,VBB",
+                   help="range and bearing variances (m^2, rad^2) instead of the calibrated ones")
+    k.set_defaults(func=cmd_import_kitti)
