@@ -15,7 +15,6 @@ has the mixtures and the option's errors).
 from __future__ import annotations
 
 import dataclasses
-import os
 
 import numpy as np
 import pytest
@@ -24,6 +23,7 @@ from scipy.optimize import least_squares
 import hybridslam as hs
 from hybridslam.estimators.smoothing import FINAL_ATOL, Lag
 from hybridslam.io.scenario import Classifier
+from hybridslam.sim.hallway import hallway
 
 
 def _wrap(a):
@@ -166,19 +166,20 @@ def _moves(scenario, run) -> tuple[float, float]:
             float(np.max(np.abs(_wrap(poses[:, 2] - smoothed[:, 2])))))
 
 
-HALLWAY = os.path.join(os.path.dirname(__file__), "data", "golden", "hallway12.json")
-
-
 @pytest.mark.parametrize("name", ["ml", "max-mixture"])
 def test_the_result_file_describes_its_own_solution_on_an_unknown_map(name):
-    """The hallway (12 steps, objects created as they are seen): the graph rebuilt from the top
-    component's associations, started at the file's trajectory and map, is already at its optimum.
-    For max-mixture the associations must be the components active at that solution (Eq. 4.16), not
-    the ones chosen online at each step's estimate (which moved it by decimetres)."""
-    scenario = hs.load_scenario(HALLWAY)
+    """A simulated hallway (20 steps, noisy odometry tr(Λ) = 0.05, objects created as they are
+    seen): the graph rebuilt from the top component's associations, started at the file's trajectory
+    and map, is already at its optimum. For max-mixture the associations must be the components
+    active at that solution (Eq. 4.16): those chosen online, at each step's estimate, moved this
+    trajectory by 0.47 m and 0.045 rad; the components at the solution move it by 1.4e-6 m, as much
+    as ``ml``'s (1.3e-6 m): the smoother stops within ``FINAL_ATOL`` nats of the optimum, about
+    ``√(2·FINAL_ATOL) ≈ 5e-5`` standard deviations. (gpda's factors are weighted sums over candidates
+    whose weights a result file does not carry: its graph cannot be rebuilt from the file.)"""
+    scenario = hallway(0, 0.05, steps=20)
     run = hs.run_estimator(scenario, name)  # smoother=Full() by default
     metres, radians = _moves(scenario, run)
-    assert metres < 1e-6 and radians < 1e-6, (metres, radians)
+    assert metres < 1e-5 and radians < 1e-5, (metres, radians)
 
 
 # Fixed lag (sharing the compiled full-smoother step above)
