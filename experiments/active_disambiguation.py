@@ -42,6 +42,8 @@ from hybridslam import planning
 from hybridslam.analysis.plot import mean_band
 from hybridslam.sim.paper import move, observe
 
+hs.setup()  # float64 and XLA's CPU thread pool, before any array (hybridslam.config)
+
 POLICIES = ("straight", "random", "planner", "refined")
 MAX_TURN = 0.6
 

@@ -19,6 +19,8 @@ import hybridslam as hs
 from hybridslam.analysis.plot import plot_map
 
 
+hs.setup()  # float64 and XLA's CPU thread pool, before any array (hybridslam.config)
+
 def main(output: str = os.path.join("runs", "figures"), tracks: int = 50, steps: int = 10, seed: int = 0) -> str:
     """Draw Fig. 3 (a, b) into ``output/fig3_scenario.png``; return the path."""
     scenarios = [hs.simulate(seed + t, steps=steps) for t in range(tracks)]

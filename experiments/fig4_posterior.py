@@ -22,6 +22,8 @@ import hybridslam as hs
 from hybridslam.analysis.plot import plot_posterior
 from hybridslam.io.result import StepRecord
 
+hs.setup()  # float64 and XLA's CPU thread pool, before any array (hybridslam.config)
+
 SHOW = (1, 5, 15, 25)
 # Shorter, straighter steps than the Fig. 5 tracks, so that 25 steps stay inside the map.
 SETUP = hs.PaperSetup(step_length=0.65, turn_std=0.08)

@@ -23,6 +23,8 @@ from hybridslam.cli.tables import alpha_summary
 from hybridslam.studies import study
 
 
+hs.setup()  # float64 and XLA's CPU thread pool, before any array (hybridslam.config)
+
 def main(output: str = os.path.join("runs", "figures"), tracks: int = 50, steps: int = 10,
          weights: str = "laplace-is", samples: int | None = None, capacity: int = 16) -> str:
     """Run (or resume) the study, draw ``output/fig5_alpha_sweep.png``; return the path."""

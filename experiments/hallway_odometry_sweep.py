@@ -49,6 +49,9 @@ from hybridslam.io.result import load_result, save_result
 from hybridslam.io.scenario import load_scenario, save_scenario
 from hybridslam.sim import hallway
 from hybridslam.studies.study import Records
+from hybridslam.config import setup
+
+setup()  # float64 and XLA's CPU thread pool, before any array (hybridslam.config)
 
 EXAMPLE_TRACE = 0.021  # the thesis's Fig. 5-3a-c example, Λ_t = diag(0.01, 0.01, 0.001)
 DEFAULT_ESTIMATORS = ("ml", "gpda", "max-mixture", "multimodal", "hybrid")

@@ -86,6 +86,9 @@ from hybridslam.io.mrclam import MRCLAMError, compose, import_mrclam
 from hybridslam.io.result import Result, ResultWriter, StepRecord, load_result
 from hybridslam.io.scenario import Scenario, load_scenario, save_scenario
 from hybridslam.studies.study import Records
+from hybridslam.config import setup
+
+setup()  # float64 and XLA's CPU thread pool, before any array (hybridslam.config)
 
 DEFAULT_ESTIMATORS = ("ml", "gpda", "max-mixture", "multimodal", "hybrid")
 # As in the hallway study and scripts/bench_goals.py (MRCLAM): both mixtures keep 16 components; the

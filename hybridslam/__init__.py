@@ -3,37 +3,26 @@
 Five estimators behind one interface (:class:`AbstractEstimator`): the hybrid belief of Tchuiev,
 Feldman & Indelman (IROS 2019) as a fixed-capacity, jit-compiled JAX mixture (:class:`Hybrid`), and
 Doherty's maximum-likelihood, Gaussian PDA, max-mixture and multimodal estimators. One driver
-(:func:`run`, :func:`scan`) runs any of them on a scenario file. hybridslam computes in float64:
-importing it turns on ``jax_enable_x64``, because the paper's variances span 1e-4 to 1e2.
+(:func:`run`, :func:`scan`) runs any of them on a scenario file. hybridslam computes in float64 (the
+paper's variances span 1e-4 to 1e2): call :func:`setup` first, before any JAX array exists. It turns
+on ``jax_enable_x64`` and sizes XLA's CPU thread pool (jaxlib 0.10.2's LAPACK kernels can deadlock on
+a small one: :mod:`hybridslam.config`). Importing the package changes no process-wide setting.
 
 Layers (each subpackage imports only from the ones before it): ``io`` (files) → ``models`` (the
 generative model) → ``inference`` (Gauss-Newton, gating, ...) → ``estimators`` → ``analysis``
 (metrics, marginals, errors, plots) → ``driver`` → ``studies``, ``sim``, ``planning`` → ``cli``.
 """
 
-import os as _os
+from importlib.metadata import PackageNotFoundError as _PackageNotFoundError
+from importlib.metadata import version as _version
 
-# jaxlib 0.10.2's CPU LAPACK kernels (Cholesky, triangular solve, QR, ...) split a batched call over
-# XLA's intra-op thread pool and block a pool thread until the pieces finish. Two such calls that
-# XLA runs concurrently on a pool as small as the machine (2 threads on a 2-core CPU) wait for each
-# other forever (seen here: the multimodal estimator on a 12-step hallway file hung, 100% reproducible;
-# jaxlib 0.11 compiles that path out). A larger pool breaks the cycle and changes no number (checked
-# on the golden result files of tests/data/golden). Set before the CPU backend starts; a user's own
-# PJRT_NPROC wins.
-_os.environ.setdefault("PJRT_NPROC", str(max(32, 4 * (_os.cpu_count() or 1))))
-# Those kernels call scipy's OpenBLAS, whose own worker threads busy-wait for work. Beside XLA's
-# pool they oversubscribe the cores: on this 2-core CPU an `ml` hallway smoother step took 35-40 ms
-# with one OpenBLAS thread and 40-58 ms with the default, and 4.4 s instead of 37 ms while another
-# process ran (its 210×210 Cholesky factors took 270 ms each). Our matrices (at most a few hundred
-# rows) gain nothing from threaded BLAS. Read when scipy's OpenBLAS loads (the first LAPACK call,
-# after this import); a user's own OPENBLAS_NUM_THREADS wins.
-_os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+try:
+    __version__ = _version("hybridslam")  # pyproject.toml's, the one version source
+except _PackageNotFoundError:  # a source tree that was never installed
+    __version__ = "0+unknown"
 
-import jax as _jax  # noqa: E402
-
-_jax.config.update("jax_enable_x64", True)
-
-__version__ = "0.1.0"
+from .config import setup as setup
+from .config import require_x64 as require_x64
 
 from .analysis.marginals import association_probabilities as association_probabilities
 from .analysis.marginals import class_probabilities as class_probabilities

@@ -31,6 +31,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 
 from .analysis.metrics import Metrics, metrics
+from .inference.ties import rank_key_np
 from .estimators.base import AbstractEstimator, Mixture, StepInfo
 from .io.result import ComponentRecord, HistoryLinker, Result, StepRecord
 from .io.scenario import Scenario, stack_steps
@@ -266,13 +267,15 @@ def record_from_arrays(
 ) -> StepRecord:
     """A :class:`StepRecord` from host arrays of one belief view (``K`` slots) and its metrics ``m``.
 
-    Components with non-zero weight, sorted by weight (highest first, ties by slot), weights
+    Components with non-zero weight, sorted by weight (highest first, ties to ~1e-9 by slot:
+    :func:`~hybridslam.inference.ties.rank_key`), weights
     renormalized to sum to one; ``history[:, j, :num_detections[j]]`` are the associations of step
     ``j + 1``.
     """
     classes, history, pose_mean, pose_cov = (np.asarray(a) for a in (classes, history, pose_mean, pose_cov))
     w = np.exp(np.asarray(log_weights))
-    order = [i for i in np.argsort(-w, kind="stable") if w[i] > 0]
+    # Ties (weights equal to ~1e-9, whose last bits differ between CPUs) in slot order: inference.ties.
+    order = [i for i in np.argsort(-rank_key_np(np.asarray(log_weights)), kind="stable") if w[i] > 0]
     total = float(np.sum(w[order]))
     components = [
         ComponentRecord(

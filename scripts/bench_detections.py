@@ -27,6 +27,8 @@ import hybridslam as hs
 from hybridslam import driver
 from hybridslam.driver import clear_compiled
 
+hs.setup()  # float64 and XLA's CPU thread pool, before any array (hybridslam.config)
+
 SETTINGS = {"hybrid": dict(capacity=16, gate=3, weights="linearized"), "multimodal": dict(capacity=16)}
 
 

@@ -19,6 +19,9 @@ import numpy as np
 from hybridslam import driver
 from hybridslam.analysis import trajectory
 from hybridslam.sim import hallway
+from hybridslam.config import setup
+
+setup()  # float64 and XLA's CPU thread pool, before any array (hybridslam.config)
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "experiments"))
 from hallway_odometry_sweep import DEFAULT_ESTIMATORS, EXAMPLE_TRACE, SETTINGS, estimator  # noqa: E402

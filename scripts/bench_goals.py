@@ -47,6 +47,8 @@ from hybridslam.estimators.smoothing import Filter, Full
 from hybridslam.sim import hallway
 from hybridslam.studies import study
 
+hs.setup()  # float64 and XLA's CPU thread pool, before any array (hybridslam.config)
+
 GOALS_MS = {  # (workload, estimator, smoother) -> goal in ms per step (issues 13 and 14)
     ("paper4", "hybrid", "filter"): 15, ("paper4", "hybrid", "full"): 15 * 1.5,
     ("hallway", "ml", "full"): 20, ("hallway", "gpda", "full"): 20, ("hallway", "max-mixture", "full"): 20,

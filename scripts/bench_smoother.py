@@ -24,8 +24,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import hybridslam  # noqa: F401  (float64)
+import hybridslam
 from hybridslam.inference import smoother as sm
+
+hybridslam.setup()  # float64 and XLA's CPU thread pool, before any array (hybridslam.config)
 
 DETECTIONS_PER_POSE = 4
 

@@ -28,6 +28,8 @@ from hybridslam.driver import compile_lowered
 from hybridslam.estimators.hybrid.weighers import make_weigher
 
 
+hs.setup()  # float64 and XLA's CPU thread pool, before any array (hybridslam.config)
+
 def estimator(capacity: int, samples: int | None, weights: str, classifier: str | None = None) -> hs.Hybrid:
     """The hybrid belief at capacity K with 2 detection slots; ``samples`` sets the draws of the weight
     method (``None``: its default; the deterministic ``linearized`` draws none and ignores it)."""

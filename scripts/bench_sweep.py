@@ -20,6 +20,8 @@ import hybridslam as hs
 from hybridslam.studies import study
 
 
+hs.setup()  # float64 and XLA's CPU thread pool, before any array (hybridslam.config)
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--alphas", default="0,0.1,0.2,0.3,0.4,0.5")

@@ -35,6 +35,9 @@ from hybridslam.analysis.trajectory import error_summary
 from hybridslam.estimators.loop_closure import LoopClosureSettings, close_loops, score_merges
 from hybridslam.io.result import load_result
 from hybridslam.io.scenario import load_scenario
+from hybridslam.config import setup
+
+setup()  # float64 and XLA's CPU thread pool, before any array (hybridslam.config)
 
 jax.config.update("jax_enable_x64", True)
 

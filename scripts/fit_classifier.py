@@ -30,6 +30,8 @@ import numpy as np
 import hybridslam as hs
 from hybridslam.models.learned import mean_nll, sample_scores, viewpoint_features
 
+hs.setup()  # float64 and XLA's CPU thread pool, before any array (hybridslam.config)
+
 Samples = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 

@@ -28,7 +28,10 @@ import numpy as np
 from hybridslam.analysis import consistency
 from hybridslam.io.result import load_result
 from hybridslam.io.scenario import load_scenario
+from hybridslam.config import setup
 
+
+setup()  # float64 and XLA's CPU thread pool, before any array (hybridslam.config)
 
 def _scores(scenario, means, covs, bounds):
     """Per step: heading sd / Cramér-Rao bound and the pose NEES."""

@@ -52,6 +52,9 @@ from hybridslam.io.scenario import load_scenario, stack_steps
 from hybridslam.models import geometry
 from hybridslam.models.measurement import Detections
 from hybridslam.sim import hallway
+from hybridslam.config import setup
+
+setup()  # float64 and XLA's CPU thread pool, before any array (hybridslam.config)
 
 jax.config.update("jax_enable_x64", True)
 

@@ -62,7 +62,10 @@ from gtsam.symbol_shorthand import L, X
 from hybridslam.analysis import trajectory
 from hybridslam.io.result import ComponentRecord, Result, StepRecord, parse_result, result_to_json
 from hybridslam.io.scenario import Scenario, load_scenario
+from hybridslam.config import setup
 
+
+setup()  # float64 and XLA's CPU thread pool, before any array (hybridslam.config)
 
 def world_jacobian(pose: gtsam.Pose2) -> np.ndarray:
     """d[x, y, theta] / d(tangent) at ``pose``: ``blockdiag(R(theta), 1)``."""

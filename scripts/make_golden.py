@@ -28,6 +28,8 @@ import hybridslam as hs
 from hybridslam.driver import use_elemental_emitters_everywhere
 from hybridslam.io.result import result_to_json
 
+hs.setup()  # float64 and XLA's CPU thread pool, before any array (hybridslam.config)
+
 jax.config.update("jax_disable_most_optimizations", True)  # the test suite's setting, before anything compiles
 use_elemental_emitters_everywhere()  # the test suite's XLA_FLAGS too (tests/conftest.py)
 

@@ -25,6 +25,8 @@ from hybridslam.driver import Run, run_estimator
 from hybridslam.io.scenario import Detection
 
 
+hs.setup()  # float64 and XLA's CPU thread pool, before any array (hybridslam.config)
+
 def ghosted(scenario: hs.Scenario, seed: int) -> hs.Scenario:
     """``scenario`` with one ghost detection added to every other step (steps 2, 4, ...)."""
     rng = np.random.default_rng(100 + seed)

@@ -20,6 +20,8 @@ from tqdm import tqdm
 import hybridslam as hs
 
 
+hs.setup()  # float64 and XLA's CPU thread pool, before any array (hybridslam.config)
+
 def association_posteriors(result: hs.Result) -> list[dict[tuple, float]]:
     """Per step, P(β_1:k | H_k): component weights summed over class realizations (Eq. 8)."""
     out = []

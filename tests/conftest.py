@@ -1,4 +1,5 @@
-"""Shared fixtures. hybridslam runs in float64 (enabled on import); tests share a few small shapes
+"""Shared fixtures. hybridslam runs in float64 (``hs.setup()`` below, which also sizes XLA's CPU
+thread pool: ``hybridslam.config``); tests share a few small shapes
 so that each compiled step is reused across tests (JAX compiles dominate the suite's time).
 
 Two settings make the compiles cheaper, for this process and for the CLI subprocesses it starts
@@ -29,6 +30,8 @@ from jax.experimental.compilation_cache import compilation_cache
 import hybridslam as hs
 from hybridslam.driver import use_elemental_emitters_everywhere
 
+hs.setup()  # float64 and the thread settings, before any JAX backend starts (hybridslam.config)
+os.environ["JAX_ENABLE_X64"] = "1"  # and float64 in the Python subprocesses the tests start
 use_elemental_emitters_everywhere()  # before any JAX backend starts (module docstring)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1"

@@ -1,12 +1,20 @@
 """Behaviour is unchanged by restructuring: each case of ``tests/data/golden`` reruns to the same
 result file (``timing`` aside; see ``tests/data/golden/README.md``): every association, class and
-count equal, every number to the last bits a CPU's machine code may move (``tests/golden.py``)."""
+count equal, every number to the last bits a CPU's machine code may move (``tests/golden.py``).
+
+The last bits must not change which of two tied hypotheses a capacity keeps (the hallway's
+``hallway12.hybrid`` holds such ties from step 8 on): the tie rule of ``hybridslam.inference.ties``
+ranks them by index. Tested by moving every child's log-weight by up to ``1e-13`` either way
+(another CPU's machine code moves them by ~1e-14) and, in CI (``.ci/run``), by rerunning these
+tests with XLA limited to SSE4.2 code."""
 
 from __future__ import annotations
 
 import json
 import os
 import pathlib
+import subprocess
+import sys
 
 import pytest
 
@@ -63,3 +71,49 @@ def test_the_comparison_allows_last_bits_and_tie_order_only():
     changed = json.loads(json.dumps(want))
     changed[0]["metrics"]["num_components"] = 3
     assert differences(changed, want) == ["[0].metrics.num_components: 3 != 2"]
+
+
+# Every child's log-weight moved by up to 1e-13 (a fixed pseudo-random pattern, times ``sign``),
+# inside the compiled step, before the capacity cut; then the case compared with its file.
+PERTURBED = """
+import json, sys
+import jax.numpy as jnp
+import hybridslam as hs
+from hybridslam.driver import run_estimator
+from hybridslam.estimators.hybrid import step
+from hybridslam.io.result import result_to_json
+from tests.golden import differences
+
+hs.setup()
+sign, scenario_file, case, golden_file = float(sys.argv[1]), sys.argv[2], json.loads(sys.argv[3]), sys.argv[4]
+prune = step.prune
+
+
+def perturbed(log_w, capacity, ratio):
+    noise = jnp.sin(jnp.arange(log_w.shape[0]) * 12.9898) * 43758.5453
+    return prune(log_w + sign * 1e-13 * (noise - jnp.floor(noise)), capacity, ratio)
+
+
+step.prune = perturbed
+run = run_estimator(hs.load_scenario(scenario_file), case["estimator"], seed=0, **case["settings"])
+got = json.loads(json.dumps(result_to_json(run.result)))
+with open(golden_file, encoding="utf-8") as f:
+    print(json.dumps(differences(got["steps"], json.load(f)["steps"])))
+"""
+
+
+@pytest.mark.slow  # a hybrid compile and run per sign in a fresh process, a minute or two each
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_ties_are_kept_by_index_whatever_their_last_bits(sign):
+    """``hallway12.hybrid`` with every child's log-weight moved by up to ±1e-13 is its file: exactly
+    tied children (equal to ~1e-16) keep their order, and nothing else moves beyond the comparison's
+    tolerance. Without the tie rule, one of the two signs keeps the other child of a tie at step 9."""
+    name = "hallway12.hybrid"
+    case = CASES[name]
+    root = str(pathlib.Path(__file__).resolve().parent.parent)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")])))
+    out = subprocess.run([sys.executable, "-c", PERTURBED, str(sign), os.path.join(GOLDEN, case["scenario"] + ".json"),
+                          json.dumps(case), os.path.join(GOLDEN, name + ".result.json")],
+                         capture_output=True, text=True, env=env, cwd=root, timeout=900, check=False)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == []

@@ -6,6 +6,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
+from ..inference.ties import best_slot
 from .marginals import association_probabilities
 from .mixture import WeightedMixture
 
@@ -27,7 +28,7 @@ def association_entropy(belief: WeightedMixture) -> Float[Array, ""]:
 
 
 def metrics(belief: WeightedMixture, true_pose: Float[Array, "3"] | None = None) -> Metrics:
-    best = jnp.argmax(belief.log_weights)
+    best = best_slot(belief.log_weights)
     det_cov = jnp.linalg.det(belief.cov[best, :2, :2])
     if true_pose is None:
         err_max = err_avg = jnp.full((), jnp.nan)

@@ -29,6 +29,7 @@ import argparse
 import sys
 from collections.abc import Sequence
 
+from ..config import setup
 from ..io.scenario import ScenarioError
 from . import cache, demo, importers, loops, plot, run, simulate, sweep
 from .common import PROG, CLIError, Parser
@@ -67,6 +68,7 @@ def _check_environment() -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``hybridslam`` console script; returns the exit status."""
+    setup()  # float64, XLA's thread pool, OpenBLAS's threads: before any array (hybridslam.config)
     try:
         args = build_parser().parse_args(argv)
         _check_environment()

@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 
+from ..config import require_x64
 from ..io.scenario import Scenario
 from ..models.measurement import Detections
 
@@ -235,6 +236,10 @@ class AbstractEstimator(eqx.Module):
 
     name: ClassVar[str]  # what ``--estimator`` selects
     reference: ClassVar[str]  # the paper and section it implements
+
+    def __check_init__(self):
+        # Every estimator computes in float64 (hybridslam.config): refused when built, not a float32 run.
+        require_x64(f"{type(self).__name__}()")
 
     @abc.abstractmethod
     def init(self, scenario: Scenario) -> Any:

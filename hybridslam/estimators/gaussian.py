@@ -63,8 +63,8 @@ from ..models.model import Model, model_from_scenario
 from ..models.motion import propagate
 from ..models.classifier import ClassifierModel
 from .base import AbstractEstimator, Mixture, StepInfo, classifier_name, history_length, lacks_object_slots
-from .smoothing import (DataLog, Factors, Filter, Full, Lag, Smoother, WindowPrior, data_log, factor_budget,
-                        initial_trajectory, initial_window, new_overflow, smooth_step)
+from .smoothing import (DataLog, Factors, Filter, Full, Lag, Smoother, WindowPrior, active_history, data_log,
+                        factor_budget, initial_trajectory, initial_window, new_overflow, smooth_step)
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -498,7 +498,7 @@ def commit(est: SingleGaussian, state: GaussianState, mean, cov, class_log_post,
     poses, log, stored, window = state.poses, state.log, state.factors, state.window
     if not isinstance(est.smoother, Filter):
         # The whole trajectory and map relinearized with every factor so far (smoothing.py); the
-        # step's associations stay as decided online.
+        # associations stay as decided online, except a max-mixture's under Full (below).
         assert state.log is not None and state.factors is not None and state.poses is not None  # Full keeps them
         log = state.log.record(state.k, odometry, detections)
         objs, log_w, null = factors
@@ -508,9 +508,16 @@ def commit(est: SingleGaussian, state: GaussianState, mean, cov, class_log_post,
         out = smooth_step(est.smoother, log, stored, state.k + 1, num_created, state.model.sensor,
                           state.model.motion_cov, False, est.factor_mode, state.poses, mean, cov, state.window)
         mean, cov, result, poses, window = out.mean, out.cov, out.result, out.poses, out.window
+    history = state.history.at[state.k].set(assigned)
+    if est.factor_mode == "max" and isinstance(est.smoother, Full):
+        # A max-mixture's associations are the components active at the solution the file reports
+        # (re-chosen over the whole trajectory at every relinearization), not those chosen online.
+        assert log is not None and stored is not None and out.active is not None
+        rewritten = active_history(log, stored, state.k + 1, out.active, history)
+        history = jnp.where(result == optx.RESULTS.nonfinite, history, rewritten)  # a failed solve: kept
     new_state = dataclasses.replace(
         state, mean=mean, cov=0.5 * (cov + cov.T), num_created=num_created, class_log_post=class_log_post,
-        observed=observed, history=state.history.at[state.k].set(assigned), k=state.k + 1, poses=poses, log=log,
+        observed=observed, history=history, k=state.k + 1, poses=poses, log=log,
         factors=stored, window=window,
     )
     zero = jnp.zeros((), jnp.int32)

@@ -19,7 +19,11 @@ the solution is an outlier and moves nothing (counted in ``StepInfo.rejected``).
 New objects: a detection whose most probable option is the null hypothesis creates one (initialized
 from it) and gets no factor. Class estimates: Eq. 4.17, from the association probabilities (the
 "component weights of the max-mixture factors"). The history records the component active at the
-solution (``-1`` where the null component is: an outlier, left unassociated). Settings:
+solution (``-1`` where the null component is: an outlier, left unassociated): with the filter, at the
+step's update; with ``smoother=Full()``, every detection's at the latest smoothed trajectory (each
+step rewrites the whole history, :func:`.smoothing.active_history`), so the graph rebuilt from a
+result file's associations has the file's trajectory as a stationary point. (With ``Lag(L)`` the
+history stays as chosen online: the window's solve does not see the older factors.) Settings:
 :class:`.gaussian.SingleGaussian`.
 """
 

@@ -129,6 +129,7 @@ from ..models.measurement import Detections, SensorModel, log_visibility, log_vi
 from ..models.model import Model, model_from_scenario
 from .. import __version__
 from ..inference.batching import map_live, smoothing_chunk
+from ..inference.ties import best_slot, rank_key
 from .base import (AbstractEstimator, Mixture, StepInfo, classifier_name, history_length, lacks_object_slots,
                    relevant_children)
 from .smoothing import (DataLog, Filter, Full, Lag, Smoother, WindowPrior, data_log, factor_budget,
@@ -672,7 +673,9 @@ def hypotheses(
     screen = jnp.where(skips == jnp.min(jnp.where(usable, skips, jnp.iinfo(jnp.int32).max)), screen, -jnp.inf)
     num_assign = rows
     screen_w = (state.log_weights[:, None] + screen).reshape(-1)
-    sel_w, sel = jax.lax.top_k(screen_w, cfg.children)
+    # Ranked by the tie-proof key: of children whose screens tie, the lower index (inference.ties).
+    _, sel = jax.lax.top_k(rank_key(screen_w), cfg.children)
+    sel_w = screen_w[sel]
     parent, a = sel // num_assign, sel % num_assign
     objects, new = objects[parent, a], new[parent, a]
     # One child at a time: a batch's fixed-point loop runs until its slowest member has converged
@@ -817,7 +820,7 @@ def clustered(
 
     def round_(owner, r):
         free = (owner < 0) & live
-        c = jnp.argmax(jnp.where(free & centre_ok, log_w, -jnp.inf))
+        c = best_slot(jnp.where(free & centre_ok, log_w, -jnp.inf))  # of tied ones, the first
         # Only the centres' factors are needed: K of them, not C.
         cov_c = cov_of(c)
         d2 = _mahalanobis2(jnp.linalg.cholesky(cov_c), mean[c], mean)
@@ -988,13 +991,13 @@ class Multimodal(AbstractEstimator):
 
     def trajectory(self, state: State):
         """The smoothed ``x_0..x_T`` of the best component (``None`` without smoothing)."""
-        return None if state.poses is None else state.poses[jnp.argmax(state.log_weights)]
+        return None if state.poses is None else state.poses[best_slot(state.log_weights)]
 
     def objects(self, state: State):
         """The best component's smoothed objects and their count (``None`` without smoothing)."""
         if state.poses is None:
             return None
-        best = jnp.argmax(state.log_weights)
+        best = best_slot(state.log_weights)
         return state.mean[best, 3:].reshape(-1, 3), state.num_created[best]
 
     def step(self, state: State, odometry: Float[Array, "3"], detections: Detections,

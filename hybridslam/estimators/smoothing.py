@@ -364,13 +364,16 @@ def window_graph(
 
 
 class Smoothed(eqx.Module):
-    """What :func:`smooth` gives one component (``window``: its new window prior, with :class:`Lag`)."""
+    """What :func:`smooth` gives one component (``window``: its new window prior, with :class:`Lag`;
+    ``active``: with :class:`Full`, each factor row's active component at the solution, as
+    :attr:`~hybridslam.inference.smoother.Solution.active`)."""
 
     poses: Float[Array, "T1 3"]
     mean: Float[Array, " D0"]  # the Laplace marginal over [x_k, objects]
     cov: Float[Array, "D0 D0"]
     result: optx.RESULTS
     window: WindowPrior | None = None
+    active: Int[Array, " F"] | None = None
 
 
 def smooth(
@@ -392,7 +395,8 @@ def smooth(
     m, c = sm.marginal(sol, k)
     ok = jnp.all(jnp.isfinite(sol.poses)) & jnp.all(jnp.isfinite(m)) & jnp.all(jnp.isfinite(c))
     result = optx.RESULTS.where(ok, sol.result, optx.RESULTS.nonfinite)
-    return Smoothed(jnp.where(ok, sol.poses, start), jnp.where(ok, m, mean), jnp.where(ok, c, cov), result)
+    return Smoothed(jnp.where(ok, sol.poses, start), jnp.where(ok, m, mean), jnp.where(ok, c, cov), result,
+                    active=sol.active)
 
 
 def smooth_lag(
@@ -449,6 +453,28 @@ def smooth_step(
                           cov, window)
     g = graph(log, factors, k, num_created, sensor, motion_cov, semantic, mode)
     return smooth(settings, g, poses, mean, cov, k, step_tolerance(settings, log, k))
+
+
+def active_history(log: DataLog, factors: Factors, k: Int[Array, ""], active: Int[Array, " F"],
+                   history: Int[Array, "T Dmax"]) -> Int[Array, "T Dmax"]:
+    """``history`` with every detection of the full graph after ``k`` steps (:func:`graph`'s rows)
+    associated with the object of its active component ``active`` (``-1`` where the null component,
+    or none, is active).
+
+    A max-mixture's associations at a solution (Doherty thesis Eq. 4.16: each factor is its
+    likeliest component there): the graph rebuilt from them has that solution as a stationary point,
+    which a history of the components chosen online (at earlier, since relinearized, estimates) need
+    not have. Detections beyond the log's budget keep their entries."""
+    t, dmax = log.mask.shape
+    rows = log.rows
+    reached = (jnp.arange(rows.shape[0]) < log.count()) & (rows // dmax < k)
+    objects = factors.objects.reshape(t * dmax, -1)[rows]  # (F, G)
+    g = objects.shape[-1]
+    on_object = (active >= 0) & (active < g)
+    chosen = jnp.take_along_axis(objects, jnp.clip(active, 0, g - 1)[:, None], axis=1)[:, 0]
+    chosen = jnp.where(on_object, chosen, -1).astype(history.dtype)
+    flat = history.reshape(-1).at[jnp.where(reached, rows, t * dmax)].set(chosen, mode="drop")
+    return flat.reshape(history.shape)
 
 
 def step_tolerance(settings: Full | Lag, log: DataLog, k: Int[Array, ""]) -> Float[Array, ""]:

@@ -23,6 +23,7 @@ from jaxtyping import Array, Float, Int, PRNGKeyArray
 
 from ..analysis.marginals import association_probabilities
 from ..driver import Inputs, Trace, scan
+from ..inference.ties import best_slot
 from ..estimators.hybrid.belief import Belief
 from ..estimators.hybrid.estimator import Hybrid
 from ..models.measurement import Detections
@@ -59,7 +60,7 @@ def hypothesis_neg_log_weight(belief: Belief, history: Int[Array, "T Dmax"]) -> 
 def best_pose_log_det(belief: Belief, position_only: bool = False) -> Float[Array, ""]:
     """``log det Σ`` of the robot pose ``x_k`` (3×3; the 2×2 position block if ``position_only``) of
     the highest-weight component. Which component is best is a discrete choice (not differentiated)."""
-    best = jnp.argmax(belief.log_weights)
+    best = best_slot(belief.log_weights)
     d = 2 if position_only else 3
     chol = jnp.linalg.cholesky(belief.cov[best, :d, :d])
     return 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))

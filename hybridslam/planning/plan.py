@@ -39,6 +39,7 @@ from ..estimators.hybrid.belief import Belief
 from ..estimators.hybrid.estimator import Hybrid
 from ..estimators.hybrid.weighers import AbstractWeigher, LaplaceIS, make_weigher
 from ..estimators.smoothing import Filter
+from ..inference.ties import best_slot
 from ..models import geometry, se2
 from ..models.measurement import Detections
 from ..models.model import with_smooth_visibility
@@ -167,7 +168,7 @@ def rollout(plan: Plan, odometry: Float[Array, "H 3"], detections: Detections, k
 def objective(belief: Belief, logdet_weight: Float[Array, ""] | float = 0.0) -> Float[Array, ""]:
     """``H(w) + λ · log det Σ_best``: association entropy (Eq. 8) and the best component's
     2x2 position covariance; lower is better."""
-    best = jnp.argmax(belief.log_weights)
+    best = best_slot(belief.log_weights)
     logdet = jnp.linalg.slogdet(belief.cov[best, :2, :2])[1]
     return association_entropy(belief) + logdet_weight * logdet
 

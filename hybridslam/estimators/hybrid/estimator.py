@@ -18,6 +18,7 @@ from ...models.measurement import Detections
 from ...models.model import model_from_scenario
 from ..smoothing import Filter, Full, Lag, Smoother, data_log, factor_budget, initial_trajectory, initial_window
 from ..base import AbstractEstimator, Mixture, StepInfo, classifier_name, history_length
+from ...inference.ties import best_slot
 from .belief import Belief, init_belief, priors_from_scenario
 from .branching import Beam, Branching, Exhaustive
 from .step import hybrid_step
@@ -140,13 +141,13 @@ class Hybrid(AbstractEstimator):
         """The smoothed ``x_0..x_T`` of the best component (``None`` without smoothing)."""
         if state.poses is None:
             return None
-        return state.poses[jnp.argmax(state.log_weights)]
+        return state.poses[best_slot(state.log_weights)]
 
     def objects(self, state: Belief):
         """The best component's smoothed objects and their count (``None`` without smoothing)."""
         if state.poses is None:
             return None
-        best = jnp.argmax(state.log_weights)
+        best = best_slot(state.log_weights)
         count = jnp.asarray(state.num_objects) if state.num_created is None else state.num_created[best]
         return state.mean[best, 3:].reshape(-1, 3), count
 

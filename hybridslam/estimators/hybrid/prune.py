@@ -2,7 +2,9 @@
 
 The threshold rule is the paper's (Sec. V, ratio 150). Capacity is a second, separate cut: every
 child above the threshold that does not fit in ``K`` slots is counted in ``dropped_capacity`` —
-never dropped silently.
+never dropped silently. Children are ranked by :func:`~hybridslam.inference.ties.rank_key`: of two
+children whose weights tie (to ~1e-9 relative), the one of lower index is kept first, whatever the
+last bits of the two weights (which differ between CPUs).
 """
 
 from __future__ import annotations
@@ -12,6 +14,8 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.special import logsumexp
 from jaxtyping import Array, Float, Int
+
+from ...inference.ties import rank_key
 
 
 class PruneStats(eqx.Module):
@@ -24,7 +28,8 @@ class PruneStats(eqx.Module):
 def prune(
     log_weights: Float[Array, " C"], capacity: int, ratio: Float[Array, ""]
 ) -> tuple[Int[Array, " K"], Float[Array, " K"], PruneStats]:
-    """Return the kept indices (sorted by weight, highest first) and their normalized log-weights.
+    """Return the kept indices (sorted by weight, highest first; tied weights by index) and their
+    normalized log-weights.
 
     Slots beyond the survivors get ``-inf``.
     """
@@ -33,7 +38,8 @@ def prune(
     finite = log_weights > -jnp.inf
     threshold = jnp.max(log_weights) - jnp.log(ratio)
     above = finite & (log_weights >= threshold)
-    values, index = jax.lax.top_k(jnp.where(above, log_weights, -jnp.inf), capacity)
+    _, index = jax.lax.top_k(rank_key(jnp.where(above, log_weights, -jnp.inf)), capacity)
+    values = jnp.where(above, log_weights, -jnp.inf)[index]
     kept = values > -jnp.inf
     values = jnp.where(kept, values - logsumexp(jnp.where(kept, values, -jnp.inf)), -jnp.inf)
     n_cand, n_above = jnp.sum(finite), jnp.sum(above)

@@ -31,6 +31,7 @@ from ...inference.batching import map_distinct, map_live, smoothing_chunk
 from ...inference.discovery import create_objects
 from ...inference.gating import contradicted, gate
 from ...inference.update import gauss_newton_update
+from ...inference.ties import best_slot
 from ...models.measurement import Detections
 from ...models.model import NewObjects
 from ...models.motion import propagate
@@ -323,7 +324,7 @@ def hybrid_step(
         window=window,
     )
     kept_ess = jnp.where(alive, ess, jnp.nan)
-    best = jnp.argmax(new_log_w)
+    best = best_slot(new_log_w)
     # The best child's unmapped objects (no free slot) are not unassociated detections.
     num_unmapped = jnp.sum(detections.mask & unmapped[best], dtype=jnp.int32)
     unassociated = jnp.sum(detections.mask & (assign[best] < 0), dtype=jnp.int32) - num_unmapped
