@@ -112,6 +112,10 @@ class Hybrid(AbstractEstimator):
 
     def init(self, scenario: Scenario) -> Belief:
         """One component of weight 1, every class open (Eq. 3), sized for ``scenario``."""
+        if (scenario.num_objects if scenario.discovery is None else scenario.discovery.max_objects) < 1:
+            # Nothing to associate: the same refusal as the other estimators', instead of a gather
+            # over an empty object axis failing inside the compiled step.
+            raise ValueError("objects: the scenario has no objects and no discovery section to create any")
         model = model_from_scenario(scenario, self.classifier, self.prune_ratio, self.visibility_temperature)
         slots = self.max_detections or max(scenario.max_detections, 1)
         if scenario.max_detections > slots:
