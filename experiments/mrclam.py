@@ -3,7 +3,7 @@
 Leung et al., IJRR 2011: five robots driving among 15 identical, surveyed landmarks (cylinders
 with barcodes, no class), range and bearing detections, velocity-command odometry and a Vicon
 ground truth. Each robot's log, cut to windows of ``--duration`` seconds starting at ``--windows``
-seconds after its first odometry record, is imported with :func:`hybridslam.io.mrclam.import_mrclam`
+seconds after its first odometry record, is imported with :func:`hybridslam.datasets.mrclam.import_mrclam`
 (0.5 s steps: 100 s are 200 steps; detections motion-compensated to the step times; the noise
 calibrated from the window's ground truth) with the surveyed map known (every landmark an object
 with its survey sd) or unknown (a discovery section: objects are created as detections arrive).
@@ -82,7 +82,7 @@ from hybridslam.analysis.map_error import map_error, majority
 from hybridslam.analysis.plot import plot_trajectory
 from hybridslam.estimators import ESTIMATORS, AbstractEstimator, make_estimator
 from hybridslam.estimators.smoothing import Lag, parse_smoother
-from hybridslam.io.mrclam import MRCLAMError, compose, import_mrclam
+from hybridslam.datasets.mrclam import MRCLAMError, compose, import_mrclam
 from hybridslam.io.result import Result, ResultWriter, StepRecord, load_result
 from hybridslam.io.scenario import Scenario, load_scenario, save_scenario
 from hybridslam.studies.study import Records

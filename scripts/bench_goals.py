@@ -110,7 +110,7 @@ def main() -> None:
             for smoother in (a.smoothers or "full,filter").split(","):
                 _row("hallway", name, smoother, s, HALLWAY.get(name, {}), a.repeats)
     if "mrclam" in workloads and a.mrclam:
-        from hybridslam.io.mrclam import import_mrclam
+        from hybridslam.datasets.mrclam import import_mrclam
 
         s = import_mrclam(a.mrclam, 3, start=20.0, duration=100.0)
         print(f"# mrclam: robot 3, {s.num_steps} steps, up to {s.max_detections} detections per step")

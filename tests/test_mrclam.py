@@ -1,4 +1,4 @@
-"""Tests of the MRCLAM importer (``hybridslam.io.mrclam``) and ``hybridslam import mrclam``.
+"""Tests of the MRCLAM importer (``hybridslam.datasets.mrclam``) and ``hybridslam import mrclam``.
 
 Real data: ``tests/data/mrclam`` is a 45 s excerpt of dataset 7, robot 1 (its README). Pure numpy,
 no JAX compiles; the whole file runs in a few seconds.
@@ -15,8 +15,8 @@ import pytest
 
 import hybridslam as hs
 from hybridslam import cli
-from hybridslam.io import mrclam
-from hybridslam.io.mrclam import MRCLAMError, import_mrclam
+from hybridslam.datasets import mrclam
+from hybridslam.datasets.mrclam import MRCLAMError, import_mrclam
 
 DATA = os.path.join(os.path.dirname(__file__), "data", "mrclam")
 CHI2_3_999 = 16.266  # 99.9% quantile of chi-square with 3 degrees of freedom
@@ -382,7 +382,7 @@ def test_save_load_round_trip(variant, request, tmp_path):
     hs.save_scenario(s, path)
     loaded = hs.load_scenario(path)
     assert loaded == s
-    assert loaded.metadata["generator"]["name"] == "hybridslam.io.mrclam"
+    assert loaded.metadata["generator"]["name"] == "hybridslam.datasets.mrclam"
 
 
 # --------------------------------------------------------------------------- #

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from ..io.mrclam import MOTION_NOISE_SOURCES, NOISE_SOURCES, MRCLAMError, import_mrclam
+from ..datasets.mrclam import MOTION_NOISE_SOURCES, NOISE_SOURCES, MRCLAMError, import_mrclam
 from ..io.scenario import Scenario, save_scenario
 from .common import CLIError, check_writable
 

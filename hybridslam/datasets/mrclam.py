@@ -80,7 +80,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .scenario import Classifier, Detection, Discovery, Scenario, Step
+from ..io.scenario import Classifier, Detection, Discovery, Scenario, Step
 
 ROBOTS = (1, 2, 3, 4, 5)  # MRCLAM subjects 1-5 are robots
 NOISE_SOURCES = ("written", "raw")  # what geometric_cov is calibrated from (import_mrclam)
@@ -762,7 +762,7 @@ def _generator(folder: str, settings: dict[str, Any], window: Window, track: Tra
     lo, hi = window.times[0], window.times[-1]
     delay = settings["odometry_delay_s"]
     return {
-        "name": "hybridslam.io.mrclam",
+        "name": "hybridslam.datasets.mrclam",
         "dataset": os.path.basename(os.path.normpath(os.path.abspath(folder))),
         "robot": settings["robot"], "start_s": settings["start_s"], "dt_s": window.dt,
         "duration_s": round(float(hi - lo), 9), "time_origin_unix_s": window.origin, "t0_unix_s": float(lo),

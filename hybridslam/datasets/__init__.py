@@ -1,0 +1,1 @@
+"""Importers of public datasets: real-robot logs written as scenario files (they may import io and models, never estimators)."""
