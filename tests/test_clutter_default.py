@@ -15,15 +15,26 @@ from hybridslam.driver import run
 from hybridslam.io.scenario import Discovery, ScenarioError, parse_scenario, scenario_to_json
 
 
-@pytest.fixture(scope="module")
-def duplicated() -> hs.Scenario:
-    """A paper scenario whose first step holds a copy of its first detection 0.3 m farther (of no
-    object): with one candidate per detection, at most one of the two can be the object's."""
+def _with_copy(offset: float) -> hs.Scenario:
+    """A paper scenario whose first step holds a copy of its first detection ``offset`` m farther
+    (of no object): with one candidate per detection, at most one of the two can be the object's."""
     scenario = hs.simulate(2, steps=2, setup=hs.PaperSetup(max_detections=2, max_range=12.0))
     first = scenario.steps[0]
-    near = dataclasses.replace(first.detections[0], range=first.detections[0].range + 0.3, true_object=None)
+    near = dataclasses.replace(first.detections[0], range=first.detections[0].range + offset, true_object=None)
     steps = (dataclasses.replace(first, detections=(first.detections[0], near, first.detections[1])),)
     return scenario.replace(steps=steps + scenario.steps[1:])
+
+
+@pytest.fixture(scope="module")
+def duplicated() -> hs.Scenario:
+    """The copy 0.3 m farther (one range sd): inside the object's gate."""
+    return _with_copy(0.3)
+
+
+@pytest.fixture(scope="module")
+def outlier() -> hs.Scenario:
+    """The copy 1.5 m farther (4.7 range sds): outside the 0.999 gate of every object."""
+    return _with_copy(1.5)
 
 
 def test_the_paper_files_declare_no_clutter_and_the_field_round_trips(duplicated):
@@ -40,13 +51,13 @@ def test_the_paper_files_declare_no_clutter_and_the_field_round_trips(duplicated
 
 
 @pytest.mark.parametrize("name", ["ml", "gpda", "max-mixture"])
-def test_the_single_gaussian_estimators_read_the_files_clutter_density(name, duplicated):
-    """With the file's clutter density the copy is explained as clutter (``rejected``), nothing is
-    skipped, and the settings line says which density; ``clutter="none"`` turns it off, and a
-    number overrides the file's."""
-    with_clutter = duplicated.replace(clutter_log_density=-10.0)
+def test_the_single_gaussian_estimators_read_the_files_clutter_density(name, outlier):
+    """With the file's clutter density the far copy is explained as clutter (``rejected``), nothing
+    is skipped, and the settings line says which density; ``clutter="none"`` turns it off (nothing is
+    rejected), and a number overrides the file's."""
+    with_clutter = outlier.replace(clutter_log_density=-10.0)
     est = hs.make_estimator(name, gate=1, smoother="filter")
-    assert "clutter=-10" in est.describe(with_clutter) and "clutter" not in est.describe(duplicated)
+    assert "clutter=-10" in est.describe(with_clutter) and "clutter" not in est.describe(outlier)
     infos = run(est, with_clutter).infos
     assert int(infos[0].rejected) == 1 and int(infos[0].skipped) == 0
     off = run(hs.make_estimator(name, gate=1, smoother="filter", clutter="none"), with_clutter).infos

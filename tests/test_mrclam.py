@@ -573,7 +573,7 @@ def _saved(s: hs.Scenario) -> str:
 
 
 def test_merging_repeats_reads_no_barcode(tmp_path):
-    """The default merge of repeated readings is by geometry alone: with the barcodes of the
+    """The merge of repeated readings (``merge_repeats``) is by geometry alone: with the barcodes of the
     landmarks permuted (and the noise given, so that no calibration reads them) the detections
     written are the same; only their ``true_object`` (evaluation) moves. Merging drops readings,
     never adds any, and keeps at most one per landmark more often than keeping every repeat."""
@@ -589,12 +589,12 @@ def test_merging_repeats_reads_no_barcode(tmp_path):
         lines[rows[j]] = f"{pairs[j][0]}\t{pairs[k][1]}\r\n"
     path.write_bytes("".join(lines).encode("ascii"))
     cov = dict(geometric_cov=[0.01, 0.001], motion_cov=[1e-4, 1e-4, 1e-4])
-    a, b = import_mrclam(DATA, 1, **cov), import_mrclam(copy, 1, **cov)
+    a, b = import_mrclam(DATA, 1, merge_repeats=True, **cov), import_mrclam(copy, 1, merge_repeats=True, **cov)
     geometry = lambda s: [[(d.range, d.bearing) for d in st.detections] for st in s.steps]  # noqa: E731
     assert geometry(a) == geometry(b)
     assert [d.true_object for st in a.steps for d in st.detections] != \
         [d.true_object for st in b.steps for d in st.detections]
-    every = import_mrclam(DATA, 1, merge_repeats=False, **cov)
+    every = import_mrclam(DATA, 1, **cov)
     assert a.metadata["generator"]["counts"]["merged"] > 0
     assert sum(map(len, geometry(a))) + a.metadata["generator"]["counts"]["merged"] == sum(map(len, geometry(every)))
 
@@ -612,7 +612,7 @@ def test_an_unknown_maps_object_slots_come_from_the_data_not_the_landmark_count(
 
 def test_cli_default_import_says_what_it_kept(tmp_path, capsys):
     out = tmp_path / "robot1.json"
-    assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out), "--keep-repeats"]) == 0
+    assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out)]) == 0
     stdout = capsys.readouterr().out
     for text in ("every reading: 12 of no landmark (other robots: 12 readings", "0 repeats merged",
                  "clutter log density -"):

@@ -4,7 +4,7 @@
         [--unknown-map] [--max-range R] [--fov F] [--motion-cov a,b,c] [--geometric-cov a,b]
         [--robot-prior-cov a,b,c] [--correct-range-bias] [--no-motion-compensation] [--odometry-delay S]
         [--measurement-noise-from {written,raw}] [--motion-noise-from {steps,drift}]
-        [--identity-filter] [--keep-repeats] [--object-slots N] [--clutter-log-density {D,none}]
+        [--identity-filter] [--merge-repeats] [--object-slots N] [--clutter-log-density {D,none}]
 
 :func:`register` adds the ``import`` command to the ``hybridslam`` parser; its errors are
 :class:`~hybridslam.cli.CLIError` (one line, exit status 2) like every other command's.
@@ -82,7 +82,7 @@ def mrclam_summary(path: str, s: Scenario) -> str:
         detections = (f"detections: {sum(per_step)}, {np.mean(per_step):.2f} per step (max {max(per_step)}), "
                       f"every reading: {unnamed} of no landmark (other robots: {counts['robot_robot']} readings, "
                       f"unknown barcodes: {counts['unknown_barcode']}; no true_object), "
-                      f"{counts.get('merged', 0)} repeats merged by geometry (--keep-repeats), "
+                      f"{counts.get('merged', 0)} repeats merged by geometry (--merge-repeats), "
                       f"{counts['beyond_sensor']} beyond the sensor; clutter log density "
                       + ("none" if s.clutter_log_density is None else f"{s.clutter_log_density:.3g}"))
     source = ("" if cal["geometric_cov"] == "given"
@@ -164,9 +164,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     m.add_argument("--identity-filter", action="store_true",
                    help="oracle-assisted: keep only readings whose barcode names a landmark, one per landmark "
                         "and step (the barcodes are identities the estimators are meant not to know)")
-    m.add_argument("--keep-repeats", dest="merge_repeats", action="store_false",
-                   help="keep every reading of an object within a step (default: merge readings of other "
-                        "sensor frames within the noise gate, by geometry alone)")
+    m.add_argument("--merge-repeats", action="store_true",
+                   help="merge an object's repeated readings within a step by geometry alone (readings of "
+                        "other sensor frames within the noise gate; default: keep every reading)")
     m.add_argument("--clutter-log-density", type=_clutter_density, default=None, metavar="{D,none}",
                    help="sensor.clutter_log_density written (default: log(0.5 / (max_range * fov)); none with "
                         "--identity-filter); 'none' writes no clutter hypothesis")

@@ -21,13 +21,14 @@ on top, CRLF line ends, times in Unix seconds; subjects 1-5 are robots, the rest
   ``k`` when ``t_k − dt/2 < t ≤ t_k + dt/2``. Every measurement of the robot's file in a step's
   window is a detection: those of other robots and of barcodes that name no landmark too (with no
   ``true_object``; counted in ``generator.counts``). The sensor reads an object up to twice per
-  0.5 s step (its frames come ~0.24 s apart); repeats are merged by geometry alone
-  (:func:`merge_repeats_of`, ``merge_repeats=True``): per step, in order of closeness in time to
+  0.5 s step (its frames come ~0.24 s apart); every repeat is kept by default (the clutter
+  hypothesis below explains the one an object cannot take). ``merge_repeats=True`` merges them
+  by geometry alone (:func:`merge_repeats_of`): per step, in order of closeness in time to
   ``t_k``, a reading is dropped when one already kept from another sensor frame lies within the
   0.99 chi-square gate of it (the difference of two readings, twice the calibrated variance).
-  This can drop a reading of a neighbouring landmark 0.2 m away, and keeps a repeat that the
-  motion compensation moved far (e.g. while turning); ``merge_repeats=False`` keeps every
-  reading. The file declares a clutter hypothesis, ``sensor.clutter_log_density =
+  Fewer detections (dataset 6, robot 3, 20-120 s: at most 10 per step instead of 16), but it
+  drops readings of neighbouring landmarks 0.2 m away (robot 2: 19 of 155 landmark-step pairs
+  lost) and keeps repeats that the motion compensation moved apart (e.g. while turning). The file declares a clutter hypothesis, ``sensor.clutter_log_density =
   log(0.5 / (max_range · fov))``: a reading is spurious (another robot, a repeat) with prior
   probability 0.5 (dataset 6, robots 2 and 3, 20-120 s: 29-30% of the readings are other
   robots' and 17-20% repeat a landmark in the same step), uniform over the footprint in ``[range, bearing]``
@@ -621,7 +622,7 @@ def import_mrclam(
     new_object_log_density: float | None = None,
     max_objects: int | None = None,
     identity_filter: bool = False,
-    merge_repeats: bool = True,
+    merge_repeats: bool = False,
     clutter_log_density: float | str | None = None,
 ) -> Scenario:
     """Robot ``robot``'s log in the MRCLAM dataset folder ``dataset_dir`` as a ``hybridslam-scenario/1``.
@@ -631,7 +632,7 @@ def import_mrclam(
     * ``start`` [s] after the robot's first odometry record, ``duration`` [s] (default: to the end
       of the data), one step every ``dt`` [s]: ``T = floor(duration / dt)`` steps.
     * ``identity_filter``: the oracle-assisted conversion (module docstring); default ``False``:
-      every reading. ``merge_repeats`` (default ``True``, without the filter): merge the repeats
+      every reading. ``merge_repeats`` (default ``False``, without the filter): merge the repeats
       of an object within a step by geometry (:func:`merge_repeats_of`). ``clutter_log_density``:
       ``sensor.clutter_log_density`` written (default ``log(0.5 / (max_range · fov))``, none with
       the filter; ``"none"``: none).
@@ -705,14 +706,12 @@ def import_mrclam(
     fov = default[1] if fov is None else float(fov)
     clutter = _clutter_density(clutter_log_density, identity_filter, max_range, fov)
     steps = _steps(track)
-    if unknown_map and max_objects is None:
-        # The oracle-assisted conversion sizes the map from the surveyed landmarks; otherwise from the
-        # data alone: the busiest step's detections could all be new objects, plus the margin.
-        max_objects = len(landmarks) + discovery_margin if identity_filter else \
-            max(2, max((len(st.detections) for st in steps), default=0) + discovery_margin)
-        slots_from = "landmarks + margin (oracle)" if identity_filter else "most detections in a step + margin"
-    else:
-        slots_from = "given"
+    # The oracle-assisted conversion sizes an unknown map from the surveyed landmarks; otherwise from
+    # the data alone: the busiest step's detections could all be new objects, plus the margin.
+    slots = max_objects if max_objects is not None else len(landmarks) + discovery_margin if identity_filter \
+        else max(2, max((len(st.detections) for st in steps), default=0) + discovery_margin)
+    slots_from = ("given" if max_objects is not None else "landmarks + margin (oracle)" if identity_filter
+                  else "most detections in a step + margin")
 
     settings = {"robot": int(robot), "start_s": float(start), "map": "unknown" if unknown_map else "known",
                 "motion_compensation": bool(motion_compensation), "odometry_delay_s": float(odometry_delay),
@@ -728,7 +727,7 @@ def import_mrclam(
                                 else ["measurement noise calibration"]),
     }
     if unknown_map:
-        generator["object_slots"] = {"value": int(max_objects), "from": slots_from}
+        generator["object_slots"] = {"value": int(slots), "from": slots_from}
     if clutter is not None:
         generator["clutter"] = {"log_density": clutter, "from": "given" if clutter_log_density is not None
                                 else f"log({CLUTTER_FRACTION:g} / (max_range * fov))"}
@@ -746,7 +745,7 @@ def import_mrclam(
         return Scenario(
             object_prior_means=np.zeros((0, 3)), object_prior_covs=np.zeros((0, 3, 3)),
             class_prior=np.zeros((0, 1)),
-            discovery=Discovery(int(max_objects), float(density),
+            discovery=Discovery(int(slots), float(density),
                                 float(landmark_heading_var)),
             true_objects=tuple((p, 0) for p in poses), **common)
     return Scenario(
