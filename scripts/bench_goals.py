@@ -11,8 +11,10 @@ Workloads:
   that reports up to 4 objects (range 12 m): the hybrid belief's branching at 3-4 detections per step.
 * ``paper``: the paper setup itself (2 detections at most), smoother against filter.
 * ``hallway``: the thesis's hallway (60 steps, 60 landmarks, object capacity 70, unknown map).
-* ``mrclam``: a real log, UTIAS MRCLAM (15 identical landmarks, up to 8 detections per 0.5 s step,
-  200 steps; ``--mrclam DIR`` names a dataset folder, e.g. ``MRCLAM_Dataset7``; skipped without it).
+* ``mrclam``: a real log, UTIAS MRCLAM, robot 3, 20-120 s, imported without identities (every
+  reading: other robots' and repeated ones too, with the file's clutter density; 15 identical
+  landmarks, up to 16 detections per 0.5 s step on dataset 6, 200 steps; ``--mrclam DIR`` names a
+  dataset folder, e.g. ``MRCLAM_Dataset6``; skipped without it).
 * ``files``: 16 ten-step paper-layout files through the study machinery (``hybridslam sweep
   --scenarios``): seconds of batched work after compilation.
 * ``files-hard``: 64 ten-step files as users bring them (:func:`hard_files`: the paper's layout, a
@@ -189,7 +191,7 @@ def main() -> None:
             for smoother in (a.smoothers or "full,filter").split(","):
                 _row("hallway", name, smoother, s, HALLWAY.get(name, {}), a.repeats)
     if "mrclam" in workloads and a.mrclam:
-        from hybridslam.io.mrclam import import_mrclam
+        from hybridslam.datasets.mrclam import import_mrclam
 
         s = import_mrclam(a.mrclam, 3, start=20.0, duration=100.0)
         print(f"# mrclam: robot 3, {s.num_steps} steps, up to {s.max_detections} detections per step")

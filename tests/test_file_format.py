@@ -69,13 +69,14 @@ def kinds(table: dict[str, str]) -> None:
 
 
 def full_scenario(model: str = "mirror") -> dict:
-    """A simulated 2-step scenario with every optional section (ground truth, discovery)."""
+    """A simulated 2-step scenario with every optional section (ground truth, discovery, clutter)."""
     s = simulate(0, steps=2)
     obj = scenario_to_json(s)
     obj["true_objects"] = [{"pose": list(map(float, p)), "class": int(c)}
                            for p, c in zip(s.true_object_poses, s.true_classes)]
     obj["discovery"] = {"max_objects": s.num_objects + 4, "new_object_log_density": -4.0,
                         "new_object_orientation_var": 9.87}
+    obj["sensor"]["clutter_log_density"] = -6.0
     assert any(step["detections"] for step in obj["steps"])
     classifier = {"mirror": {"model": "mirror", "alpha": 0.25, "K": 15.0},
                   "independent": {"model": "independent", "alpha": 0.25, "K": 15.0},

@@ -1,4 +1,4 @@
-"""Tests of the MRCLAM importer (``hybridslam.io.mrclam``) and ``hybridslam import mrclam``.
+"""Tests of the MRCLAM importer (``hybridslam.datasets.mrclam``) and ``hybridslam import mrclam``.
 
 Real data: ``tests/data/mrclam`` is a 45 s excerpt of dataset 7, robot 1 (its README). Pure numpy,
 no JAX compiles; the whole file runs in a few seconds.
@@ -15,8 +15,8 @@ import pytest
 
 import hybridslam as hs
 from hybridslam import cli
-from hybridslam.io import mrclam
-from hybridslam.io.mrclam import MRCLAMError, import_mrclam
+from hybridslam.datasets import mrclam
+from hybridslam.datasets.mrclam import MRCLAMError, import_mrclam
 
 DATA = os.path.join(os.path.dirname(__file__), "data", "mrclam")
 CHI2_3_999 = 16.266  # 99.9% quantile of chi-square with 3 degrees of freedom
@@ -24,12 +24,12 @@ CHI2_3_999 = 16.266  # 99.9% quantile of chi-square with 3 degrees of freedom
 
 @pytest.fixture(scope="module")
 def known() -> hs.Scenario:
-    return import_mrclam(DATA, 1)
+    return import_mrclam(DATA, 1, identity_filter=True)
 
 
 @pytest.fixture(scope="module")
 def unknown() -> hs.Scenario:
-    return import_mrclam(DATA, 1, unknown_map=True)
+    return import_mrclam(DATA, 1, identity_filter=True, unknown_map=True)
 
 
 @pytest.fixture
@@ -153,7 +153,7 @@ def test_steps_and_true_poses(known):
     # Linear in the unwrapped heading: across the ±π seam it stays between its neighbours.
     gt = np.array([[0.0, 0, 0, math.pi - 0.1], [1.0, 0, 0, -math.pi + 0.1]])
     assert mrclam.interpolate_groundtruth(gt, np.array([0.5]))[0, 2] == pytest.approx(math.pi)
-    later = import_mrclam(DATA, 1, start=10.25, duration=20, dt=0.25)
+    later = import_mrclam(DATA, 1, identity_filter=True, start=10.25, duration=20, dt=0.25)
     assert later.num_steps == 80
     np.testing.assert_allclose(later.true_robot_poses[0],
                                mrclam.interpolate_groundtruth(log.groundtruth.rows, [origin + 10.25])[0])
@@ -167,7 +167,7 @@ def test_steps_and_true_poses(known):
 def test_detections_are_the_closest_landmark_measurements_of_each_step():
     """Without motion compensation every detection is a line of the measurement file: a landmark's
     barcode, within dt/2 of its step's time, the closest such line of that landmark."""
-    s = import_mrclam(DATA, 1, motion_compensation=False)
+    s = import_mrclam(DATA, 1, identity_filter=True, motion_compensation=False)
     rows = mrclam.read_robot(DATA, 1).measurements.rows
     barcodes = mrclam.read_barcodes(DATA)
     subject = np.array([barcodes[int(b)] for b in rows[:, 1]])
@@ -224,7 +224,7 @@ def test_motion_compensation_moves_the_point_into_the_step_frame():
 
 
 def test_max_range_and_fov_drop_detections(known):
-    s = import_mrclam(DATA, 1, max_range=3.0, fov=0.6)
+    s = import_mrclam(DATA, 1, identity_filter=True, max_range=3.0, fov=0.6)
     ranges = np.array([d.range for st in s.steps for d in st.detections])
     bearings = np.array([d.bearing for st in s.steps for d in st.detections])
     assert s.max_range == 3.0 and s.fov == 0.6
@@ -285,7 +285,7 @@ def test_measurement_noise_is_what_the_written_detections_show(known):
     cal = known.metadata["generator"]["calibration"]
     assert cal["measurement_noise_from"] == "written"
     assert cal["measurement_residuals"] == cal["written_detection_residuals"]
-    raw = import_mrclam(DATA, 1, measurement_noise_from="raw")
+    raw = import_mrclam(DATA, 1, identity_filter=True, measurement_noise_from="raw")
     rcal = raw.metadata["generator"]["calibration"]
     assert rcal["measurement_noise_from"] == "raw"
     assert rcal["measurement_residuals"] == rcal["raw_measurement_residuals"] == cal["raw_measurement_residuals"]
@@ -295,11 +295,11 @@ def test_measurement_noise_is_what_the_written_detections_show(known):
     # Only the covariance differs: the detections written are the same.
     assert [d.range for st in raw.steps for d in st.detections] == list(a[:, 0])
     with pytest.raises(MRCLAMError, match="measurement_noise_from: expected one of written, raw"):
-        import_mrclam(DATA, 1, measurement_noise_from="truth")
+        import_mrclam(DATA, 1, identity_filter=True, measurement_noise_from="truth")
 
 
 def test_motion_noise_from_the_drift_grows_as_fast_as_dead_reckonings_error(known):
-    s = import_mrclam(DATA, 1, motion_noise_from="drift")
+    s = import_mrclam(DATA, 1, identity_filter=True, motion_noise_from="drift")
     cal = s.metadata["generator"]["calibration"]
     drift = np.array(cal["odometry_drift_sd_per_step"]["sd"])
     np.testing.assert_allclose(np.diag(s.motion_cov), np.maximum(np.diag(known.motion_cov), drift**2), rtol=1e-6)
@@ -307,15 +307,15 @@ def test_motion_noise_from_the_drift_grows_as_fast_as_dead_reckonings_error(know
     assert cal["motion_noise_from"] == "drift" and known.metadata["generator"]["calibration"]["motion_noise_from"] == "steps"
     assert s.steps == known.steps and np.array_equal(s.geometric_cov, known.geometric_cov)
     with pytest.raises(MRCLAMError, match="motion_noise_from drift needs 5 blocks of 5 s"):
-        import_mrclam(DATA, 1, duration=20.0, motion_noise_from="drift")
+        import_mrclam(DATA, 1, identity_filter=True, duration=20.0, motion_noise_from="drift")
     with pytest.raises(MRCLAMError, match="motion_noise_from: expected one of steps, drift"):
-        import_mrclam(DATA, 1, motion_noise_from="wheel")
-    given = import_mrclam(DATA, 1, motion_noise_from="drift", motion_cov=[1e-4, 1e-4, 1e-3])
+        import_mrclam(DATA, 1, identity_filter=True, motion_noise_from="wheel")
+    given = import_mrclam(DATA, 1, identity_filter=True, motion_noise_from="drift", motion_cov=[1e-4, 1e-4, 1e-3])
     np.testing.assert_array_equal(given.motion_cov, np.diag([1e-4, 1e-4, 1e-3]))  # a given one wins
 
 
 def test_overrides_and_range_bias_correction(known):
-    s = import_mrclam(DATA, 1, motion_cov=[1e-4, 2e-4, 3e-4], geometric_cov=np.diag([0.01, 0.002]),
+    s = import_mrclam(DATA, 1, identity_filter=True, motion_cov=[1e-4, 2e-4, 3e-4], geometric_cov=np.diag([0.01, 0.002]),
                       robot_prior_cov=[1.0, 1.0, 0.1], correct_range_bias=True)
     np.testing.assert_array_equal(s.motion_cov, np.diag([1e-4, 2e-4, 3e-4]))
     np.testing.assert_array_equal(s.geometric_cov, np.diag([0.01, 0.002]))
@@ -331,9 +331,9 @@ def test_overrides_and_range_bias_correction(known):
 
 def test_a_window_without_detections_needs_a_geometric_cov():
     with pytest.raises(MRCLAMError) as e:
-        import_mrclam(DATA, 1, max_range=0.5)
+        import_mrclam(DATA, 1, identity_filter=True, max_range=0.5)
     assert _one_line(e).startswith("robot 1: no landmark measurement in the window to calibrate")
-    s = import_mrclam(DATA, 1, max_range=0.5, geometric_cov=[0.01, 0.001])
+    s = import_mrclam(DATA, 1, identity_filter=True, max_range=0.5, geometric_cov=[0.01, 0.001])
     assert s.max_detections == 0 and s.metadata["generator"]["counts"]["kept"] == 0
     assert s.metadata["generator"]["calibration"]["measurement_residuals"] == {"count": 0}
 
@@ -366,13 +366,13 @@ def test_unknown_map(unknown, known):
     np.testing.assert_array_equal(np.array([p for p, _ in unknown.true_objects]), known.true_object_poses)
     assert {c for _, c in unknown.true_objects} == {0}
     assert unknown.steps == known.steps and np.array_equal(unknown.motion_cov, known.motion_cov)
-    custom = import_mrclam(DATA, 1, unknown_map=True, discovery_margin=0, new_object_log_density=-3.0)
+    custom = import_mrclam(DATA, 1, identity_filter=True, unknown_map=True, discovery_margin=0, new_object_log_density=-3.0)
     assert custom.discovery.max_objects == 15 and custom.discovery.new_object_log_density == -3.0
-    assert import_mrclam(DATA, 1, unknown_map=True, max_objects=40).discovery.max_objects == 40
+    assert import_mrclam(DATA, 1, identity_filter=True, unknown_map=True, max_objects=40).discovery.max_objects == 40
     with pytest.raises(MRCLAMError, match="max_objects: object slots are a setting of an unknown map"):
-        import_mrclam(DATA, 1, max_objects=40)
+        import_mrclam(DATA, 1, identity_filter=True, max_objects=40)
     with pytest.raises(MRCLAMError, match="max_objects: expected an integer >= 2, got 1"):
-        import_mrclam(DATA, 1, unknown_map=True, max_objects=1)
+        import_mrclam(DATA, 1, identity_filter=True, unknown_map=True, max_objects=1)
 
 
 @pytest.mark.parametrize("variant", ["known", "unknown"])
@@ -382,7 +382,7 @@ def test_save_load_round_trip(variant, request, tmp_path):
     hs.save_scenario(s, path)
     loaded = hs.load_scenario(path)
     assert loaded == s
-    assert loaded.metadata["generator"]["name"] == "hybridslam.io.mrclam"
+    assert loaded.metadata["generator"]["name"] == "hybridslam.datasets.mrclam"
 
 
 # --------------------------------------------------------------------------- #
@@ -456,7 +456,7 @@ def test_unknown_robot():
 ])
 def test_window_outside_the_data(window, expected):
     with pytest.raises(MRCLAMError) as e:
-        import_mrclam(DATA, 1, **window)
+        import_mrclam(DATA, 1, identity_filter=True, **window)
     assert _one_line(e).startswith(expected)
 
 
@@ -469,7 +469,7 @@ def test_window_outside_the_data(window, expected):
 ])
 def test_bad_settings(settings, expected):
     with pytest.raises(MRCLAMError) as e:
-        import_mrclam(DATA, 1, **settings)
+        import_mrclam(DATA, 1, identity_filter=True, **settings)
     assert _one_line(e).startswith(expected)
 
 
@@ -480,7 +480,7 @@ def test_bad_settings(settings, expected):
 
 def test_cli_writes_a_valid_file_and_a_summary(tmp_path, capsys, known):
     out = tmp_path / "robot1.json"
-    assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out)]) == 0
+    assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out), "--identity-filter"]) == 0
     stdout = capsys.readouterr().out
     assert hs.load_scenario(out) == known
     assert stdout.startswith(f"wrote {out}: mrclam robot 1, 0-45 s after its first odometry record, 90 steps")
@@ -493,14 +493,14 @@ def test_cli_writes_a_valid_file_and_a_summary(tmp_path, capsys, known):
                      "--start", "5", "--duration", "20", "--dt", "0.25", "--max-range", "5",
                      "--motion-cov", "1e-4,1e-4,1e-3", "--correct-range-bias", "--no-motion-compensation",
                      "--odometry-delay", "0.17", "--max-objects", "30", "--measurement-noise-from", "raw",
-                     "--motion-noise-from", "drift"]) == 0
+                     "--motion-noise-from", "drift", "--identity-filter"]) == 0
     s = hs.load_scenario(out)
     g = s.metadata["generator"]
     assert s.discovery is not None and s.discovery.max_objects == 30 and s.num_steps == 80 and s.max_range == 5.0
     assert g["odometry_delay_s"] == 0.17 and not g["motion_compensation"]
     assert g["calibration"]["range_bias_corrected"] and g["calibration"]["measurement_noise_from"] == "raw"
     np.testing.assert_array_equal(s.motion_cov, np.diag([1e-4, 1e-4, 1e-3]))  # given: drift ignored
-    assert "unknown map of 15 landmarks (30 object slots: --max-objects)" in capsys.readouterr().out
+    assert "unknown map of 15 landmarks (30 object slots: --object-slots)" in capsys.readouterr().out
     assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out), "--motion-noise-from", "drift"]) == 0
     assert "motion_cov (calibrated, from the 5 s drift): sd" in capsys.readouterr().out
 
@@ -533,3 +533,90 @@ def test_cli_garbled_file_names_file_and_line(copy, tmp_path, capsys):
         f.writelines(lines)
     assert cli.main(["import", "mrclam", copy, "--robot", "1", "-o", str(tmp_path / "x.json")]) == 2
     assert f"{path}:21: expected 3 numbers (time, v, omega), got 'garbage'" in _error(capsys)
+
+
+# --------------------------------------------------------------------------- #
+# Without identities (the default)
+# --------------------------------------------------------------------------- #
+
+
+def test_the_default_import_writes_every_reading_and_no_identity_it_lacks():
+    """Without the identity filter every reading in a step's window is a detection (repeats kept
+    here): the other robot's readings too, with no ``true_object``, counted in the metadata; the
+    file declares the clutter density ``log(0.5 / (max_range · fov))``. The oracle-assisted
+    conversion (``identity_filter``) declares none."""
+    s = import_mrclam(DATA, 1, merge_repeats=False, motion_compensation=False)
+    rows = mrclam.read_robot(DATA, 1).measurements.rows
+    t0 = s.metadata["generator"]["t0_unix_s"]
+    for k, step in enumerate(s.steps, 1):
+        tk = t0 + 0.5 * k
+        near = (rows[:, 0] > tk - 0.25) & (rows[:, 0] <= tk + 0.25)
+        np.testing.assert_allclose(sorted(d.range for d in step.detections), sorted(rows[near, 2]))
+    g = s.metadata["generator"]
+    unnamed = sum(d.true_object is None for st in s.steps for d in st.detections)
+    assert unnamed == g["counts"]["robot_robot"] == 12 and g["counts"]["unknown_barcode"] == 0
+    assert not g["identities"]["identity_filter"] and "selecting detections" not in g["identities"]["barcodes_used_for"]
+    assert s.clutter_log_density == pytest.approx(math.log(0.5 / (s.max_range * s.fov)))
+    assert hs.load_scenario(_saved(s)).clutter_log_density == pytest.approx(s.clutter_log_density)
+    assert import_mrclam(DATA, 1, identity_filter=True).clutter_log_density is None
+    assert import_mrclam(DATA, 1, clutter_log_density="none").clutter_log_density is None
+    assert import_mrclam(DATA, 1, clutter_log_density=-6.0).clutter_log_density == -6.0
+    with pytest.raises(MRCLAMError, match="clutter_log_density"):
+        import_mrclam(DATA, 1, clutter_log_density="lots")
+
+
+def _saved(s: hs.Scenario) -> str:
+    import tempfile
+    path = os.path.join(tempfile.mkdtemp(), "s.json")
+    hs.save_scenario(s, path)
+    return path
+
+
+def test_merging_repeats_reads_no_barcode(tmp_path):
+    """The merge of repeated readings (``merge_repeats``) is by geometry alone: with the barcodes of the
+    landmarks permuted (and the noise given, so that no calibration reads them) the detections
+    written are the same; only their ``true_object`` (evaluation) moves. Merging drops readings,
+    never adds any, and keeps at most one per landmark more often than keeping every repeat."""
+    copy = tmp_path / "permuted"
+    shutil.copytree(DATA, copy)
+    path = copy / "Barcodes.dat"
+    lines = path.read_bytes().decode("ascii").splitlines(keepends=True)
+    rows = [i for i, line in enumerate(lines) if not line.startswith("#") and line.strip()]
+    pairs = [lines[i].split() for i in rows]
+    landmark = [j for j, (subject, _) in enumerate(pairs) if int(subject) > 5]
+    shifted = landmark[1:] + landmark[:1]
+    for j, k in zip(landmark, shifted):
+        lines[rows[j]] = f"{pairs[j][0]}\t{pairs[k][1]}\r\n"
+    path.write_bytes("".join(lines).encode("ascii"))
+    cov = dict(geometric_cov=[0.01, 0.001], motion_cov=[1e-4, 1e-4, 1e-4])
+    a, b = import_mrclam(DATA, 1, merge_repeats=True, **cov), import_mrclam(copy, 1, merge_repeats=True, **cov)
+    geometry = lambda s: [[(d.range, d.bearing) for d in st.detections] for st in s.steps]  # noqa: E731
+    assert geometry(a) == geometry(b)
+    assert [d.true_object for st in a.steps for d in st.detections] != \
+        [d.true_object for st in b.steps for d in st.detections]
+    every = import_mrclam(DATA, 1, **cov)
+    assert a.metadata["generator"]["counts"]["merged"] > 0
+    assert sum(map(len, geometry(a))) + a.metadata["generator"]["counts"]["merged"] == sum(map(len, geometry(every)))
+
+
+def test_an_unknown_maps_object_slots_come_from_the_data_not_the_landmark_count():
+    """Default object slots without identities: the busiest step's detections plus the margin (the
+    oracle-assisted conversion: the surveyed landmarks plus the margin); ``max_objects`` sets them."""
+    s = import_mrclam(DATA, 1, unknown_map=True)
+    assert s.discovery.max_objects == s.max_detections + 10
+    assert s.metadata["generator"]["object_slots"]["from"] == "most detections in a step + margin"
+    assert import_mrclam(DATA, 1, unknown_map=True, discovery_margin=3).discovery.max_objects == s.max_detections + 3
+    assert import_mrclam(DATA, 1, unknown_map=True, identity_filter=True).discovery.max_objects == 15 + 10
+    assert import_mrclam(DATA, 1, unknown_map=True, max_objects=12).discovery.max_objects == 12
+
+
+def test_cli_default_import_says_what_it_kept(tmp_path, capsys):
+    out = tmp_path / "robot1.json"
+    assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out)]) == 0
+    stdout = capsys.readouterr().out
+    for text in ("every reading: 12 of no landmark (other robots: 12 readings", "0 repeats merged",
+                 "clutter log density -"):
+        assert text in stdout, text
+    assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out), "--clutter-log-density", "none"]) == 0
+    assert hs.load_scenario(out).clutter_log_density is None
+    assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out), "--clutter-log-density", "x"]) == 2

@@ -100,7 +100,7 @@ EXPECT: dict[str, tuple[list[str], object]] = {
          r"^motion_cov \(calibrated\): sd", r"^geometric_cov \(calibrated from the detections as written\): sd"],
         lambda: _scenario("robot1.json", num_objects=15)),
     "hybridslam import mrclam MRCLAM_Dataset7 --robot 1 --start 20 --duration 100 --unknown-map -o robot1-slam.json": (
-        [r"^wrote robot1-slam.json: .* unknown map of 15 landmarks \(25 object slots: --max-objects\)$"],
+        [r"^wrote robot1-slam.json: .* unknown map of 15 landmarks \(\d+ object slots: --object-slots\)$"],
         lambda: _scenario("robot1-slam.json", num_objects=0)),
     "hybridslam run robot1.json -o robot1-hybrid.json --capacity 16 --gate 3 --weights linearized --plot robot1-hybrid.png": (
         [r"estimator=hybrid;.*weights=linearized.*capacity=16", *RUN_TABLE, r"^wrote robot1-hybrid.json$",

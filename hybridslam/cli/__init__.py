@@ -8,7 +8,7 @@
     hybridslam plot result.json --scenario scenario.json [-o result.png]
     hybridslam demo [-o runs/demo] [--tracks 4] [--steps 10]
     hybridslam hallway -o runs/hallway [--levels ...] [--seeds 5] [--steps 60] [--known-map]
-    hybridslam import mrclam DATASET_DIR --robot N -o FILE [--start S] [--duration D] [--unknown-map]
+    hybridslam import mrclam DATASET_DIR --robot N -o FILE [--start S] [--duration D] [--unknown-map] [--identity-filter]
     hybridslam close-loops scenario.json result.json -o closed.json [--revisit-log-odds X]
 
 Every user error (bad option, missing or malformed file, invalid setting, unwritable output) ends

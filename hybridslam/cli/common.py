@@ -121,10 +121,11 @@ def add_estimator_options(p: argparse.ArgumentParser, seed_help: str = "PRNG see
                         "the best are counted and reported")
     p.add_argument("--exhaustive", action="store_true", default=None,
                    help="hybrid: enumerate every child (exponential in the detections; the exact reference)")
-    p.add_argument("--clutter", type=float, default=None, metavar="LOG_DENSITY",
-                   help="hybrid, multimodal (known map): a detection may be clutter, with this log density over "
-                        "[range, bearing] (e.g. log(0.01 / (max_range * fov))); without it a known map's detection "
-                        "is always of an object")
+    p.add_argument("--clutter", type=_clutter, default=None, metavar="{LOG_DENSITY,none}",
+                   help="a detection may be clutter, with this log density over [range, bearing] (e.g. "
+                        "log(0.01 / (max_range * fov))); default: the file's sensor.clutter_log_density (written by "
+                        "hybridslam import), none without it; 'none': every detection is of an object (ml, gpda, "
+                        "max-mixture, multimodal: a known map only; hybrid: both)")
     p.add_argument("--smoother", type=_smoother, default=None, metavar="{full,lag:L,filter}",
                    help="full (default): every component keeps its trajectory and relinearizes it at every step, "
                         "as the papers' smoothers do; lag:L: only the last L steps and the map, older poses "
@@ -159,6 +160,19 @@ def settings_line(estimator: AbstractEstimator) -> str:
 
 def names(values: Sequence[str]) -> str:
     return ", ".join(values)
+
+
+def _clutter(text: str) -> float | str:
+    """``--clutter``'s value: a finite log density or ``none`` (an argparse error otherwise)."""
+    if text.strip().lower() == "none":
+        return "none"
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite log density or 'none', got {text!r}")
+    return value
 
 
 def _smoother(text: str) -> str:

@@ -4,6 +4,7 @@
         [--unknown-map] [--max-range R] [--fov F] [--motion-cov a,b,c] [--geometric-cov a,b]
         [--robot-prior-cov a,b,c] [--correct-range-bias] [--no-motion-compensation] [--odometry-delay S]
         [--measurement-noise-from {written,raw}] [--motion-noise-from {steps,drift}]
+        [--identity-filter] [--merge-repeats] [--object-slots N] [--clutter-log-density {D,none}]
     hybridslam import kitti-tracking DIR --sequence N -o FILE [--unknown-map] [--every E]
         [--odometry {noisy-truth,orbslam3}] [--max-range R] [--fov F] [--min-logit L] (docs/studies/kitti.md)
 
@@ -20,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from ..datasets.kitti import ODOMETRY_SOURCES, KITTIError, import_kitti
-from ..io.mrclam import MOTION_NOISE_SOURCES, NOISE_SOURCES, MRCLAMError, import_mrclam
+from ..datasets.mrclam import MOTION_NOISE_SOURCES, NOISE_SOURCES, MRCLAMError, import_mrclam
 from ..io.scenario import Scenario, save_scenario
 from .common import CLIError, check_writable
 
@@ -42,6 +43,18 @@ def _variances(text: str | None, n: int, option: str) -> np.ndarray | None:
     return np.diag(values)
 
 
+def _clutter_density(text: str) -> float | str:
+    if text.strip().lower() == "none":
+        return "none"
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite log density or 'none', got {text!r}")
+    return value
+
+
 def _sds(cov: np.ndarray) -> str:
     return ", ".join(f"{s:.3g}" for s in np.sqrt(np.diag(cov)))
 
@@ -59,12 +72,22 @@ def mrclam_summary(path: str, s: Scenario) -> str:
     window = (f"wrote {path}: {g['dataset']} robot {g['robot']}, {start:g}-{end:g} s after "
               f"its first odometry record, {s.num_steps} steps of {g['dt_s']:g} s, {g['map']} map of "
               f"{num_landmarks} landmarks"
-              + ("" if s.discovery is None else f" ({s.discovery.max_objects} object slots: --max-objects)"))
-    detections = (f"detections: {sum(per_step)} of {len(seen)} landmarks, "
-                  f"{np.mean(per_step):.2f} per step (max {max(per_step)}); dropped "
-                  f"{counts['robot_robot']} robot-robot, {counts['unknown_barcode']} unknown barcode, "
-                  f"{counts['beyond_sensor']} beyond the sensor, {counts['superseded']} superseded "
-                  "(same landmark, same step)")
+              + ("" if s.discovery is None else f" ({s.discovery.max_objects} object slots: --object-slots)"))
+    filtered = g.get("identities", {}).get("identity_filter", True)
+    unnamed = sum(d.true_object is None for st in s.steps for d in st.detections)
+    if filtered:
+        detections = (f"detections: {sum(per_step)} of {len(seen - {None})} landmarks, "
+                      f"{np.mean(per_step):.2f} per step (max {max(per_step)}); identity filter (oracle-assisted): "
+                      f"dropped {counts['robot_robot']} robot-robot, {counts['unknown_barcode']} unknown barcode, "
+                      f"{counts['beyond_sensor']} beyond the sensor, {counts['superseded']} superseded "
+                      "(same landmark, same step)")
+    else:
+        detections = (f"detections: {sum(per_step)}, {np.mean(per_step):.2f} per step (max {max(per_step)}), "
+                      f"every reading: {unnamed} of no landmark (other robots: {counts['robot_robot']} readings, "
+                      f"unknown barcodes: {counts['unknown_barcode']}; no true_object), "
+                      f"{counts.get('merged', 0)} repeats merged by geometry (--merge-repeats), "
+                      f"{counts['beyond_sensor']} beyond the sensor; clutter log density "
+                      + ("none" if s.clutter_log_density is None else f"{s.clutter_log_density:.3g}"))
     source = ("" if cal["geometric_cov"] == "given"
               else f" from the {_NOISE_FROM[cal['measurement_noise_from']]}")
     drift_source = (", from the 5 s drift" if cal["motion_cov"] == "calibrated"
@@ -107,7 +130,8 @@ def cmd_import_mrclam(args: argparse.Namespace) -> int:
             correct_range_bias=args.correct_range_bias, motion_compensation=args.motion_compensation,
             odometry_delay=args.odometry_delay, max_objects=args.max_objects,
             measurement_noise_from=args.measurement_noise_from, motion_noise_from=args.motion_noise_from,
-            **covs)
+            identity_filter=args.identity_filter, merge_repeats=args.merge_repeats,
+            clutter_log_density=args.clutter_log_density, **covs)
     except MRCLAMError as e:
         raise CLIError(str(e)) from None
     save_scenario(scenario, args.output)
@@ -136,9 +160,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     m.add_argument("--dt", type=float, default=0.5, help="seconds between steps (default 0.5)")
     m.add_argument("--unknown-map", action="store_true",
                    help="no prior objects: a discovery section, the landmarks under true_objects")
-    m.add_argument("--max-objects", type=int, default=None, metavar="N",
-                   help="with --unknown-map: object slots (default: the landmarks + 10); duplicates of a "
-                        "landmark take slots too, and the estimators warn when they are full")
+    m.add_argument("--object-slots", "--max-objects", dest="max_objects", type=int, default=None, metavar="N",
+                   help="with --unknown-map: object slots (default: the most detections in a step + 10; with "
+                        "--identity-filter the surveyed landmarks + 10); duplicates of a landmark take slots too, "
+                        "and the estimators warn when they are full")
+    m.add_argument("--identity-filter", action="store_true",
+                   help="oracle-assisted: keep only readings whose barcode names a landmark, one per landmark "
+                        "and step (the barcodes are identities the estimators are meant not to know)")
+    m.add_argument("--merge-repeats", action="store_true",
+                   help="merge an object's repeated readings within a step by geometry alone (readings of "
+                        "other sensor frames within the noise gate; default: keep every reading)")
+    m.add_argument("--clutter-log-density", type=_clutter_density, default=None, metavar="{D,none}",
+                   help="sensor.clutter_log_density written (default: log(0.5 / (max_range * fov)); none with "
+                        "--identity-filter); 'none' writes no clutter hypothesis")
     m.add_argument("--max-range", type=float, default=None,
                    help="sensor range in metres; farther detections are dropped (default: from the data)")
     m.add_argument("--fov", type=float, default=None,

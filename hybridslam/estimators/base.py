@@ -175,7 +175,7 @@ def messages(t: dict[str, float], per_step: bool) -> list[str]:
                    "prefer --weights laplace-is or more --samples")
     if (n := int(t["skipped"])) > 0:
         out.append(f"{n} detection(s) left unassociated (no object inside the gate of a known map, more detections "
-                   "than objects that could explain them: spurious ones? --clutter with hybrid or multimodal)")
+                   "than objects that could explain them: spurious ones? --clutter)")
     if (n := int(t["rejected"])) > 0:
         out.append(f"{n} detection(s) explained as clutter by the null hypothesis (treated as outliers)")
     if (n := int(t["unmapped"])) > 0:
@@ -190,7 +190,7 @@ def messages(t: dict[str, float], per_step: bool) -> list[str]:
         out.append("most detections the best hypothesis could not explain (left unassociated, or associated beyond "
                    "the 1e-6 tail of its prediction) " + ("at this step" if per_step else f"at {n} step(s)")
                    + ": the pose belief contradicts the detections (a kidnapped robot, wrong odometry, a wrong map) "
-                     "or they are spurious (--clutter with hybrid or multimodal)")
+                     "or they are spurious (--clutter)")
     if (n := int(t["log_overflow"])) > 0:
         out.append(f"{n} detection(s) beyond the smoother's factor budget are not in its graph (the state was sized "
                    "for a scenario with fewer detections; build it with max_steps set for room for every slot)")
@@ -219,6 +219,43 @@ def classifier_name(classifier: Any, scenario: Scenario | None) -> str:
     if classifier is None:
         return scenario.classifier.model if scenario is not None else "scenario"
     return classifier if isinstance(classifier, str) else type(classifier).__name__
+
+
+CLUTTER_FROM_FILE = "file"  # an estimator's default clutter setting: the scenario's sensor.clutter_log_density
+CLUTTER_OFF = "none"  # no clutter hypothesis, whatever the file says (also ``None``)
+
+
+def check_clutter(owner: str, setting: Any) -> None:
+    """``setting`` must be ``"file"``, ``"none"``/``None`` or a finite log density (a ValueError naming ``owner``)."""
+    if setting is None or setting in (CLUTTER_FROM_FILE, CLUTTER_OFF):
+        return
+    if not (isinstance(setting, (int, float)) and not isinstance(setting, bool) and math.isfinite(setting)):
+        raise ValueError(f"{owner}.clutter: expected a finite log density, 'file' or 'none', got {setting!r}")
+
+
+def resolve_clutter(setting: Any, scenario: Scenario) -> float | None:
+    """The clutter log density an estimator uses on ``scenario`` (``None``: no clutter hypothesis).
+
+    ``"file"`` (every estimator's default): the scenario's optional ``sensor.clutter_log_density``,
+    none when the file has no such field (the paper's model: every detection is of an object;
+    ``hybridslam simulate`` writes no such field); ``"none"`` or ``None``: none; a number: that log
+    density over ``[range, bearing]`` (prior probability of clutter included).
+    """
+    if setting == CLUTTER_FROM_FILE:
+        return scenario.clutter_log_density
+    if setting is None or setting == CLUTTER_OFF:
+        return None
+    return float(setting)
+
+
+def clutter_text(setting: Any, scenario: Scenario | None) -> str:
+    """``", clutter=D"`` for an estimator's settings line, ``""`` without a clutter hypothesis (or
+    with ``"file"`` and no scenario to read it from)."""
+    if scenario is None:
+        value = None if setting is None or setting in (CLUTTER_FROM_FILE, CLUTTER_OFF) else float(setting)
+    else:
+        value = resolve_clutter(setting, scenario)
+    return "" if value is None else f", clutter={value:g}"
 
 
 def history_length(max_steps: int | None, scenario: Scenario) -> int:

@@ -16,6 +16,14 @@ Association (:func:`associate`), thesis Sec. 3.2-3.3 and 4.2:
   ``num_created + i``; beyond the capacity ``Nmax`` it is an *unmapped* object: weighed the same,
   not stored, its detection unassociated (``StepInfo.unmapped``). Without discovery a null entry
   is always a skip.
+* **Clutter** (a known map with a clutter density: the ``clutter`` setting, by default the
+  scenario's ``sensor.clutter_log_density``): the null entry is a spurious detection of log density
+  ``clutter_log_density`` over ``[range, bearing]`` (prior probability of clutter included) times
+  the semantic evidence under a uniform class prior, as the hybrid belief's clutter hypothesis;
+  every assignment then competes (no skip), and a detection whose null entry is chosen is an
+  outlier (``StepInfo.rejected``). On an unknown map the null entry is a new object and the file's
+  clutter density is not used (a first detection of a new object and a spurious one have the same
+  constant density in one step).
 * **Joint assignments**: every injective assignment of the occupied detection slots to their
   candidates or the null option, enumerated once in numpy (``(G+1)^Dmax`` rows, invalid ones masked).
   An assignment's log weight is the joint linearized marginal likelihood of its associated
@@ -62,7 +70,8 @@ from ..models.measurement import Detections
 from ..models.model import Model, model_from_scenario
 from ..models.motion import propagate
 from ..models.classifier import ClassifierModel
-from .base import AbstractEstimator, Mixture, StepInfo, classifier_name, history_length, lacks_object_slots
+from .base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, classifier_name, clutter_text,
+                   history_length, lacks_object_slots, resolve_clutter)
 from .smoothing import (DataLog, Factors, Filter, Full, Lag, Smoother, WindowPrior, active_history, data_log,
                         factor_budget, initial_trajectory, initial_window, new_overflow, smooth_step)
 
@@ -75,6 +84,7 @@ class Structure:
 
     discovery: bool  # the null hypothesis creates objects (scenario has a "discovery" section)
     num_candidates: int  # G, at most the object capacity
+    clutter: bool = False  # a known map's null hypothesis is clutter (Params.clutter_log_density)
 
 
 class Params(eqx.Module):
@@ -84,6 +94,7 @@ class Params(eqx.Module):
     new_object_log_density: Float[Array, ""]
     new_object_orientation_var: Float[Array, ""]
     new_class_log_prior: Float[Array, " M"]  # uniform: a new object's class prior
+    clutter_log_density: Float[Array, ""]  # -inf without a clutter hypothesis
 
 
 class GaussianState(eqx.Module):
@@ -127,6 +138,7 @@ class Association(eqx.Module):
     new: Bool[Array, "R Dmax"]  # the slot's null entry creates an object
     unmapped: Bool[Array, "R Dmax"]  # ... is a new object with no free slot (weighed, not stored)
     skip: Bool[Array, "R Dmax"]  # the slot's null entry leaves the detection unassociated (known map)
+    clutter: Bool[Array, "R Dmax"]  # ... explains the detection as clutter (known map with a clutter density)
     marginals: Float[Array, "Dmax G1"]  # P(d_k^j = candidate g), last column the null option
     class_loglik: Float[Array, "Dmax Nmax M"]  # log P(z^s_j | c) seen from each object
     new_class_loglik: Float[Array, "Dmax M"]  # ... from the object the detection would create
@@ -161,7 +173,9 @@ class SingleGaussian(AbstractEstimator):
     (the history length; ``None``: the scenario's steps), ``smoother`` (:class:`~.smoothing.Full`,
     the default: the whole trajectory relinearized at every step, associations decided online;
     :class:`~.smoothing.Lag`: the last ``L`` steps, older poses marginalized;
-    :class:`~.smoothing.Filter`: the joint Gaussian over ``[x_k, objects]`` only).
+    :class:`~.smoothing.Filter`: the joint Gaussian over ``[x_k, objects]`` only), ``clutter``
+    (a known map's clutter log density over ``[range, bearing]``; ``"file"``, the default: the
+    scenario's ``sensor.clutter_log_density``, none without it; ``None`` or ``"none"``: none).
     """
 
     candidates: int = eqx.field(default=3, static=True)
@@ -172,6 +186,7 @@ class SingleGaussian(AbstractEstimator):
     classifier: str | ClassifierModel | None = None
     max_detections: int | None = eqx.field(default=None, static=True)
     max_steps: int | None = eqx.field(default=None, static=True)
+    clutter: float | str | None = eqx.field(default=CLUTTER_FROM_FILE, static=True)
 
     title: ClassVar[str]
     factor_mode: ClassVar[Literal["sum", "max"]] = "sum"  # how the smoother reads a detection's candidates (max-mixtures: "max")
@@ -185,6 +200,7 @@ class SingleGaussian(AbstractEstimator):
             if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
                 raise ValueError(f"{type(self).__name__}.{name}: expected a positive int, got {value!r}")
         chi2_gate(self.gate_probability)
+        check_clutter(type(self).__name__, self.clutter)
         if self.max_detections is not None and not (isinstance(self.max_detections, int) and self.max_detections >= 1):
             raise ValueError(f"{type(self).__name__}.max_detections: expected a positive int or None, "
                              f"got {self.max_detections!r}")
@@ -200,6 +216,7 @@ class SingleGaussian(AbstractEstimator):
         if scenario.max_detections > slots:
             raise ValueError(f"max_detections: {slots} slots, but a step of the scenario has "
                              f"{scenario.max_detections} detections")
+        clutter = self._clutter(scenario)
         model = model_from_scenario(scenario.replace(discovery=None), self.classifier)
         uniform = np.full(m, -math.log(m))
         class_log_post = np.tile(uniform, (n_max, 1))
@@ -220,6 +237,7 @@ class SingleGaussian(AbstractEstimator):
             new_object_log_density=f(0.0 if disc is None else disc.new_object_log_density),
             new_object_orientation_var=f(1.0 if disc is None else disc.new_object_orientation_var),
             new_class_log_prior=f(uniform),
+            clutter_log_density=f(-np.inf if clutter is None else clutter),
         )
         steps = history_length(self.max_steps, scenario)
         g = min(self.candidates, n_max)
@@ -228,7 +246,7 @@ class SingleGaussian(AbstractEstimator):
             class_log_post=f(class_log_post), observed=put(np.zeros(n_max, dtype=bool)),
             history=put(np.full((steps, slots), -1, dtype=np.int32)),
             k=put(np.zeros((), dtype=np.int32)), model=model, params=params,
-            structure=Structure(disc is not None, g),
+            structure=Structure(disc is not None, g, clutter is not None),
         )
         if isinstance(self.smoother, Filter):
             return state
@@ -237,6 +255,16 @@ class SingleGaussian(AbstractEstimator):
         log = data_log(scenario, steps, slots, n_max, factor_budget(scenario, self.max_steps, slots))
         return dataclasses.replace(state, poses=initial_trajectory(scenario, steps), log=log, factors=none,
                                    window=initial_window(log) if isinstance(self.smoother, Lag) else None)
+
+    def _clutter(self, scenario: Scenario) -> float | None:
+        """The clutter log density used on ``scenario`` (a known map's only; ``None``: none)."""
+        if self.clutter == CLUTTER_FROM_FILE and scenario.discovery is not None:
+            return None  # an unknown map's null hypothesis is a new object
+        clutter = resolve_clutter(self.clutter, scenario)
+        if clutter is not None and scenario.discovery is not None:
+            raise ValueError(f"{self.name}: clutter is for a known map; on an unknown map (a discovery section) a "
+                             "detection of no known object creates one (the null hypothesis, thesis Sec. 3.2.1)")
+        return clutter
 
     def trajectory(self, state: GaussianState):
         """The smoothed ``x_0..x_T`` (``None`` without smoothing)."""
@@ -260,6 +288,7 @@ class SingleGaussian(AbstractEstimator):
             f"classifier={classifier_name(self.classifier, scenario)}, "
             f"candidates={self.candidates}, gate_probability={self.gate_probability:g}, "
             f"gn_max_steps={self.gn_max_steps}, max_hypotheses={self.max_hypotheses}, smoother={self.smoother.name}"
+            + clutter_text(self.clutter if scenario is None else self._clutter(scenario), scenario)
         )
 
 
@@ -329,7 +358,9 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
     sem = logsumexp(state.class_log_post[None] + class_loglik, axis=-1)  # (Dmax, Nmax)
     slots = jnp.arange(dmax)
     sem_cand = sem[slots[:, None], candidates]  # (Dmax, G)
-    null_w = params.new_object_log_density + logsumexp(params.new_class_log_prior[None] + new_class_loglik, axis=-1)
+    uniform_sem = logsumexp(params.new_class_log_prior[None] + new_class_loglik, axis=-1)  # (Dmax,)
+    # The null entry's log weight: a new object's (unknown map) or a clutter detection's (known map).
+    null_w = (params.new_object_log_density if cfg.discovery else params.clutter_log_density) + uniform_sem
 
     def flags(opts, upto):
         """Validity, objects and new / unmapped / skipped slots of the assignment ``opts`` of slots ``0..upto``."""
@@ -341,28 +372,29 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
         twice = (obj[:, None] == obj[None, :]) & used[:, None] & used[None, :] & ~jnp.eye(dmax, dtype=bool)
         ok &= ~jnp.any(twice)
         null = occupied & (opts == g)
-        if not cfg.discovery:
-            return ok, used, pick, obj, jnp.zeros_like(null), jnp.zeros_like(null), null
+        none = jnp.zeros_like(null)
+        if not cfg.discovery:  # known map: the null entry is clutter, or (without a clutter density) a skip
+            return (ok, used, pick, obj, none, none, none, null) if cfg.clutter else (ok, used, pick, obj, none, none, null, none)
         new = null & (state.num_created + jnp.cumsum(null) - 1 < n_max)
-        return ok, used, pick, obj, new, null & ~new, jnp.zeros_like(null)
+        return ok, used, pick, obj, new, null & ~new, none, none
 
     if width is None:  # every joint assignment: the exhaustive reference, (G+1)^Dmax rows
         def row(opts):
-            ok, used, pick, obj, new, unmapped, skip = flags(opts, dmax - 1)
+            ok, used, pick, obj, new, unmapped, skip, clutter = flags(opts, dmax - 1)
             log_w = (_joint_log_likelihood(obj, used, inn, cov, gamma) + jnp.sum(jnp.where(used, sem_cand[slots, pick], 0.0))
-                     + jnp.sum(jnp.where(new | unmapped, null_w, 0.0)))
-            return ok, new, unmapped, skip, log_w
+                     + jnp.sum(jnp.where(new | unmapped | clutter, null_w, 0.0)))
+            return ok, new, unmapped, skip, clutter, log_w
 
         options = jnp.asarray(gating.joint_options(g, dmax))
         dropped = jnp.zeros((), jnp.int32)
-        ok, new, unmapped, skip, log_w = jax.vmap(row)(options)
+        ok, new, unmapped, skip, clutter, log_w = jax.vmap(row)(options)
     else:  # built one detection at a time, `width` kept (inference.beam); skips rank last
         def score(opts, upto, partial_row, parent):
             """The joint log weight, one detection's term at a time (inference.sequential)."""
-            ok, used, pick, obj, new, unmapped, skip = flags(opts, upto)
+            ok, used, pick, obj, new, unmapped, skip, clutter = flags(opts, upto)
             term = jnp.where(used[upto],
                              sequential.innovation_log_density(inn, partial_row, upto, obj[upto]) + sem_cand[upto, pick[upto]],
-                             jnp.where(new[upto] | unmapped[upto], null_w[upto], 0.0))
+                             jnp.where(new[upto] | unmapped[upto] | clutter[upto], null_w[upto], 0.0))
             return jnp.where(ok, parent + term, -jnp.inf), jnp.sum(skip)
 
         def advance(partial_row, opts, upto):
@@ -372,7 +404,7 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
         found = beam_search(score, dmax, g + 1, width, fill=g, carry=sequential.start(width, mean.shape[0], dmax, mean.dtype),
                             advance=advance)
         options, dropped = found.options, found.dropped
-        ok, _, _, _, new, unmapped, skip = jax.vmap(flags, (0, None))(options, dmax - 1)
+        ok, _, _, _, new, unmapped, skip, clutter = jax.vmap(flags, (0, None))(options, dmax - 1)
         ok &= found.valid  # a row the beam did not fill is no hypothesis (it may repeat another)
         log_w = found.score
     num_skip = jnp.sum(skip, axis=-1)
@@ -381,7 +413,7 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
     log_prob = log_w - logsumexp(log_w)
     onehot = options[:, :, None] == jnp.arange(g + 1)[None, None, :]  # (R, Dmax, G+1)
     marginals = jnp.einsum("r,rdo->do", jnp.exp(log_prob), onehot.astype(mean.dtype))
-    return Association(candidates, candidate_ok, options, log_prob, new, unmapped, skip, marginals,
+    return Association(candidates, candidate_ok, options, log_prob, new, unmapped, skip, clutter, marginals,
                        class_loglik, new_class_loglik, dropped)
 
 

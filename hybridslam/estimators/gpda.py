@@ -59,6 +59,10 @@ def _step(est: GPDA, state: GaussianState, odometry, detections: Detections) -> 
     likeliest = assoc.candidates[jnp.arange(p.shape[0]), jnp.argmax(p, axis=-1)]
     assigned = jnp.where(new, created, likeliest)
     skipped = jnp.sum(detections.mask & ~used & ~new & ~unmapped)
+    # With a clutter density (known map): the detections whose likeliest option is clutter are outliers
+    # (their candidates keep only their small weights).
+    rejected = jnp.sum(detections.mask & (jnp.argmax(assoc.marginals, axis=-1) == g)) if state.structure.clutter \
+        else jnp.zeros((), jnp.int32)
     # The smoother's factors: every candidate weighted by its association probability (Eq. 3.7);
     # a detection that created its object is that object's factor.
     factor_obj = jnp.where(new[:, None], jnp.maximum(created, 0)[:, None], assoc.candidates)
@@ -66,6 +70,6 @@ def _step(est: GPDA, state: GaussianState, odometry, detections: Detections) -> 
     first = jnp.arange(g) == 0
     factor_w = jnp.where(new[:, None], jnp.where(first[None, :], 0.0, -jnp.inf), log_p)
     return gaussian.commit(est, state, mean, cov, classes, assigned, used | new, detections, jnp.sum(new),
-                           {"skipped": skipped, "unmapped": jnp.sum(unmapped), "solver_result": result,
+                           {"skipped": skipped, "rejected": rejected, "unmapped": jnp.sum(unmapped), "solver_result": result,
                             "dropped": assoc.dropped}, odometry,
                            (factor_obj, factor_w, jnp.full(new.shape, -jnp.inf)))

@@ -14,7 +14,12 @@ it has no Jacobian, so it does not change the Gauss-Newton step, but it makes th
 objective ``½‖r‖²`` the factor's negative log (up to a constant), so the convergence test compares
 like with like across a switch of component. The null component (a new object's constant density
 ``new_object_log_density``) contributes no residual: a detection whose null component is active at
-the solution is an outlier and moves nothing (counted in ``StepInfo.rejected``).
+the solution is an outlier and moves nothing (counted in ``StepInfo.rejected``). On a known map
+with a clutter density (:mod:`.gaussian`, Clutter) the null component is clutter's, of that
+density, in the factors of the detections whose likeliest option (association marginal) is
+clutter; the others' factors are over their candidates only (see ``_step``: offered to every
+detection, the null component made max-mixture drift on real data, dataset 6, robot 2: APE
+0.86 m against 0.12 m on the identity-filtered file).
 
 New objects: a detection whose most probable option is the null hypothesis creates one (initialized
 from it) and gets no factor. Class estimates: Eq. 4.17, from the association probabilities (the
@@ -97,10 +102,18 @@ def _step(est: MaxMixture, state: GaussianState, odometry, detections: Detection
     mean, cov, new, created, unmapped = gaussian.create_likeliest_new(state, mean, cov, assoc, detections)
 
     w = assoc.marginals
-    null_ok = jnp.full((w.shape[0], 1), state.structure.discovery)
+    # The null component: a new object's density (unknown map), or clutter's (a known map with a
+    # clutter density) for the detections whose likeliest option is clutter. The association
+    # marginals weigh clutter against N(z; h, S), the pose uncertainty included; inside Gauss-Newton a
+    # component's cost is whitened by the sensor noise alone, so at a predicted pose a few cm off
+    # every detection would pick clutter at the first iterate, pull nothing, and the track drift.
+    if state.structure.clutter:
+        null_ok = (jnp.argmax(w, axis=-1) == g)[:, None]
+    else:
+        null_ok = jnp.full((w.shape[0], 1), state.structure.discovery)
     valid = jnp.concatenate([assoc.candidate_ok, null_ok], axis=-1) & (w > 0) & ~new[:, None] & detections.mask[:, None]
     log_w = jnp.log(jnp.where(valid, w, 1.0))
-    null_ld = state.params.new_object_log_density
+    null_ld = state.params.new_object_log_density if state.structure.discovery else state.params.clutter_log_density
     args = (state.model.sensor, assoc.candidates, detections.geo, log_w, valid, null_ld)
     # The prior enters in Kalman form (update.prior_gauss_newton); the active components are
     # re-chosen at every iterate, as in Eq. 4.16.

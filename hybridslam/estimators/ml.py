@@ -54,5 +54,6 @@ def _step(est: ML, state: GaussianState, odometry, detections: Detections) -> tu
     factor_w = jnp.full((slots.shape[0], g), -jnp.inf).at[:, 0].set(jnp.where(used | new, 0.0, -jnp.inf))
     return gaussian.commit(est, state, mean, cov, classes, assigned, used | new, detections, jnp.sum(new),
                            {"skipped": jnp.sum(skip), "unmapped": jnp.sum(unmapped), "solver_result": result,
+                            "rejected": jnp.sum(assoc.clutter[best] & detections.mask),
                             "dropped": assoc.dropped}, odometry,
                            (factor_obj, factor_w, jnp.full(slots.shape, -jnp.inf)))

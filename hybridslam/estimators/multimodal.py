@@ -90,9 +90,11 @@ of every object the component has associated, ``-1`` otherwise.
 Settings (:class:`Multimodal`): ``candidates`` (3), ``children`` (``2·capacity``),
 ``merge_threshold`` (4.0, squared Mahalanobis distance over the whole state), ``association_prior``
 (``"mc"`` or ``"uniform"``), ``proposal`` (``"posterior"`` or ``"prior"``), ``samples``
-(draws per child, 256), ``clutter`` (``None``).
+(draws per child, 256), ``clutter`` (``"file"``: the scenario's ``sensor.clutter_log_density``,
+none without it).
 
-Clutter (``clutter``, a known map only): without it every detection is of an object (the
+Clutter (``clutter``, a known map only; on an unknown map the null choice is a new object, and
+the file's clutter density is not used): without it every detection is of an object (the
 thesis's model), and the null choice of a known map leaves a detection unassociated only where no
 injective assignment names them all (ranked below every full assignment, counted in ``skipped``).
 With a log density over [range, bearing] the null choice is a clutter detection scored like a new
@@ -130,8 +132,8 @@ from ..models.model import Model, model_from_scenario
 from .. import __version__
 from ..inference.batching import map_live, smoothing_chunk
 from ..inference.ties import best_slot, rank_key
-from .base import (AbstractEstimator, Mixture, StepInfo, classifier_name, history_length, lacks_object_slots,
-                   relevant_children)
+from .base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, classifier_name,
+                   clutter_text, history_length, lacks_object_slots, relevant_children, resolve_clutter)
 from .smoothing import (DataLog, Filter, Full, Lag, Smoother, WindowPrior, data_log, factor_budget,
                         history_factors, initial_trajectory, initial_window, new_overflow, smooth_step)
 
@@ -897,7 +899,7 @@ class Multimodal(AbstractEstimator):
     classifier: str | ClassifierModel | None = None
     max_detections: int | None = eqx.field(default=None, static=True)
     max_steps: int | None = eqx.field(default=None, static=True)
-    clutter: float | None = eqx.field(default=None, static=True)
+    clutter: float | str | None = eqx.field(default=CLUTTER_FROM_FILE, static=True)
 
     name: ClassVar[str] = "multimodal"
     reference: ClassVar[str] = "Doherty thesis Ch. 5, Eq. 5.9-5.11"
@@ -918,15 +920,20 @@ class Multimodal(AbstractEstimator):
             raise ValueError(f"Multimodal.proposal: must be one of {PROPOSALS}, got {self.proposal!r}")
         if not (isinstance(self.merge_threshold, (int, float)) and self.merge_threshold > 0):
             raise ValueError(f"Multimodal.merge_threshold: must be positive, got {self.merge_threshold!r}")
-        if self.clutter is not None and not (isinstance(self.clutter, (int, float)) and not isinstance(self.clutter, bool)
-                                             and math.isfinite(self.clutter)):
-            raise ValueError(f"Multimodal.clutter: expected a finite log density, got {self.clutter!r}")
+        check_clutter("Multimodal", self.clutter)
+
+    def _clutter(self, scenario: Scenario) -> float | None:
+        """The clutter log density used on ``scenario`` (a known map's only; ``None``: none)."""
+        if self.clutter == CLUTTER_FROM_FILE and scenario.discovery is not None:
+            return None  # an unknown map's null hypothesis is a new object
+        return resolve_clutter(self.clutter, scenario)
 
     def _structure(self, scenario: Scenario) -> Structure:
         n_max = scenario.discovery.max_objects if scenario.discovery is not None else scenario.num_objects
         if n_max < 1:
             raise ValueError("multimodal: the scenario has no objects and no discovery section (nothing to associate)")
-        if self.clutter is not None and scenario.discovery is not None:
+        clutter = self._clutter(scenario)
+        if clutter is not None and scenario.discovery is not None:
             raise ValueError("multimodal: --clutter is for a known map; on an unknown map (a discovery section) a "
                              "detection of no known object creates one (the null hypothesis, thesis Sec. 3.2.1)")
         slots = self.max_detections or max(scenario.max_detections, 1)
@@ -938,7 +945,7 @@ class Multimodal(AbstractEstimator):
         children = min(2 * self.capacity if self.children is None else self.children, self.capacity * assignments)
         return Structure(self.capacity, n_max, slots, history_length(self.max_steps, scenario), self.samples, candidates, children,
                          self.gn_max_steps, scenario.discovery is not None, self.association_prior, self.proposal,
-                         self.max_assignments, self.clutter is not None)
+                         self.max_assignments, clutter is not None)
 
     def init(self, scenario: Scenario) -> State:
         """One component of weight 1: the robot and object priors, uncreated slots ``N(0, I)`` (Eq. 3)."""
@@ -963,7 +970,7 @@ class Multimodal(AbstractEstimator):
             f(disc.new_object_log_density if disc else -np.inf),
             f(disc.new_object_orientation_var if disc else 1.0),
             f(float(self.merge_threshold)),
-            f(-np.inf if self.clutter is None else float(self.clutter)),
+            f(-np.inf if (clutter := self._clutter(scenario)) is None else clutter),
         )
         # The class prior padded to Nmax rows: runs with the same capacities share one compiled step.
         model = eqx.tree_at(lambda mo: mo.class_prior, model, put(np.exp(class_lp)))
@@ -1021,7 +1028,7 @@ class Multimodal(AbstractEstimator):
             f"children={2 * self.capacity if self.children is None else self.children}, "
             f"merge_threshold={self.merge_threshold}, association_prior={self.association_prior}, "
             f"proposal={self.proposal}, gn_max_steps={self.gn_max_steps}, smoother={self.smoother.name}"
-            + ("" if self.clutter is None else f", clutter={self.clutter:g}")
+            + clutter_text(self.clutter if scenario is None else self._clutter(scenario), scenario)
         )
 
 

@@ -31,10 +31,12 @@ _OPTIONS: dict[str, dict[str, str]] = {
     "hybrid": {**_COMMON, "capacity": "capacity", "prune_ratio": "prune_ratio", "gate": "gate",
                "weights": "weights", "samples": "weights", "visibility_temperature": "visibility_temperature",
                "max_children": "branching", "exhaustive": "branching", "clutter": "clutter"},
-    "ml": {**_COMMON, "gate": "candidates", "gate_probability": "gate_probability", "max_children": "max_hypotheses"},
-    "gpda": {**_COMMON, "gate": "candidates", "gate_probability": "gate_probability", "max_children": "max_hypotheses"},
+    "ml": {**_COMMON, "gate": "candidates", "gate_probability": "gate_probability", "max_children": "max_hypotheses",
+             "clutter": "clutter"},
+    "gpda": {**_COMMON, "gate": "candidates", "gate_probability": "gate_probability", "max_children": "max_hypotheses",
+             "clutter": "clutter"},
     "max-mixture": {**_COMMON, "gate": "candidates", "gate_probability": "gate_probability",
-                    "max_children": "max_hypotheses"},
+                    "max_children": "max_hypotheses", "clutter": "clutter"},
     "multimodal": {**_COMMON, "capacity": "capacity", "samples": "samples", "gate": "candidates",
                    "max_children": "children", "merge_threshold": "merge_threshold",
                    "association_prior": "association_prior", "proposal": "proposal", "clutter": "clutter"},
@@ -61,8 +63,9 @@ def make_estimator(name: str, scenario: Scenario | None = None, profile: str | N
     (hybrid); ``gate`` (the association gate: candidate objects per detection; the hybrid's default
     ``None`` enumerates every object); ``gate_probability`` (ml, gpda, max-mixture);
     ``max_children`` (the hybrid's beam width, ml/gpda/max-mixture's joint hypotheses, multimodal's
-    updated children); ``exhaustive`` (hybrid: enumerate every child, the reference); ``clutter`` (a
-    clutter log density: hybrid; multimodal on a known map). An option the
+    updated children); ``exhaustive`` (hybrid: enumerate every child, the reference); ``clutter`` (every
+    estimator: a clutter log density, ``"none"``, or ``"file"``, the default: the scenario's
+    ``sensor.clutter_log_density``; ml, gpda, max-mixture and multimodal use it on a known map only). An option the
     estimator has no use for is an error naming it.
     """
     if name not in ESTIMATORS:

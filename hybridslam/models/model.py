@@ -30,6 +30,8 @@ class Model(eqx.Module):
 
     ``discovery`` is ``None`` for a known map; otherwise detections may create objects up to the
     object capacity ``N`` (``class_prior`` then has a row per slot, uniform for uncreated ones).
+    ``clutter`` is ``None`` without a clutter hypothesis; otherwise a detection may be spurious, of
+    log density ``clutter.log_density`` over ``[range, bearing]`` (set by the estimators that use it).
     """
 
     motion_cov: Float[Array, "3 3"]  # Σ_w (Sec. III)
@@ -37,6 +39,7 @@ class Model(eqx.Module):
     class_prior: Float[Array, "N M"]  # P(c_n), Eq. 3
     prune_ratio: Float[Array, ""]  # drop components below w_max / prune_ratio (Sec. V: 150)
     discovery: NewObjects | None = None
+    clutter: NewObjects | None = None
 
     @property
     def num_classes(self) -> int:

@@ -15,9 +15,10 @@ from ... import __version__
 from ...io.scenario import Scenario
 from ...models.classifier import ClassifierModel
 from ...models.measurement import Detections
-from ...models.model import model_from_scenario
+from ...models.model import NewObjects, model_from_scenario
 from ..smoothing import Filter, Full, Lag, Smoother, data_log, factor_budget, initial_trajectory, initial_window
-from ..base import AbstractEstimator, Mixture, StepInfo, classifier_name, history_length
+from ..base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, classifier_name,
+                    clutter_text, history_length, resolve_clutter)
 from ...inference.ties import best_slot
 from .belief import Belief, init_belief, priors_from_scenario
 from .branching import Beam, Branching, Exhaustive
@@ -52,7 +53,8 @@ class Hybrid(AbstractEstimator):
     * ``clutter`` — with a :class:`~.branching.Beam`, each detection may also be clutter (a false
       detection of no object): the log density of its ``[range, bearing]`` under that hypothesis
       (prior probability of clutter included; e.g. ``log(0.01 / (max_range · fov))``), its scores
-      of no known class; ``None``: every detection is of an object (the paper's model);
+      of no known class; ``"file"`` (default): the scenario's ``sensor.clutter_log_density``, none
+      without it; ``None`` or ``"none"``: every detection is of an object (the paper's model);
     * ``gn_max_steps`` — Gauss-Newton iteration budget of the update (Eq. 9) and of the laplace-is
       mode search. 50: the semantic factors of a strongly viewpoint-dependent classifier make
       Gauss-Newton converge only linearly (the default study at alpha 0.5 has 4 of 263 mode
@@ -76,7 +78,7 @@ class Hybrid(AbstractEstimator):
     capacity: int = eqx.field(default=64, static=True)
     prune_ratio: float = eqx.field(default=150.0, static=True)
     gate: int | None = eqx.field(default=None, static=True)
-    clutter: float | None = eqx.field(default=None, static=True)
+    clutter: float | str | None = eqx.field(default=CLUTTER_FROM_FILE, static=True)
     gn_max_steps: int = eqx.field(default=50, static=True)
     smoother: Smoother = Full()
     classifier: str | ClassifierModel | None = None
@@ -93,10 +95,9 @@ class Hybrid(AbstractEstimator):
             raise ValueError(f"Hybrid.branching: expected Exhaustive() or Beam(width), got {self.branching!r}")
         if not isinstance(self.smoother, (Filter, Full, Lag)):
             raise ValueError(f"Hybrid.smoother: expected Full(), Lag(L) or Filter(), got {self.smoother!r}")
-        if self.clutter is not None and not isinstance(self.branching, Beam):
+        check_clutter("Hybrid", self.clutter)
+        if isinstance(self.clutter, (int, float)) and not isinstance(self.branching, Beam):
             raise ValueError("Hybrid.clutter: the clutter hypothesis needs branching=Beam(...)")
-        if self.clutter is not None and not (isinstance(self.clutter, (int, float)) and math.isfinite(self.clutter)):
-            raise ValueError(f"Hybrid.clutter: expected a finite log density, got {self.clutter!r}")
         if not isinstance(self.weights, AbstractWeigher):
             raise ValueError(f"Hybrid.weights: expected a weigher (LaplaceIS(), Sampled(), Linearized()), "
                              f"got {self.weights!r}")
@@ -117,6 +118,14 @@ class Hybrid(AbstractEstimator):
             # over an empty object axis failing inside the compiled step.
             raise ValueError("objects: the scenario has no objects and no discovery section to create any")
         model = model_from_scenario(scenario, self.classifier, self.prune_ratio, self.visibility_temperature)
+        clutter = resolve_clutter(self.clutter, scenario)
+        if clutter is not None:
+            if not isinstance(self.branching, Beam):
+                raise ValueError("clutter: the scenario declares sensor.clutter_log_density, and the exhaustive "
+                                 "enumeration has no clutter hypothesis; use the beam or clutter='none' (--clutter none)")
+            f = lambda a: jnp.asarray(a, dtype=float)  # noqa: E731
+            model = eqx.tree_at(lambda m: m.clutter, model, NewObjects(f(clutter), f(math.pi**2)),
+                                is_leaf=lambda x: x is None)
         slots = self.max_detections or max(scenario.max_detections, 1)
         if scenario.max_detections > slots:
             raise ValueError(f"max_detections: {slots} slots, but a step of the scenario has "
@@ -163,7 +172,7 @@ class Hybrid(AbstractEstimator):
             f"prune_ratio={self.prune_ratio:g}"
             + ("" if self.gate is None else f", gate_candidates={self.gate}")
             + ("" if isinstance(self.branching, Exhaustive) else f", branching=beam({self.branching.width})")
-            + ("" if self.clutter is None else f", clutter={self.clutter:g}")
+            + clutter_text(self.clutter, scenario)
             + f", smoother={self.smoother.name}"
         )
 

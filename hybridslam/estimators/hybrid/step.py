@@ -33,7 +33,6 @@ from ...inference.gating import contradicted, gate
 from ...inference.update import gauss_newton_update
 from ...inference.ties import best_slot
 from ...models.measurement import Detections
-from ...models.model import NewObjects
 from ...models.motion import propagate
 from ..base import StepInfo, lacks_object_slots, relevant_children
 from ..smoothing import Filter, Smoother, history_factors, new_overflow, smooth_step
@@ -56,8 +55,6 @@ class HybridSettings(Protocol):
     def branching(self) -> Branching: ...
     @property
     def gate(self) -> int | None: ...
-    @property
-    def clutter(self) -> float | None: ...
     @property
     def gn_max_steps(self) -> int: ...
     @property
@@ -176,13 +173,13 @@ def _beam(settings, belief: Belief, mean, cov, detections: Detections, candidate
         new_terms = jax.vmap(new_object_log_likelihood, (None, 0, 0, None, None))(
             model.sensor, mean[:, :3], cov[:, :3, :3], detections, model.discovery)  # (K, Dmax, M)
     clutter_terms = None
-    if settings.clutter is not None:
-        clutter = NewObjects(jnp.asarray(settings.clutter, mean.dtype), jnp.asarray(jnp.pi**2, mean.dtype))
+    if model.clutter is not None:  # set by Hybrid.init from its clutter setting (the scenario's by default)
+        clutter = model.clutter
         per_class = jax.vmap(new_object_log_likelihood, (None, 0, 0, None, None))(
             model.sensor, mean[:, :3], cov[:, :3, :3], detections, clutter)  # (K, Dmax, M)
         clutter_terms = class_marginal(per_class)  # scores of no known class
     # Known map, no clutter hypothesis: a detection may be skipped where no child names them all.
-    skip = settings.clutter is None and not discovery
+    skip = model.clutter is None and not discovery
     ch = beam_children(belief, mean, cov, detections, candidates, new_terms, realize, settings.branching.width,
                        settings.batch_axis, clutter_terms, skip)
     log_lik, log_lik_free, ess, converged = settings.weights.weigh_children(
@@ -332,7 +329,7 @@ def hybrid_step(
     # unmapped aside; clutter explains a detection, a skip does not).
     inconsistent = explained & contradicted(model.sensor, mean[parent[best]], cov[parent[best]], detections,
                                             jnp.where(creates[best], -1, assign[best]),
-                                            (assign[best] < 0) & ~unmapped[best] & (settings.clutter is None))
+                                            (assign[best] < 0) & ~unmapped[best] & (model.clutter is None))
     info = StepInfo(
         k=k + 1,
         num_components=jnp.sum(alive, dtype=jnp.int32),
@@ -341,9 +338,9 @@ def hybrid_step(
         dropped_budget=sc.dropped,
         # Unassociated detections of the best component: all of them if no child explains the
         # step; those a known map's beam skipped; those clutter explains (rejected).
-        skipped=jnp.where(explained, 0 if settings.clutter is not None else unassociated,
+        skipped=jnp.where(explained, 0 if model.clutter is not None else unassociated,
                           jnp.sum(detections.mask, dtype=jnp.int32)),
-        rejected=unassociated if settings.clutter is not None else jnp.zeros((), jnp.int32),
+        rejected=unassociated if model.clutter is not None else jnp.zeros((), jnp.int32),
         unmapped=num_unmapped,
         visibility_ignored=visibility_ignored,
         inconsistent=inconsistent,

@@ -17,10 +17,30 @@ on top, CRLF line ends, times in Unix seconds; subjects 1-5 are robots, the rest
   time replaces it) and integrated exactly, as SE(2) arcs ``Exp([v·τ, 0, ω·τ])`` including the
   partial intervals at step boundaries (:func:`integrate_odometry`). ``u_k = between(P(t_{k-1}),
   P(t_k))`` of the integrated path ``P``.
-* **Detections.** Landmark measurements only (robot-robot ones and barcodes that name no
-  landmark are dropped and counted). A measurement at time ``t`` belongs to step ``k`` when
-  ``t_k − dt/2 < t ≤ t_k + dt/2``; per step and landmark the one closest in time to ``t_k`` is
-  kept. Each is *motion-compensated* to ``t_k`` (default): the landmark point it measured from
+* **Detections, without identities** (the default). A measurement at time ``t`` belongs to step
+  ``k`` when ``t_k − dt/2 < t ≤ t_k + dt/2``. Every measurement of the robot's file in a step's
+  window is a detection: those of other robots and of barcodes that name no landmark too (with no
+  ``true_object``; counted in ``generator.counts``). The sensor reads an object up to twice per
+  0.5 s step (its frames come ~0.24 s apart); every repeat is kept by default (the clutter
+  hypothesis below explains the one an object cannot take). ``merge_repeats=True`` merges them
+  by geometry alone (:func:`merge_repeats_of`): per step, in order of closeness in time to
+  ``t_k``, a reading is dropped when one already kept from another sensor frame lies within the
+  0.99 chi-square gate of it (the difference of two readings, twice the calibrated variance).
+  Fewer detections (dataset 6, robot 3, 20-120 s: at most 10 per step instead of 16), but it
+  drops readings of neighbouring landmarks 0.2 m away (robot 2: 19 of 155 landmark-step pairs
+  lost) and keeps repeats that the motion compensation moved apart (e.g. while turning). The file declares a clutter hypothesis, ``sensor.clutter_log_density =
+  log(0.5 / (max_range · fov))``: a reading is spurious (another robot, a repeat) with prior
+  probability 0.5 (dataset 6, robots 2 and 3, 20-120 s: 29-30% of the readings are other
+  robots' and 17-20% repeat a landmark in the same step), uniform over the footprint in ``[range, bearing]``
+  (the space of ``new_object_log_density``, below). Barcodes serve only ``true_object``
+  (evaluation) and the noise calibration (below: the readings a barcode names a landmark of);
+  ``generator.identities`` says so.
+* **Detections, oracle-assisted** (``identity_filter=True``, ``--identity-filter``): landmark
+  measurements only (robot-robot ones and barcodes that name no landmark are dropped and
+  counted), and per step and landmark the one closest in time to ``t_k``: the barcodes select
+  and de-duplicate the detections, identities the estimators are meant not to know. No clutter
+  field is written (none is left).
+* **Motion compensation.** Each detection is *motion-compensated* to ``t_k`` (default): the landmark point it measured from
   ``P(t)`` is re-expressed from ``P(t_k)`` with the integrated odometry, since a detection taken
   0.25 s before ``t_k`` while turning at 0.5 rad/s is otherwise 0.13 rad off in bearing
   (``motion_compensation=False`` writes the raw range and bearing). Barcodes carry no class, so
@@ -34,9 +54,13 @@ on top, CRLF line ends, times in Unix seconds; subjects 1-5 are robots, the rest
   uniform on the circle, as ``new_object_orientation_var`` in the hallway); the survey sds
   (40-650 µm) are floored at ``landmark_sd_floor`` (1 cm) so that the 3×3 prior stays well
   conditioned next to π². Unknown (``unknown_map=True``): no objects, a ``discovery`` section and
-  the landmarks under ``true_objects``.
+  the landmarks under ``true_objects``, and ``max_objects`` object slots: by default the most
+  detections in one step plus ``discovery_margin`` (10), so that every detection of the busiest
+  step could be a new object (with ``identity_filter``: the surveyed landmarks plus the margin).
 * **Noise**, calibrated from the ground truth of the same window (override any with the
-  arguments). Residuals: odometry ``Log(u_k⁻¹ ∘ between(g_{k-1}, g_k))`` per step with ``g`` the
+  arguments: given ``geometric_cov``, no barcode is read for it). The measurement noise uses the
+  detections whose barcode names a landmark (the surveyed point they measured), the only use of
+  barcodes besides ``true_object``; ``generator.identities.barcodes_used_for`` lists it. Residuals: odometry ``Log(u_k⁻¹ ∘ between(g_{k-1}, g_k))`` per step with ``g`` the
   interpolated ground truth; measurements (``measurement_noise_from="written"``, the default)
   ``[range, bearing]`` of each detection *as written* (motion-compensated to its step time ``t_k``)
   minus the range and bearing of its surveyed landmark from the ground-truth pose at ``t_k``: the
@@ -74,13 +98,13 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .scenario import Classifier, Detection, Discovery, Scenario, Step
+from ..io.scenario import Classifier, Detection, Discovery, Scenario, Step
 
 ROBOTS = (1, 2, 3, 4, 5)  # MRCLAM subjects 1-5 are robots
 NOISE_SOURCES = ("written", "raw")  # what geometric_cov is calibrated from (import_mrclam)
@@ -91,6 +115,9 @@ MOTION_SD_FLOOR = 1e-4  # m, m, rad per step: keeps the calibrated covariance po
 GEOMETRIC_SD_FLOOR = 1e-3  # m, rad
 RANGE_STEP, FOV_STEP = 0.5, 0.1  # default max_range and fov round up to these (m, rad)
 DRIFT_BLOCK_S, MIN_BLOCKS = 5.0, 5  # the drift check sums odometry residuals over 5 s blocks
+MERGE_GATE = 9.21  # chi-square (2 dof) 0.99 quantile: two readings this close are one object's (merge_repeats)
+SAME_FRAME_S = 1e-3  # readings this close in time are one sensor frame (never merged)
+CLUTTER_FRACTION = 0.5  # default prior probability that a reading is spurious (import_mrclam, Clutter)
 
 
 class MRCLAMError(ValueError):
@@ -366,15 +393,19 @@ class Measurements:
 
     time: np.ndarray  # (n,) Unix s
     step: np.ndarray  # (n,) int, 1..T
-    landmark: np.ndarray  # (n,) int, index into the (sorted) landmark table
+    landmark: np.ndarray  # (n,) int, index into the (sorted) landmark table; -1: a robot or an unknown barcode
     raw: np.ndarray  # (n, 2) range [m], bearing [rad] as measured at `time`
     counts: dict[str, Any]
 
 
 def landmark_measurements(log: RobotLog, barcodes: dict[int, int], subjects: np.ndarray,
-                          window: Window) -> Measurements:
-    """Every landmark measurement of step k's interval ``(t_k − dt/2, t_k + dt/2]`` (within the data),
-    with counts of the robot-robot and unknown-barcode ones dropped. ``subjects`` (L,) sorted."""
+                          window: Window, identity_filter: bool = True) -> Measurements:
+    """Every measurement of step k's interval ``(t_k − dt/2, t_k + dt/2]`` (within the data), with
+    counts of the robot-robot and unknown-barcode ones. ``subjects`` (L,) sorted.
+
+    ``identity_filter`` (the oracle-assisted conversion): landmark measurements only, the others
+    dropped. Otherwise every measurement is kept, those of no landmark with ``landmark = -1``.
+    """
     rows = log.measurements.rows.reshape(-1, 4)
     subject = np.array([barcodes.get(int(b), -1) for b in rows[:, 1]], dtype=np.int64)
     index = np.minimum(np.searchsorted(subjects, subject), len(subjects) - 1)
@@ -384,7 +415,7 @@ def landmark_measurements(log: RobotLog, barcodes: dict[int, int], subjects: np.
     step = np.ceil((t - t0) / dt - 0.5).astype(np.int64)
     inside = (step >= 1) & (step <= T) & (t <= window.end)
     within = (t > t0) & (t <= window.times[-1] + dt / 2)
-    keep = inside & is_landmark
+    keep = inside & is_landmark if identity_filter else inside
     unknown = within & ~robot & ~is_landmark
     counts = {
         "in_window": int(within.sum()),
@@ -393,7 +424,7 @@ def landmark_measurements(log: RobotLog, barcodes: dict[int, int], subjects: np.
         "unknown_barcodes": sorted({int(b) for b in rows[unknown, 1]}),
         "before_first_step": int((within & is_landmark & ~inside).sum()),
     }
-    return Measurements(t[keep], step[keep], index[keep], rows[keep, 2:4].copy(), counts)
+    return Measurements(t[keep], step[keep], np.where(is_landmark, index, -1)[keep], rows[keep, 2:4].copy(), counts)
 
 
 def compensate(m: Measurements, path_at_steps: np.ndarray, path_at_measurements: np.ndarray) -> np.ndarray:
@@ -402,6 +433,30 @@ def compensate(m: Measurements, path_at_steps: np.ndarray, path_at_measurements:
     offset = between(path_at_steps[m.step], path_at_measurements)  # P(t) seen from P(t_k)
     point = offset[:, :2] + _rotate(offset[:, 2], _polar(m.raw))
     return np.column_stack([np.hypot(point[:, 0], point[:, 1]), np.arctan2(point[:, 1], point[:, 0])])
+
+
+def merge_repeats_of(m: Measurements, written: np.ndarray, window: Window, kept: np.ndarray, sd: np.ndarray,
+                  gate: float = MERGE_GATE) -> np.ndarray:
+    """The readings ``kept`` (indices, time order) without the repeats of one object within a step,
+    found by geometry alone (no barcode): per step, readings in order of closeness in time to ``t_k``
+    (the first in the file on a tie); one is dropped when a reading already kept in the step, taken
+    at another time (another sensor frame: a frame reads each object once), lies within
+    ``((Δr / sd_r)² + (Δb / sd_b)²) / 2 <= gate`` of it as written (the difference of two readings of
+    one point has twice the variance of one). ``sd`` (2,) the range and bearing noise sds."""
+    out = []
+    for k in np.unique(m.step[kept]):
+        here = kept[m.step[kept] == k]
+        lag = np.abs(m.time[here] - window.times[k])
+        chosen: list[int] = []
+        for i in here[np.lexsort((here, lag))]:
+            diff = (written[chosen] - written[i]) / sd
+            diff[:, 1] = np.asarray(wrap(diff[:, 1] * sd[1])) / sd[1]
+            near = 0.5 * np.sum(diff**2, axis=1) <= gate
+            other_frame = np.abs(m.time[chosen] - m.time[i]) > SAME_FRAME_S
+            if not np.any(near & other_frame):
+                chosen.append(int(i))
+        out.extend(chosen)
+    return np.sort(np.array(out, dtype=np.int64))
 
 
 def closest_per_landmark(m: Measurements, window: Window, keep: np.ndarray) -> np.ndarray:
@@ -508,12 +563,14 @@ def _floats(a: Any) -> Any:
 
 
 def default_sensor(log: RobotLog, barcodes: dict[int, int], subjects: np.ndarray, written: np.ndarray,
-                   sd: np.ndarray) -> tuple[float, float]:
-    """``(max_range, fov)`` from the robot's whole log of landmark measurements and the written
-    detections (n, 2), with ``sd`` (2,) the range and bearing noise sds: the largest range plus
-    3 sds rounded up to 0.5 m, and twice the largest |bearing| plus 3 sds rounded up to 0.1 rad."""
+                   sd: np.ndarray, identity_filter: bool = True) -> tuple[float, float]:
+    """``(max_range, fov)`` from the robot's whole log of measurements (``identity_filter``: of
+    landmark measurements only) and the written detections (n, 2), with ``sd`` (2,) the range and
+    bearing noise sds: the largest range plus 3 sds rounded up to 0.5 m, and twice the largest
+    |bearing| plus 3 sds rounded up to 0.1 rad."""
     rows = log.measurements.rows.reshape(-1, 4)
-    seen = np.isin([barcodes.get(int(b), -1) for b in rows[:, 1]], subjects)
+    seen = (np.isin([barcodes.get(int(b), -1) for b in rows[:, 1]], subjects) if identity_filter
+            else np.ones(len(rows), dtype=bool))
     rb = np.concatenate([rows[seen][:, 2:4], written])
     max_range = RANGE_STEP * math.ceil((rb[:, 0].max(initial=0.0) + 3 * sd[0]) / RANGE_STEP)
     half = np.abs(rb[:, 1]).max(initial=0.0) + 3 * sd[1]
@@ -564,6 +621,9 @@ def import_mrclam(
     discovery_margin: int = 10,
     new_object_log_density: float | None = None,
     max_objects: int | None = None,
+    identity_filter: bool = False,
+    merge_repeats: bool = False,
+    clutter_log_density: float | str | None = None,
 ) -> Scenario:
     """Robot ``robot``'s log in the MRCLAM dataset folder ``dataset_dir`` as a ``hybridslam-scenario/1``.
 
@@ -571,8 +631,14 @@ def import_mrclam(
 
     * ``start`` [s] after the robot's first odometry record, ``duration`` [s] (default: to the end
       of the data), one step every ``dt`` [s]: ``T = floor(duration / dt)`` steps.
-    * ``unknown_map``: no prior objects, a ``discovery`` section with ``max_objects`` = the number
-      of landmarks + ``discovery_margin`` (or ``max_objects``, when given: every duplicate of a
+    * ``identity_filter``: the oracle-assisted conversion (module docstring); default ``False``:
+      every reading. ``merge_repeats`` (default ``False``, without the filter): merge the repeats
+      of an object within a step by geometry (:func:`merge_repeats_of`). ``clutter_log_density``:
+      ``sensor.clutter_log_density`` written (default ``log(0.5 / (max_range · fov))``, none with
+      the filter; ``"none"``: none).
+    * ``unknown_map``: no prior objects, a ``discovery`` section with ``max_objects`` = the most
+      detections in a step (the number of surveyed landmarks with ``identity_filter``) +
+      ``discovery_margin`` (or ``max_objects``, when given: every duplicate of a
       landmark takes a slot too, and once they are full a new landmark is not stored: every
       estimator weighs its detections as unmapped objects, and warns) and ``new_object_log_density`` (default
       ``−log(max_range · fov)``: a new object's detection uniform over the sensor footprint in
@@ -626,25 +692,52 @@ def import_mrclam(
     landmarks = landmarks[np.argsort(landmarks[:, 0])]  # subject order: searchsorted needs it
     log_ = read_robot(folder, robot)
     window = make_window(log_, robot, start, duration, dt, odometry_delay)
-    track = _track(log_, barcodes, landmarks, window, odometry_delay, motion_compensation, max_range, fov)
+    track = _track(log_, barcodes, landmarks, window, odometry_delay, motion_compensation, max_range, fov,
+                   identity_filter)
     noise = _calibrate(track, log_, landmarks, given, robot, correct_range_bias, measurement_noise_from,
                        motion_noise_from, window.dt)
     sd = np.sqrt(np.diag(noise.geometric))
-    default = default_sensor(log_, barcodes, landmarks[:, 0], track.written[track.kept], sd)
+    if merge_repeats and not identity_filter:
+        merged = merge_repeats_of(track.measurements, track.written, window, track.kept, sd)
+        track.measurements.counts.update(merged=int(len(track.kept) - len(merged)), kept=len(merged))
+        track = replace(track, kept=merged)
+    default = default_sensor(log_, barcodes, landmarks[:, 0], track.written[track.kept], sd, identity_filter)
     max_range = default[0] if max_range is None else float(max_range)
     fov = default[1] if fov is None else float(fov)
+    clutter = _clutter_density(clutter_log_density, identity_filter, max_range, fov)
+    steps = _steps(track)
+    # The oracle-assisted conversion sizes an unknown map from the surveyed landmarks; otherwise from
+    # the data alone: the busiest step's detections could all be new objects, plus the margin.
+    slots = max_objects if max_objects is not None else len(landmarks) + discovery_margin if identity_filter \
+        else max(2, max((len(st.detections) for st in steps), default=0) + discovery_margin)
+    slots_from = ("given" if max_objects is not None else "landmarks + margin (oracle)" if identity_filter
+                  else "most detections in a step + margin")
 
     settings = {"robot": int(robot), "start_s": float(start), "map": "unknown" if unknown_map else "known",
                 "motion_compensation": bool(motion_compensation), "odometry_delay_s": float(odometry_delay),
                 "range_bias_corrected": bool(correct_range_bias)}
     generator = _generator(folder, settings, window, track, noise, given, landmarks, log_)
+    generator["identities"] = {
+        "identity_filter": bool(identity_filter),
+        "detections": ("landmark readings only, one per landmark and step (barcodes: oracle-assisted)"
+                       if identity_filter else "every reading in the step window"
+                       + (", repeats merged by geometry (merge_repeats)" if merge_repeats else ", repeats kept")),
+        "barcodes_used_for": ["true_object"] + (["selecting detections", "object slots"] if identity_filter else [])
+                             + ([] if given["geometric_cov"] is not None and not correct_range_bias
+                                else ["measurement noise calibration"]),
+    }
+    if unknown_map:
+        generator["object_slots"] = {"value": int(slots), "from": slots_from}
+    if clutter is not None:
+        generator["clutter"] = {"log_density": clutter, "from": "given" if clutter_log_density is not None
+                                else f"log({CLUTTER_FRACTION:g} / (max_range * fov))"}
     prior_cov = given["robot_prior_cov"]
     common = dict(
         num_classes=1, robot_prior_mean=track.truth[0].copy(),
         robot_prior_cov=ROBOT_PRIOR_VAR * np.eye(3) if prior_cov is None else prior_cov,
         motion_cov=noise.motion, geometric_cov=noise.geometric, classifier=Classifier("none"),
-        max_range=max_range, fov=fov, steps=_steps(track), true_robot_poses=track.truth,
-        metadata={"generator": generator},
+        max_range=max_range, fov=fov, steps=steps, true_robot_poses=track.truth,
+        clutter_log_density=clutter, metadata={"generator": generator},
     )
     poses = np.column_stack([landmarks[:, 1:3], np.zeros(len(landmarks))])
     if unknown_map:
@@ -652,8 +745,7 @@ def import_mrclam(
         return Scenario(
             object_prior_means=np.zeros((0, 3)), object_prior_covs=np.zeros((0, 3, 3)),
             class_prior=np.zeros((0, 1)),
-            discovery=Discovery(len(landmarks) + discovery_margin if max_objects is None else max_objects,
-                                float(density),
+            discovery=Discovery(int(slots), float(density),
                                 float(landmark_heading_var)),
             true_objects=tuple((p, 0) for p in poses), **common)
     return Scenario(
@@ -661,6 +753,18 @@ def import_mrclam(
         object_prior_covs=landmark_covariances(landmarks[:, 3:5], landmark_sd_floor, landmark_heading_var),
         class_prior=np.ones((len(landmarks), 1)), true_object_poses=poses,
         true_classes=np.zeros(len(landmarks), dtype=np.int64), **common)
+
+
+def _clutter_density(value: float | str | None, identity_filter: bool, max_range: float, fov: float) -> float | None:
+    """``sensor.clutter_log_density`` to write: ``value`` (a number; ``"none"``: none), or by default
+    ``log(CLUTTER_FRACTION / (max_range · fov))`` (none with the identity filter)."""
+    if isinstance(value, str):
+        if value != "none":
+            raise MRCLAMError(f"clutter_log_density: expected a finite number or 'none', got {value!r}")
+        return None
+    if value is not None:
+        return _finite(value, "clutter_log_density", "nats", positive=False)
+    return None if identity_filter else round(math.log(CLUTTER_FRACTION / (max_range * fov)), 9)
 
 
 @dataclass(frozen=True)
@@ -676,9 +780,11 @@ class Track:
 
 
 def _track(log: RobotLog, barcodes: dict[int, int], landmarks: np.ndarray, window: Window, delay: float,
-           motion_compensation: bool, max_range: float | None, fov: float | None) -> Track:
-    """Integrate the odometry at the step and measurement times, pick and compensate the detections."""
-    meas = landmark_measurements(log, barcodes, landmarks[:, 0].astype(np.int64), window)
+           motion_compensation: bool, max_range: float | None, fov: float | None,
+           identity_filter: bool = True) -> Track:
+    """Integrate the odometry at the step and measurement times, pick and compensate the detections
+    (``identity_filter``: landmark readings only, one per landmark and step; otherwise every reading)."""
+    meas = landmark_measurements(log, barcodes, landmarks[:, 0].astype(np.int64), window, identity_filter)
     # One integration serves the step times and the measurement times (motion compensation). Times
     # count from the origin: Unix seconds (~1.2e9) would leave float64 a resolution of only 2e-7 s.
     query = np.concatenate([window.times, meas.time]) - window.origin
@@ -693,7 +799,7 @@ def _track(log: RobotLog, barcodes: dict[int, int], landmarks: np.ndarray, windo
         visible &= written[:, 0] <= max_range
     if fov is not None:
         visible &= np.abs(written[:, 1]) <= fov / 2
-    kept = closest_per_landmark(meas, window, visible)
+    kept = closest_per_landmark(meas, window, visible) if identity_filter else np.flatnonzero(visible)
     meas.counts.update(beyond_sensor=int((~visible).sum()), superseded=int(visible.sum() - len(kept)),
                        kept=len(kept))
     truth = interpolate_groundtruth(log.groundtruth.rows, window.times)
@@ -718,7 +824,8 @@ def _calibrate(track: Track, log: RobotLog, landmarks: np.ndarray, given: dict[s
                robot: int, correct_range_bias: bool, source: str = "written", motion_source: str = "steps",
                dt: float = 0.5) -> Noise:
     """The robust covariances (module docstring); corrects ``track.written`` ranges if asked."""
-    meas, kept = track.measurements, track.kept
+    meas = track.measurements
+    kept = track.kept[meas.landmark[track.kept] >= 0]  # the readings a barcode names a landmark of
     if not len(kept) and (given["geometric_cov"] is None or correct_range_bias):
         raise MRCLAMError(f"robot {robot}: no landmark measurement in the window to calibrate the "
                           "measurement noise from; give geometric_cov (--geometric-cov)")
@@ -754,7 +861,8 @@ def _generator(folder: str, settings: dict[str, Any], window: Window, track: Tra
     ``written_detection_residuals`` are the detections as written against the true pose at their
     step (what an estimator with perfect poses would see, timing and compensation included).
     """
-    kept, truth, meas = track.kept, track.truth, track.measurements
+    truth, meas = track.truth, track.measurements
+    kept = track.kept[meas.landmark[track.kept] >= 0]
     points = landmarks[meas.landmark[kept], 1:3]
     written = measurement_residuals(track.written[kept], truth[meas.step[kept]], points)
     dead_reckoning = compose(np.broadcast_to(truth[0], track.path.shape), track.path)
@@ -762,7 +870,7 @@ def _generator(folder: str, settings: dict[str, Any], window: Window, track: Tra
     lo, hi = window.times[0], window.times[-1]
     delay = settings["odometry_delay_s"]
     return {
-        "name": "hybridslam.io.mrclam",
+        "name": "hybridslam.datasets.mrclam",
         "dataset": os.path.basename(os.path.normpath(os.path.abspath(folder))),
         "robot": settings["robot"], "start_s": settings["start_s"], "dt_s": window.dt,
         "duration_s": round(float(hi - lo), 9), "time_origin_unix_s": window.origin, "t0_unix_s": float(lo),
@@ -814,5 +922,6 @@ def _steps(track: Track) -> tuple[Step, ...]:
     per_step: list[list[Detection]] = [[] for _ in range(len(track.odometry))]
     for i in track.kept:
         per_step[meas.step[i] - 1].append(
-            Detection(float(written[i, 0]), float(written[i, 1]), np.ones(1), int(meas.landmark[i])))
+            Detection(float(written[i, 0]), float(written[i, 1]), np.ones(1),
+                      int(meas.landmark[i]) if meas.landmark[i] >= 0 else None))
     return tuple(Step(u.copy(), tuple(d)) for u, d in zip(track.odometry, per_step))

@@ -1,0 +1,97 @@
+"""The clutter hypothesis by default: ``sensor.clutter_log_density`` in a scenario file, read by
+every estimator unless its ``clutter`` setting overrides it (``"none"``: off)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+
+import hybridslam as hs
+from hybridslam.driver import run
+from hybridslam.io.scenario import Discovery, ScenarioError, parse_scenario, scenario_to_json
+
+
+def _with_copy(offset: float) -> hs.Scenario:
+    """A paper scenario whose first step holds a copy of its first detection ``offset`` m farther
+    (of no object): with one candidate per detection, at most one of the two can be the object's."""
+    scenario = hs.simulate(2, steps=2, setup=hs.PaperSetup(max_detections=2, max_range=12.0))
+    first = scenario.steps[0]
+    near = dataclasses.replace(first.detections[0], range=first.detections[0].range + offset, true_object=None)
+    steps = (dataclasses.replace(first, detections=(first.detections[0], near, first.detections[1])),)
+    return scenario.replace(steps=steps + scenario.steps[1:])
+
+
+@pytest.fixture(scope="module")
+def duplicated() -> hs.Scenario:
+    """The copy 0.3 m farther (one range sd): inside the object's gate."""
+    return _with_copy(0.3)
+
+
+@pytest.fixture(scope="module")
+def outlier() -> hs.Scenario:
+    """The copy 1.5 m farther (4.7 range sds): outside the 0.999 gate of every object."""
+    return _with_copy(1.5)
+
+
+def test_the_paper_files_declare_no_clutter_and_the_field_round_trips(duplicated):
+    """A simulated (paper) file writes no ``sensor.clutter_log_density``: every estimator keeps the
+    paper's model there. The field, when set, is read back; a bad value is an error naming it."""
+    assert duplicated.clutter_log_density is None
+    assert "clutter_log_density" not in scenario_to_json(duplicated)["sensor"]
+    doc = scenario_to_json(duplicated.replace(clutter_log_density=-7.5))
+    assert doc["sensor"]["clutter_log_density"] == -7.5
+    assert parse_scenario(json.loads(json.dumps(doc))).clutter_log_density == -7.5
+    doc["sensor"]["clutter_log_density"] = "high"
+    with pytest.raises(ScenarioError, match="sensor.clutter_log_density: expected a number"):
+        parse_scenario(doc)
+
+
+@pytest.mark.parametrize("name", ["ml", "gpda", "max-mixture"])
+def test_the_single_gaussian_estimators_read_the_files_clutter_density(name, outlier):
+    """With the file's clutter density the far copy is explained as clutter (``rejected``), nothing
+    is skipped, and the settings line says which density; ``clutter="none"`` turns it off (nothing is
+    rejected), and a number overrides the file's."""
+    with_clutter = outlier.replace(clutter_log_density=-10.0)
+    est = hs.make_estimator(name, gate=1, smoother="filter")
+    assert "clutter=-10" in est.describe(with_clutter) and "clutter" not in est.describe(outlier)
+    infos = run(est, with_clutter).infos
+    assert int(infos[0].rejected) == 1 and int(infos[0].skipped) == 0
+    off = run(hs.make_estimator(name, gate=1, smoother="filter", clutter="none"), with_clutter).infos
+    assert int(off[0].rejected) == 0
+    assert "clutter=-3" in hs.make_estimator(name, clutter=-3.0).describe(with_clutter)
+
+
+def test_ml_without_a_clutter_density_skips_the_copy_as_before(duplicated):
+    """No field in the file: ml leaves the copy unassociated (``skipped``), as it always did."""
+    infos = run(hs.make_estimator("ml", gate=1, smoother="filter"), duplicated).infos
+    assert int(infos[0].skipped) == 1 and int(infos[0].rejected) == 0
+
+
+def test_the_hybrid_belief_reads_the_files_clutter_density(duplicated):
+    """The hybrid belief's default clutter setting is the file's: the copy is rejected as clutter."""
+    est = hs.make_estimator("hybrid", gate=1, weights="linearized", smoother="filter")
+    infos = run(est, duplicated.replace(clutter_log_density=-10.0)).infos
+    assert int(infos[0].rejected) == 1 and int(infos[0].skipped) == 0
+    with pytest.raises(ValueError, match="exhaustive enumeration has no clutter hypothesis"):
+        hs.make_estimator("hybrid", exhaustive=True).init(duplicated.replace(clutter_log_density=-10.0))
+    hs.make_estimator("hybrid", exhaustive=True, clutter="none").init(duplicated.replace(clutter_log_density=-10.0))
+
+
+def test_an_unknown_maps_file_clutter_density_is_not_a_known_map_setting():
+    """On an unknown map ml/gpda/max-mixture/multimodal's null hypothesis is a new object: the
+    file's density is not used there, and an explicit one is refused naming the setting."""
+    scenario = hs.simulate(0, steps=1, setup=hs.PaperSetup(max_detections=2)).replace(clutter_log_density=-5.0)
+    unknown = scenario.replace(
+        discovery=Discovery(4, -math.log(12.0), math.pi**2), object_prior_means=np.zeros((0, 3)),
+        object_prior_covs=np.zeros((0, 3, 3)), class_prior=np.zeros((0, scenario.num_classes)),
+        steps=tuple(dataclasses.replace(s, detections=tuple(dataclasses.replace(d, true_object=None)
+                                                            for d in s.detections)) for s in scenario.steps),
+        true_object_poses=None, true_classes=None)
+    assert "clutter" not in hs.make_estimator("ml").describe(unknown)
+    hs.make_estimator("ml").init(unknown)
+    with pytest.raises(ValueError, match="clutter is for a known map"):
+        hs.make_estimator("ml", clutter=-5.0).init(unknown)
