@@ -299,3 +299,15 @@ def test_the_result_writer_checks_each_step_and_writes_nothing_on_an_error(tmp_p
     with ResultWriter(tmp_path / "bad.json", version) as writer:  # left without finish: nothing written
         writer.add(r.steps[0])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["r.json", "s.json"]
+
+
+def test_tied_weights_may_rise_by_their_last_bits() -> None:
+    """Tied components stand in index order (hybridslam.inference.ties), so a tie's weight may
+    exceed the previous one in its last bits; a real inversion is still refused."""
+    obj = minimal()
+    comps = obj["steps"][0]["components"]
+    comps[0]["weight"], comps[1]["weight"] = 0.5 - 1e-16, 0.5 + 1e-16
+    assert len(parse_result(obj).steps[0].components) == 2
+    comps[0]["weight"], comps[1]["weight"] = 0.5 - 1e-6, 0.5 + 1e-6
+    with pytest.raises(ScenarioError, match="exceeds the previous weight"):
+        parse_result(obj)
