@@ -16,13 +16,20 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 README = ROOT / "README.md"
 
+
+
+def _nav_pages() -> list[Path]:
+    """The site's pages in ``mkdocs.yml``'s navigation order (every ``- [Title: ]page.md`` line of its
+    ``nav:``): a page joins the site, and with it these tests, by one line there."""
+    text = (ROOT / "mkdocs.yml").read_text(encoding="utf-8")
+    nav = re.search(r"^nav:\n(?P<body>(?:[ \t]+.*\n|\n)*)", text, re.M)
+    assert nav, "mkdocs.yml has no nav:"
+    return [ROOT / "docs" / m.strip("\"' ") for m in re.findall(r"^\s*-\s*(?:.*?:\s*)?(\S+\.md)\s*$", nav["body"], re.M)]
+
+
 # The order the runner takes the pages in: the README first, then the site's navigation order, so
 # that a page's commands find the files an earlier page wrote (logs/ from the MRCLAM imports).
-PAGES = [README] + [ROOT / "docs" / p for p in (
-    "index.md", "tutorial.md", "installation.md", "studies/paper.md", "studies/hallway.md",
-    "studies/mrclam.md", "estimators.md", "weights.md", "model.md", "sweeps.md", "gradients.md",
-    "planning.md", "learned_classifier.md", "cli.md", "api.md", "file_format.md", "performance.md",
-    "limits.md", "layout.md")]
+PAGES = [README] + _nav_pages()
 
 _FENCE = re.compile(r"^(?P<indent>[ \t]*)```(?P<lang>[\w-]*)[^\n]*\n(?P<body>.*?)^(?P=indent)```[ \t]*$", re.M | re.S)
 _SKIP = re.compile(r"<!--\s*skip-test:\s*(?P<reason>.*?)\s*-->\s*$")

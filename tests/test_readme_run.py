@@ -5,8 +5,10 @@ The pages are those of ``tests/docblocks.py`` (the README first, then the site's
 ``bash`` commands run as subprocesses through the shell, in one scratch folder, so each one's output
 is the next one's input (``simulate`` writes the ``scenario.json`` that ``run`` reads; ``sweep``
 writes the ``runs/sweep`` that ``plot`` draws); a command that two pages share runs once. Each
-page's ``python`` blocks run in order as one script in the same folder. A block after
-``<!-- skip-test: REASON -->`` is not run (``tests/test_docs_blocks.py`` reports it). Two inputs a
+page's ``python`` blocks run in order as one script in the same folder, each page in a namespace of
+its own, all pages in one process (``tests/docworker.py``), so that the imports and the compiles
+are shared; a failure names the page's block and line. A block after ``<!-- skip-test: REASON -->``
+is not run (``tests/test_docs_blocks.py`` reports it). Two inputs a
 fresh machine lacks are supplied:
 
 * ``MRCLAM_Dataset7``: the real dataset when ``$MRCLAM_DATASET`` names it, else the committed
@@ -168,16 +170,53 @@ def test_readme_command_runs(command, workdir, monkeypatch):
     check_files()  # type: ignore[operator]
 
 
+class _Worker:
+    """One ``tests/docworker.py`` process for every page's Python blocks (imports and compiles shared);
+    started again if a page kills it."""
+
+    def __init__(self, workdir: Path):
+        self.workdir, self.proc = workdir, None
+        self.stderr = workdir.parent / "docworker.stderr"
+
+    def run(self, page: Path) -> dict:
+        if self.proc is None or self.proc.poll() is not None:
+            env = _environment()
+            env["MPLBACKEND"] = "Agg"
+            self.proc = subprocess.Popen([sys.executable, str(ROOT / "tests" / "docworker.py"), str(self.workdir)],
+                                         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
+                                         stderr=self.stderr.open("w"))
+        request = [[b.name, b.line, b.code] for b in blocks(page) if b.lang == "python" and b.skip is None]
+        assert self.proc.stdin and self.proc.stdout
+        self.proc.stdin.write(json.dumps({"page": page.name, "blocks": request}) + "\n")
+        self.proc.stdin.flush()
+        answer = self.proc.stdout.readline()
+        if not answer:
+            self.proc.wait()
+            tail = self.stderr.read_text(encoding="utf-8", errors="replace")[-3000:]
+            return {"failed": f"{page.relative_to(ROOT)} (the process ended: exit {self.proc.returncode})",
+                    "error": tail, "output": ""}
+        return json.loads(answer)
+
+    def close(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            assert self.proc.stdin
+            self.proc.stdin.close()
+            self.proc.wait()
+
+
+@pytest.fixture(scope="module")
+def python_worker(workdir):
+    worker = _Worker(workdir)
+    yield worker
+    worker.close()
+
+
 @pytest.mark.parametrize("page", PYTHON_PAGES, ids=lambda p: str(p.relative_to(ROOT)))
-def test_python_blocks_run(page, workdir):
+def test_python_blocks_run(page, python_worker):
     """A page's Python blocks, in order, as one script in the scratch folder (after the commands,
-    so the files they name exist); a failure names the block's line."""
-    script = "\n".join(f"# --- {b.name}\n__block__ = {b.name!r}\n{b.code}" for b in blocks(page)
-                       if b.lang == "python" and b.skip is None)
-    env = _environment()
-    env["MPLBACKEND"] = "Agg"
-    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=workdir, env=env)
-    assert proc.returncode == 0, f"{page.name}: exit {proc.returncode}\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
+    so the files they name exist); a failure names the block and its line in the page."""
+    answer = python_worker.run(page)
+    assert answer["failed"] is None, f"{answer['failed']} failed:\n{answer['error']}\n{answer['output'][-3000:]}"
 
 
 def _check_options(command: str) -> None:
