@@ -75,3 +75,12 @@ def test_cli_page_matches_the_parser():
     script = load_script("scripts/cli_reference.py", "cli_reference")
     assert script.PAGE.read_text(encoding="utf-8") == script.render(), \
         "docs/cli.md is out of date: run python3 scripts/cli_reference.py"
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_a_page_turns_float64_on_before_it_computes(page):
+    """Importing hybridslam changes no process-wide setting, so a page whose Python imports it calls
+    ``hs.setup()`` in that first block (or the reader's estimators refuse to run in float32)."""
+    first = next((b for b in blocks(page) if b.lang == "python" and "import hybridslam" in b.code), None)
+    if first is not None:
+        assert "hs.setup()" in first.code, f"{first.name}: call hs.setup() after importing hybridslam"

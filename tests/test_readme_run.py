@@ -182,6 +182,8 @@ class _Worker:
         if self.proc is None or self.proc.poll() is not None:
             env = _environment()
             env["MPLBACKEND"] = "Agg"
+            # A user's Python starts in float32: the pages turn float64 on themselves (hs.setup()).
+            env.pop("JAX_ENABLE_X64", None)
             self.proc = subprocess.Popen([sys.executable, str(ROOT / "tests" / "docworker.py"), str(self.workdir)],
                                          stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
                                          stderr=self.stderr.open("w"))
