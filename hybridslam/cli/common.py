@@ -121,7 +121,7 @@ def add_estimator_options(p: argparse.ArgumentParser, seed_help: str = "PRNG see
                         "the best are counted and reported")
     p.add_argument("--exhaustive", action="store_true", default=None,
                    help="hybrid: enumerate every child (exponential in the detections; the exact reference)")
-    p.add_argument("--clutter", type=_clutter, default=None, metavar="{LOG_DENSITY,none}",
+    p.add_argument("--clutter", type=clutter_density, default=None, metavar="{LOG_DENSITY,none}",
                    help="a detection may be clutter, with this log density over [range, bearing] (e.g. "
                         "log(0.01 / (max_range * fov))); default: the file's sensor.clutter_log_density (written by "
                         "hybridslam import), none without it; 'none': every detection is of an object (ml, gpda, "
@@ -162,8 +162,8 @@ def names(values: Sequence[str]) -> str:
     return ", ".join(values)
 
 
-def _clutter(text: str) -> float | str:
-    """``--clutter``'s value: a finite log density or ``none`` (an argparse error otherwise)."""
+def clutter_density(text: str) -> float | str:
+    """``--clutter``'s (and the importers' ``--clutter-log-density``) value: a finite log density or ``none`` (an argparse error otherwise)."""
     if text.strip().lower() == "none":
         return "none"
     try:

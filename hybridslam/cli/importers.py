@@ -23,7 +23,7 @@ import numpy as np
 from ..datasets.kitti import ODOMETRY_SOURCES, KITTIError, import_kitti
 from ..datasets.mrclam import MOTION_NOISE_SOURCES, NOISE_SOURCES, MRCLAMError, import_mrclam
 from ..io.scenario import Scenario, save_scenario
-from .common import CLIError, check_writable
+from .common import CLIError, check_writable, clutter_density
 
 _GAP_NOTE_S = 0.5  # a longer stretch without odometry or ground truth is worth a line
 _DRIFT_NOTE = 2.0
@@ -41,18 +41,6 @@ def _variances(text: str | None, n: int, option: str) -> np.ndarray | None:
     if len(values) != n or not all(math.isfinite(v) and v > 0 for v in values):
         raise CLIError(f"{option}: expected {n} positive comma-separated variances, got {text!r}")
     return np.diag(values)
-
-
-def _clutter_density(text: str) -> float | str:
-    if text.strip().lower() == "none":
-        return "none"
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"expected a finite log density or 'none', got {text!r}")
-    return value
 
 
 def _sds(cov: np.ndarray) -> str:
@@ -170,7 +158,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     m.add_argument("--merge-repeats", action="store_true",
                    help="merge an object's repeated readings within a step by geometry alone (readings of "
                         "other sensor frames within the noise gate; default: keep every reading)")
-    m.add_argument("--clutter-log-density", type=_clutter_density, default=None, metavar="{D,none}",
+    m.add_argument("--clutter-log-density", type=clutter_density, default=None, metavar="{D,none}",
                    help="sensor.clutter_log_density written (default: log(0.5 / (max_range * fov)); none with "
                         "--identity-filter); 'none' writes no clutter hypothesis")
     m.add_argument("--max-range", type=float, default=None,
