@@ -14,7 +14,7 @@ import hybridslam as hs
 from hybridslam import cli
 from hybridslam.estimators import profiles
 from hybridslam.estimators.hybrid.loops import OnlineLoopClosure
-from hybridslam.io.mrclam import import_mrclam
+from hybridslam.datasets.mrclam import import_mrclam
 from hybridslam.io.scenario import Classifier, Detection, Discovery, Step
 from hybridslam.sim.hallway import hallway
 
