@@ -96,7 +96,7 @@ def perturbed(log_w, capacity, ratio):
 
 step.prune = perturbed
 run = run_estimator(hs.load_scenario(scenario_file), case["estimator"], seed=0, **case["settings"])
-got = json.loads(json.dumps(result_to_json(run.result)))
+got = json.loads(json.dumps(result_to_json(run.result, version=1)))  # the golden files are format 1
 with open(golden_file, encoding="utf-8") as f:
     print(json.dumps(differences(got["steps"], json.load(f)["steps"])))
 """
