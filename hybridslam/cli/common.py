@@ -5,20 +5,21 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import re
 import sys
-from collections.abc import Sequence
-from typing import NoReturn, TextIO
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, NoReturn, TextIO
 
 from tqdm import tqdm
 
 from ..estimators import ESTIMATORS, make_estimator
 from ..estimators.base import AbstractEstimator
-from ..estimators.hybrid.weighers import WEIGHERS
-from ..estimators.smoothing import parse_smoother
+from ..estimators.options import Option, option_help
+from ..estimators.options import clutter_density as _clutter_density
+from ..estimators.registry import DEFAULT, estimator_options
 
 PROG = "hybridslam"
 CLASSIFIERS = ("mirror", "independent", "none")
-WEIGHTS = tuple(WEIGHERS)
 
 
 class CLIError(Exception):
@@ -92,60 +93,59 @@ def add_result_format_option(p: argparse.ArgumentParser) -> None:
 # Estimator options
 # --------------------------------------------------------------------------- #
 
-ESTIMATOR_OPTIONS = ("capacity", "samples", "weights", "prune_ratio", "gate", "max_children", "exhaustive", "clutter",
-                     "max_detections", "max_steps", "smoother")
+
+def command_line_options() -> dict[str, Option]:
+    """The estimator options the commands offer, by name (every registered estimator's)."""
+    return {name: o for name, o in estimator_options().items() if o.command_line}
+
+
+def _argument_type(parse: Callable[[str], Any]) -> Callable[[str], Any]:
+    """``parse`` for argparse: its ``ValueError`` an argparse error with its message (the option's
+    name, which argparse adds, taken off the front)."""
+    if parse in (int, float, str):
+        return parse  # argparse's own message ("invalid int value: 'x'")
+
+    def typed(text: str) -> Any:
+        try:
+            return parse(text)
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(re.sub(r"^--[\w-]+: ", "", str(e))) from None
+
+    typed.__name__ = parse.__name__
+    return typed
+
+
+clutter_density = _argument_type(_clutter_density)  # --clutter's, and the importers' --clutter-log-density
 
 
 def add_estimator_options(p: argparse.ArgumentParser, seed_help: str = "PRNG seed of the Monte-Carlo draws",
-                          capacity_default: str = "64") -> None:
-    """``--estimator`` and the settings it may take (each estimator rejects the ones it has no use for)."""
-    p.add_argument("--estimator", choices=tuple(ESTIMATORS), default="hybrid",
-                   help="association strategy: hybrid (Tchuiev et al., default), ml, gpda, max-mixture (Doherty's "
-                        "thesis Ch. 3-4) or multimodal (Ch. 5)")
-    p.add_argument("--samples", type=int, default=None,
-                   help="Monte-Carlo draws: per parent for --weights sampled (n_s of Eq. 16, default 1000), per "
-                        "candidate child for laplace-is (default 64), per child for multimodal (default 256)")
-    p.add_argument("--capacity", type=int, default=None,
-                   help=f"most components kept (hybrid, multimodal; default {capacity_default})")
-    p.add_argument("--prune-ratio", type=float, default=None,
-                   help="hybrid: drop components below w_max / ratio (the paper's 150)")
-    p.add_argument("--weights", choices=WEIGHTS, default=None,
-                   help="hybrid: association weights, laplace-is (low-variance Eq. 16, default), sampled (the paper's "
-                        "Monte-Carlo Eq. 16) or linearized (deterministic)")
-    p.add_argument("--gate", type=int, default=None,
-                   help="candidate objects per detection after Mahalanobis gating (ml, gpda, max-mixture, "
-                        "multimodal: default 3; hybrid: default every object)")
-    p.add_argument("--max-children", type=int, default=None,
-                   help="hypotheses kept while a step's associations are built one detection at a time: the hybrid's "
-                        "children (default 64), ml/gpda/max-mixture's joint assignments (default 64); drops near "
-                        "the best are counted and reported")
-    p.add_argument("--exhaustive", action="store_true", default=None,
-                   help="hybrid: enumerate every child (exponential in the detections; the exact reference)")
-    p.add_argument("--clutter", type=clutter_density, default=None, metavar="{LOG_DENSITY,none}",
-                   help="a detection may be clutter, with this log density over [range, bearing] (e.g. "
-                        "log(0.01 / (max_range * fov))); default: the file's sensor.clutter_log_density (written by "
-                        "hybridslam import), none without it; 'none': every detection is of an object (ml, gpda, "
-                        "max-mixture, multimodal: a known map only; hybrid: both)")
-    p.add_argument("--smoother", type=_smoother, default=None, metavar="{full,lag:L,filter}",
-                   help="full (default): every component keeps its trajectory and relinearizes it at every step, "
-                        "as the papers' smoothers do; lag:L: only the last L steps and the map, older poses "
-                        "marginalized (bounded cost per step); filter: the joint Gaussian over the current pose "
-                        "and the map only")
-    p.add_argument("--max-detections", type=int, default=None,
-                   help="detection slots per step (default: the largest step); a shared value lets files share "
-                        "one compiled step")
-    p.add_argument("--max-steps", type=int, default=None,
-                   help="history length (default: the file's steps); a shared value lets files share one compiled step")
+                          defaults: Mapping[str, str] | None = None) -> None:
+    """``--estimator`` and the settings it may take (each estimator rejects the ones it has no use for).
+
+    The options and their help come from the registered estimators' fields
+    (:mod:`hybridslam.estimators.options`); ``defaults``: a default this command chooses instead of
+    the estimators' own, by option name, for the help."""
+    p.add_argument("--estimator", choices=tuple(ESTIMATORS), default=DEFAULT,
+                   help="association strategy: " + ", ".join(f"{name} ({cls.reference})"
+                                                             for name, cls in ESTIMATORS.items())
+                        + f"; default {DEFAULT}")
+    for name, option in command_line_options().items():
+        text = option_help(option, ESTIMATORS, (defaults or {}).get(name))
+        if option.parse is None:
+            p.add_argument(option.flag, action="store_true", default=None, help=text)
+        else:
+            p.add_argument(option.flag, type=_argument_type(option.parse), choices=option.choices, default=None,
+                           metavar=option.metavar, help=text)
     p.add_argument("--seed", type=int, default=0, help=seed_help)
 
 
 def estimator_from_args(args: argparse.Namespace, *, classifier=None, **overrides) -> AbstractEstimator:
     """The estimator the options name; a setting it cannot take is a :class:`CLIError` naming it."""
-    options = {name: getattr(args, name, None) for name in ESTIMATOR_OPTIONS}
+    offered = command_line_options()
+    options = {name: getattr(args, name, None) for name in offered}
     for name, value in options.items():
-        if isinstance(value, (int, float)) and not isinstance(value, bool) and name not in ("prune_ratio", "clutter") \
-                and value < 1:
-            raise CLIError(f"--{name.replace('_', '-')}: expected a positive number, got {value}")
+        if offered[name].parse is int and value is not None and value < 1:  # counts
+            raise CLIError(f"{offered[name].flag}: expected a positive number, got {value}")
     options.update({k: v for k, v in overrides.items() if v is not None or k not in options})
     try:
         return make_estimator(args.estimator, classifier=classifier, **options)
@@ -160,25 +160,3 @@ def settings_line(estimator: AbstractEstimator) -> str:
 
 def names(values: Sequence[str]) -> str:
     return ", ".join(values)
-
-
-def clutter_density(text: str) -> float | str:
-    """``--clutter``'s (and the importers' ``--clutter-log-density``) value: a finite log density or ``none`` (an argparse error otherwise)."""
-    if text.strip().lower() == "none":
-        return "none"
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"expected a finite log density or 'none', got {text!r}")
-    return value
-
-
-def _smoother(text: str) -> str:
-    """``--smoother``'s value, checked here so that a typo is an argparse error naming the option."""
-    try:
-        parse_smoother(text)
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(str(e).removeprefix("--smoother: ")) from None
-    return text

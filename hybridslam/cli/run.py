@@ -17,9 +17,9 @@ from ..io.result import ResultWriter, StepRecord
 from ..io.scenario import Scenario, ScenarioError, load_scenario
 from .common import (
     CLASSIFIERS,
-    ESTIMATOR_OPTIONS,
     CLIError,
     add_estimator_options,
+    command_line_options,
     add_result_format_option,
     check_writable,
     estimator_from_args,
@@ -91,7 +91,7 @@ def long_run_note(estimator: AbstractEstimator, scenario: Scenario) -> str | Non
 
 def chosen_settings(args: argparse.Namespace, profile: Profile) -> dict:
     """The profile's options that no flag of ``args`` overrides (:meth:`Profile.merged`)."""
-    explicit = {name: getattr(args, name, None) for name in ESTIMATOR_OPTIONS}
+    explicit = {name: getattr(args, name, None) for name in command_line_options()}
     return {k: v for k, v in profile.merged(**explicit).items() if explicit.get(k) is None}
 
 
@@ -218,5 +218,5 @@ def add_parser(sub) -> None:
     p.add_argument("--plot", default=None, metavar="PNG",
                    help="also draw the run (map and trajectories, error and components per step) to this image")
     add_result_format_option(p)
-    add_estimator_options(p, capacity_default="64, or 16 where --profile auto chooses it")
+    add_estimator_options(p, defaults={"capacity": "64, or 16 where --profile auto chooses it"})
     p.set_defaults(func=cmd_run)

@@ -163,5 +163,5 @@ def add_parsers(sub) -> None:
                         "accelerators), map (one track after another, CPU), map:N (N tracks vmapped at a "
                         "time); auto (default): map on a CPU, vmap elsewhere. Changes no number")
     add_estimator_options(p, seed_help="track t is simulated with seed + t and weighed with PRNG seed seed + t",
-                          capacity_default=str(SWEEP_CAPACITY))
+                          defaults={"capacity": str(SWEEP_CAPACITY)})
     p.set_defaults(func=cmd_sweep)

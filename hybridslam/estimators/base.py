@@ -32,9 +32,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 
+from .. import __version__
 from ..config import require_x64
 from ..io.scenario import Scenario
 from ..models.measurement import Detections
+from .options import shown, value_text
 
 LOW_ESS = 0.01  # below this a weight estimate rests on ~1% of its draws
 
@@ -272,7 +274,11 @@ class AbstractEstimator(eqx.Module):
     """The interface every estimator implements (see the module docstring)."""
 
     name: ClassVar[str]  # what ``--estimator`` selects
+    title: ClassVar[str]  # what it is, in the result file's estimator text
     reference: ClassVar[str]  # the paper and section it implements
+    # The fields the estimator text shows, in order (None: every field in field order, but those
+    # that only size the compiled step); classifier comes first either way.
+    described: ClassVar[tuple[str, ...] | None] = None
 
     def __check_init__(self):
         # Every estimator computes in float64 (hybridslam.config): refused when built, not a float32 run.
@@ -302,10 +308,25 @@ class AbstractEstimator(eqx.Module):
         ``None`` for filters. The result file's optional ``objects`` (SCENARIO_FORMAT.md)."""
         return None
 
-    @abc.abstractmethod
     def describe(self, scenario: Scenario | None = None) -> str:
         """The result file's ``estimator`` text: name, paper, every setting (the classifier the
-        ``scenario`` names where the estimator does not override it)."""
+        ``scenario`` names where the estimator does not override it), each as its field's
+        metadata says (:func:`.options.setting`), the clutter density as the ``scenario`` resolves it."""
+        parts = [f"classifier={classifier_name(getattr(self, 'classifier', None), scenario)}"]
+        for name, write in shown(self, self.described):
+            if name == "clutter":
+                setting = getattr(self, "clutter") if scenario is None else self._clutter(scenario)
+                text = clutter_text(setting, scenario)
+                text = text.removeprefix(", ")
+            else:
+                text = write(self) if write is not None else f"{name}={value_text(getattr(self, name))}"
+            if text:
+                parts.append(text)
+        return f"hybridslam {__version__} {self.title} ({self.reference}); " + ", ".join(parts)
+
+    def _clutter(self, scenario: Scenario) -> float | None:
+        """The clutter log density used on ``scenario`` (``None``: no clutter hypothesis)."""
+        return resolve_clutter(getattr(self, "clutter", None), scenario)
 
     def settings(self) -> dict[str, Any]:
         """Every setting as JSON-able values (what a study's records depend on)."""

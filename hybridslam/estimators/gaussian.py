@@ -60,7 +60,6 @@ import optimistix as optx
 from jax.scipy.special import logsumexp
 from jaxtyping import Array, Bool, Float, Int
 
-from .. import __version__
 from ..inference import discovery, gating, sequential
 from ..inference.beam import beam_search
 from ..inference.update import prior_gauss_newton, support_of, wrap_angles
@@ -70,8 +69,9 @@ from ..models.measurement import Detections
 from ..models.model import Model, model_from_scenario
 from ..models.motion import propagate
 from ..models.classifier import ClassifierModel
-from .base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, classifier_name, clutter_text,
-                   history_length, lacks_object_slots, resolve_clutter)
+from .base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, history_length,
+                   lacks_object_slots, resolve_clutter)
+from .options import GATE, MAX_CHILDREN, Option, setting
 from .smoothing import (DataLog, Factors, Filter, Full, Lag, Smoother, WindowPrior, active_history, data_log,
                         factor_budget, initial_trajectory, initial_window, new_overflow, smooth_step)
 
@@ -154,6 +154,10 @@ class Association(eqx.Module):
 # --------------------------------------------------------------------------- #
 
 
+GATE_PROBABILITY = Option("gate_probability", "probability of the chi-square gate on the innovation's Mahalanobis "
+                                              "distance", parse=float, command_line=False)
+
+
 def chi2_gate(probability: float) -> float:
     """The chi-square quantile of 2 degrees of freedom: ``−2 log(1 − p)`` (closed form)."""
     if not 0.0 < probability < 1.0:
@@ -178,17 +182,19 @@ class SingleGaussian(AbstractEstimator):
     scenario's ``sensor.clutter_log_density``, none without it; ``None`` or ``"none"``: none).
     """
 
-    candidates: int = eqx.field(default=3, static=True)
-    gate_probability: float = eqx.field(default=0.999, static=True)
-    max_hypotheses: int | None = eqx.field(default=64, static=True)
+    candidates: int = eqx.field(default=3, static=True, metadata=setting(GATE))
+    gate_probability: float = eqx.field(default=0.999, static=True, metadata=setting(GATE_PROBABILITY))
+    max_hypotheses: int | None = eqx.field(default=64, static=True,
+                                           metadata=setting(MAX_CHILDREN, note="joint assignments, default {default}"))
     gn_max_steps: int = eqx.field(default=20, static=True)
     smoother: Smoother = Full()
     classifier: str | ClassifierModel | None = None
     max_detections: int | None = eqx.field(default=None, static=True)
     max_steps: int | None = eqx.field(default=None, static=True)
-    clutter: float | str | None = eqx.field(default=CLUTTER_FROM_FILE, static=True)
+    clutter: float | str | None = eqx.field(default=CLUTTER_FROM_FILE, static=True,
+                                            metadata=setting(note="a known map only"))
 
-    title: ClassVar[str]
+    described = ("candidates", "gate_probability", "gn_max_steps", "max_hypotheses", "smoother", "clutter")
     factor_mode: ClassVar[Literal["sum", "max"]] = "sum"  # how the smoother reads a detection's candidates (max-mixtures: "max")
 
     def __check_init__(self):
@@ -280,15 +286,6 @@ class SingleGaussian(AbstractEstimator):
         return Mixture(
             log_weights=jnp.zeros(1, state.mean.dtype), mean=state.mean[None, :3], cov=state.cov[None, :3, :3],
             classes=classes[None], history=state.history[None], k=state.k,
-        )
-
-    def describe(self, scenario: Scenario | None = None) -> str:
-        return (
-            f"hybridslam {__version__} {self.title} ({self.reference}); "
-            f"classifier={classifier_name(self.classifier, scenario)}, "
-            f"candidates={self.candidates}, gate_probability={self.gate_probability:g}, "
-            f"gn_max_steps={self.gn_max_steps}, max_hypotheses={self.max_hypotheses}, smoother={self.smoother.name}"
-            + clutter_text(self.clutter if scenario is None else self._clutter(scenario), scenario)
         )
 
 

@@ -129,11 +129,11 @@ from ..models import geometry, motion
 from ..models.classifier import ClassifierModel
 from ..models.measurement import Detections, SensorModel, log_visibility, log_visibility_probability
 from ..models.model import Model, model_from_scenario
-from .. import __version__
 from ..inference.batching import map_live, smoothing_chunk
 from ..inference.ties import best_slot, rank_key
-from .base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, classifier_name,
-                   clutter_text, history_length, lacks_object_slots, relevant_children, resolve_clutter)
+from .base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, history_length,
+                   lacks_object_slots, relevant_children, resolve_clutter)
+from .options import GATE, MAX_CHILDREN, Option, setting
 from .smoothing import (DataLog, Filter, Full, Lag, Smoother, WindowPrior, data_log, factor_budget,
                         history_factors, initial_trajectory, initial_window, new_overflow, smooth_step)
 
@@ -887,21 +887,30 @@ class Multimodal(AbstractEstimator):
     """
 
     capacity: int = eqx.field(default=64, static=True)
-    samples: int = eqx.field(default=DEFAULT_SAMPLES, static=True)
-    candidates: int = eqx.field(default=DEFAULT_CANDIDATES, static=True)
-    children: int | None = eqx.field(default=None, static=True)
-    merge_threshold: float = eqx.field(default=DEFAULT_MERGE_THRESHOLD, static=True)
-    max_assignments: int | None = eqx.field(default=64, static=True)
-    association_prior: str = eqx.field(default="mc", static=True)
-    proposal: str = eqx.field(default="posterior", static=True)
+    samples: int = eqx.field(default=DEFAULT_SAMPLES, static=True,
+                             metadata=setting(note="per child, default {default}", show="num_samples"))
+    candidates: int = eqx.field(default=DEFAULT_CANDIDATES, static=True, metadata=setting(GATE))
+    children: int | None = eqx.field(default=None, static=True, metadata=setting(
+        MAX_CHILDREN, note="children updated, default 2 x capacity",
+        show=lambda e: f"children={2 * e.capacity if e.children is None else e.children}"))
+    merge_threshold: float = eqx.field(default=DEFAULT_MERGE_THRESHOLD, static=True, metadata=setting(
+        Option("merge_threshold", "squared Mahalanobis distance below which components merge", parse=float,
+               command_line=False), show=lambda e: f"merge_threshold={e.merge_threshold}"))
+    max_assignments: int | None = eqx.field(default=64, static=True, metadata=setting(show=False))
+    association_prior: str = eqx.field(default="mc", static=True, metadata=setting(
+        Option("association_prior", "mc (thesis Eq. 5.11) or uniform", parse=str, command_line=False)))
+    proposal: str = eqx.field(default="posterior", static=True, metadata=setting(
+        Option("proposal", "posterior or prior", parse=str, command_line=False)))
     gn_max_steps: int = eqx.field(default=20, static=True)
     smoother: Smoother = Full()
     classifier: str | ClassifierModel | None = None
     max_detections: int | None = eqx.field(default=None, static=True)
     max_steps: int | None = eqx.field(default=None, static=True)
-    clutter: float | str | None = eqx.field(default=CLUTTER_FROM_FILE, static=True)
+    clutter: float | str | None = eqx.field(default=CLUTTER_FROM_FILE, static=True,
+                                            metadata=setting(note="a known map only"))
 
     name: ClassVar[str] = "multimodal"
+    title: ClassVar[str] = "multimodal sum-mixture semantic SLAM"
     reference: ClassVar[str] = "Doherty thesis Ch. 5, Eq. 5.9-5.11"
 
     def __check_init__(self):
@@ -1019,17 +1028,6 @@ class Multimodal(AbstractEstimator):
         # Kept in the state, but a weight that underflows to 0 is no component of the reported belief.
         log_w = jnp.where(jnp.exp(state.log_weights) > 0, state.log_weights, -jnp.inf)
         return Mixture(log_w, state.mean[:, :3], state.cov[:, :3, :3], classes, state.history, state.k)
-
-    def describe(self, scenario: Scenario | None = None) -> str:
-        return (
-            f"hybridslam {__version__} multimodal sum-mixture semantic SLAM ({self.reference}); "
-            f"classifier={classifier_name(self.classifier, scenario)}, "
-            f"capacity={self.capacity}, num_samples={self.samples}, candidates={self.candidates}, "
-            f"children={2 * self.capacity if self.children is None else self.children}, "
-            f"merge_threshold={self.merge_threshold}, association_prior={self.association_prior}, "
-            f"proposal={self.proposal}, gn_max_steps={self.gn_max_steps}, smoother={self.smoother.name}"
-            + clutter_text(self.clutter if scenario is None else self._clutter(scenario), scenario)
-        )
 
 
 def _log_or_minus_inf(x):

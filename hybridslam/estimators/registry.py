@@ -7,15 +7,16 @@ from typing import Any
 from ..io.scenario import Scenario
 from .base import AbstractEstimator
 from .gpda import GPDA
-from .hybrid.branching import Beam, Exhaustive
 from .hybrid.estimator import Hybrid
-from .hybrid.weighers import WEIGHERS, LaplaceIS, make_weigher
+from .hybrid.weighers import WEIGHERS
 from .maxmix import MaxMixture
 from .ml import ML
-from .smoothing import parse_smoother
 from .multimodal import Multimodal
+from .options import Option, all_options, field_values, options_of
 from .profiles import recommended
 
+# Every estimator by the name ``--estimator`` selects: adding one here is all it takes for the
+# commands to offer it with its options (read off its fields, :mod:`.options`).
 ESTIMATORS: dict[str, type[AbstractEstimator]] = {
     "hybrid": Hybrid,
     "ml": ML,
@@ -23,28 +24,16 @@ ESTIMATORS: dict[str, type[AbstractEstimator]] = {
     "max-mixture": MaxMixture,
     "multimodal": Multimodal,
 }
-
-# Which estimator setting each option sets (an option an estimator lacks is an error, never ignored).
-_COMMON = {"classifier": "classifier", "gn_max_steps": "gn_max_steps", "max_detections": "max_detections",
-           "max_steps": "max_steps", "smoother": "smoother"}
-_OPTIONS: dict[str, dict[str, str]] = {
-    "hybrid": {**_COMMON, "capacity": "capacity", "prune_ratio": "prune_ratio", "gate": "gate",
-               "weights": "weights", "samples": "weights", "visibility_temperature": "visibility_temperature",
-               "max_children": "branching", "exhaustive": "branching", "clutter": "clutter"},
-    "ml": {**_COMMON, "gate": "candidates", "gate_probability": "gate_probability", "max_children": "max_hypotheses",
-             "clutter": "clutter"},
-    "gpda": {**_COMMON, "gate": "candidates", "gate_probability": "gate_probability", "max_children": "max_hypotheses",
-             "clutter": "clutter"},
-    "max-mixture": {**_COMMON, "gate": "candidates", "gate_probability": "gate_probability",
-                    "max_children": "max_hypotheses", "clutter": "clutter"},
-    "multimodal": {**_COMMON, "capacity": "capacity", "samples": "samples", "gate": "candidates",
-                   "max_children": "children", "merge_threshold": "merge_threshold",
-                   "association_prior": "association_prior", "proposal": "proposal", "clutter": "clutter"},
-}
+DEFAULT = "hybrid"  # what ``--estimator`` selects when not given
 
 
 def estimator_names() -> tuple[str, ...]:
     return tuple(ESTIMATORS)
+
+
+def estimator_options() -> dict[str, Option]:
+    """Every option of every estimator, by name (:func:`.options.all_options`)."""
+    return all_options(ESTIMATORS)
 
 
 def make_estimator(name: str, scenario: Scenario | None = None, profile: str | None = None,
@@ -57,15 +46,16 @@ def make_estimator(name: str, scenario: Scenario | None = None, profile: str | N
     loop closure during the run, which that profile may also choose, is not part of an estimator:
     ``recommended(scenario).close_loops``. Without ``scenario``, the estimator's own defaults.
 
-    Options: ``classifier``, ``gn_max_steps``, ``max_detections`` (every estimator); ``capacity``
-    (hybrid, multimodal); ``samples`` (the draws of the hybrid's weights or of multimodal's Monte
-    Carlo); ``weights`` (hybrid: ``laplace-is``, ``sampled``, ``linearized``); ``prune_ratio``
-    (hybrid); ``gate`` (the association gate: candidate objects per detection; the hybrid's default
-    ``None`` enumerates every object); ``gate_probability`` (ml, gpda, max-mixture);
-    ``max_children`` (the hybrid's beam width, ml/gpda/max-mixture's joint hypotheses, multimodal's
-    updated children); ``exhaustive`` (hybrid: enumerate every child, the reference); ``clutter`` (every
-    estimator: a clutter log density, ``"none"``, or ``"file"``, the default: the scenario's
-    ``sensor.clutter_log_density``; ml, gpda, max-mixture and multimodal use it on a known map only). An option the
+    The options are those of the estimator class's fields (:mod:`.options`; ``hybridslam run
+    --help`` lists the command-line ones with what each means for each estimator): ``classifier``,
+    ``gn_max_steps``, ``max_detections``, ``max_steps``, ``smoother`` (``"full"``, ``"lag:L"``,
+    ``"filter"`` or the object), ``clutter`` (a clutter log density, ``"none"``, or ``"file"``,
+    the default: the scenario's ``sensor.clutter_log_density``) for every estimator; ``capacity``
+    and ``samples`` (hybrid, multimodal); ``gate`` (the candidate objects per detection);
+    ``max_children`` (the hybrid's beam width, ml/gpda/max-mixture's joint hypotheses,
+    multimodal's updated children); ``weights``, ``prune_ratio``, ``exhaustive``,
+    ``visibility_temperature`` (hybrid); ``gate_probability`` (ml, gpda, max-mixture);
+    ``merge_threshold``, ``association_prior``, ``proposal`` (multimodal). An option the
     estimator has no use for is an error naming it.
     """
     if name not in ESTIMATORS:
@@ -73,25 +63,14 @@ def make_estimator(name: str, scenario: Scenario | None = None, profile: str | N
     if scenario is not None:
         options = recommended(scenario, name, profile or "auto").merged(**options)
     given = {k: v for k, v in options.items() if v is not None}
-    known = _OPTIONS[name]
+    cls = ESTIMATORS[name]
+    known = options_of(cls)
     for option in given:
         if option not in known:
-            users = [n for n, opts in _OPTIONS.items() if option in opts]
+            users = [n for n, c in ESTIMATORS.items() if option in options_of(c)]
             where = f" (it applies to: {', '.join(users)})" if users else ""
             raise ValueError(f"--{option.replace('_', '-')}: the {name} estimator has no such setting{where}")
-    special = ("weights", "samples", "max_children", "exhaustive") if name == "hybrid" else ()
-    fields = {known[k]: v for k, v in given.items() if k not in special}
-    if isinstance(fields.get("smoother"), str):
-        fields["smoother"] = parse_smoother(fields["smoother"])
-    if name == "hybrid" and ("weights" in given or "samples" in given):
-        fields["weights"] = make_weigher(given.get("weights", LaplaceIS.name), given.get("samples"))
-    if name == "hybrid" and given.get("exhaustive"):
-        if "max_children" in given:
-            raise ValueError("--max-children: the exhaustive enumeration keeps every child")
-        fields["branching"] = Exhaustive()
-    elif name == "hybrid" and "max_children" in given:
-        fields["branching"] = Beam(width=given["max_children"])
-    return ESTIMATORS[name](**fields)
+    return cls(**field_values(cls, given))
 
 
-__all__ = ["ESTIMATORS", "WEIGHERS", "estimator_names", "make_estimator"]
+__all__ = ["DEFAULT", "ESTIMATORS", "WEIGHERS", "estimator_names", "estimator_options", "make_estimator"]

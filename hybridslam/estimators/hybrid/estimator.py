@@ -11,19 +11,19 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from ... import __version__
 from ...io.scenario import Scenario
 from ...models.classifier import ClassifierModel
 from ...models.measurement import Detections
 from ...models.model import NewObjects, model_from_scenario
+from ..options import GATE, MAX_CHILDREN, SAMPLES, Option, setting
 from ..smoothing import Filter, Full, Lag, Smoother, data_log, factor_budget, initial_trajectory, initial_window
-from ..base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, classifier_name,
-                    clutter_text, history_length, resolve_clutter)
+from ..base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, history_length,
+                    resolve_clutter)
 from ...inference.ties import best_slot
 from .belief import Belief, init_belief, priors_from_scenario
 from .branching import Beam, Branching, Exhaustive
 from .step import hybrid_step
-from .weighers import AbstractWeigher, LaplaceIS
+from .weighers import WEIGHERS, AbstractWeigher, LaplaceIS, Sampled, make_weigher
 
 
 def _positive_int(name: str, value, allow_none: bool = False) -> None:
@@ -31,6 +31,29 @@ def _positive_int(name: str, value, allow_none: bool = False) -> None:
         return
     if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
         raise ValueError(f"Hybrid.{name}: expected a positive int{' or None' if allow_none else ''}, got {value!r}")
+
+
+WEIGHTS = Option("weights", "association weights: laplace-is (low-variance Eq. 16), sampled (the paper's Monte-Carlo "
+                            "Eq. 16) or linearized (deterministic)", parse=str, choices=tuple(WEIGHERS))
+EXHAUSTIVE = Option("exhaustive", "enumerate every child (exponential in the detections; the exact reference)",
+                    parse=None)
+PRUNE_RATIO = Option("prune_ratio", "drop components below w_max / ratio", parse=float)
+VISIBILITY_TEMPERATURE = Option("visibility_temperature", "the smooth object observation model's temperature",
+                                parse=float, command_line=False)
+
+
+def _weigher(weights: str = LaplaceIS.name, samples: int | None = None) -> AbstractWeigher:
+    """``Hybrid.weights`` from ``--weights`` and ``--samples``."""
+    return make_weigher(weights, samples)
+
+
+def _branching(max_children: int | None = None, exhaustive: bool | None = None) -> Branching:
+    """``Hybrid.branching`` from ``--max-children`` and ``--exhaustive``."""
+    if exhaustive:
+        if max_children is not None:
+            raise ValueError("--max-children: the exhaustive enumeration keeps every child")
+        return Exhaustive()
+    return Beam() if max_children is None else Beam(width=max_children)
 
 
 class Hybrid(AbstractEstimator):
@@ -73,22 +96,32 @@ class Hybrid(AbstractEstimator):
       the step then skips component slots that are empty in every belief of the batch.
     """
 
-    weights: AbstractWeigher = LaplaceIS()
-    branching: Branching = Beam()
+    weights: AbstractWeigher = eqx.field(default=LaplaceIS(), metadata=setting(
+        WEIGHTS, SAMPLES, build=_weigher, show=lambda e: f"weights={e.weights.name}, samples={e.weights.draws}",
+        note={"samples": f"per parent for --weights sampled (n_s of Eq. 16, default {Sampled.samples}), per "
+                         f"candidate child for laplace-is (default {LaplaceIS.samples})"}))
+    branching: Branching = eqx.field(default=Beam(), metadata=setting(
+        MAX_CHILDREN, EXHAUSTIVE, build=_branching, note={"max_children": f"children, default {Beam.width}"},
+        show=lambda e: "" if isinstance(e.branching, Exhaustive) else f"branching=beam({e.branching.width})"))
     capacity: int = eqx.field(default=64, static=True)
-    prune_ratio: float = eqx.field(default=150.0, static=True)
-    gate: int | None = eqx.field(default=None, static=True)
-    clutter: float | str | None = eqx.field(default=CLUTTER_FROM_FILE, static=True)
+    prune_ratio: float = eqx.field(default=150.0, static=True, metadata=setting(PRUNE_RATIO, note="the paper's {default}"))
+    gate: int | None = eqx.field(default=None, static=True, metadata=setting(
+        GATE, show=lambda e: "" if e.gate is None else f"gate_candidates={e.gate}"))
+    clutter: float | str | None = eqx.field(default=CLUTTER_FROM_FILE, static=True,
+                                            metadata=setting(note="a known or an unknown map"))
     gn_max_steps: int = eqx.field(default=50, static=True)
     smoother: Smoother = Full()
     classifier: str | ClassifierModel | None = None
     max_detections: int | None = eqx.field(default=None, static=True)
     max_steps: int | None = eqx.field(default=None, static=True)
-    visibility_temperature: float | tuple[float, float] | None = eqx.field(default=None, static=True)
+    visibility_temperature: float | tuple[float, float] | None = eqx.field(
+        default=None, static=True, metadata=setting(VISIBILITY_TEMPERATURE))
     batch_axis: str | None = eqx.field(default=None, static=True)
 
     name: ClassVar[str] = "hybrid"
+    title: ClassVar[str] = "hybrid belief"
     reference: ClassVar[str] = "Tchuiev et al. 2019, Alg. 1"
+    described = ("weights", "capacity", "prune_ratio", "gate", "branching", "clutter", "smoother")
 
     def __check_init__(self):
         if not isinstance(self.branching, (Exhaustive, Beam)):
@@ -163,18 +196,6 @@ class Hybrid(AbstractEstimator):
         best = best_slot(state.log_weights)
         count = jnp.asarray(state.num_objects) if state.num_created is None else state.num_created[best]
         return state.mean[best, 3:].reshape(-1, 3), count
-
-    def describe(self, scenario: Scenario | None = None) -> str:
-        return (
-            f"hybridslam {__version__} hybrid belief ({self.reference}); "
-            f"classifier={classifier_name(self.classifier, scenario)}, "
-            f"weights={self.weights.name}, samples={self.weights.draws}, capacity={self.capacity}, "
-            f"prune_ratio={self.prune_ratio:g}"
-            + ("" if self.gate is None else f", gate_candidates={self.gate}")
-            + ("" if isinstance(self.branching, Exhaustive) else f", branching=beam({self.branching.width})")
-            + clutter_text(self.clutter, scenario)
-            + f", smoother={self.smoother.name}"
-        )
 
     def with_batch_axis(self, axis_name: str | None) -> Hybrid:
         return dataclasses.replace(self, batch_axis=axis_name)
