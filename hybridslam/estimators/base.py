@@ -260,6 +260,26 @@ def clutter_text(setting: Any, scenario: Scenario | None) -> str:
     return "" if value is None else f", clutter={value:g}"
 
 
+def object_slots(scenario: Scenario) -> int:
+    """The objects an association may name: the known ones, or an unknown map's ``max_objects``.
+    A scenario with none is refused here, at init, naming the field (nothing to associate; a gather
+    over an empty object axis would otherwise fail inside the compiled step)."""
+    n = scenario.num_objects if scenario.discovery is None else scenario.discovery.max_objects
+    if n < 1:
+        raise ValueError("objects: the scenario has no objects and no discovery section to create any")
+    return n
+
+
+def detection_slots(max_detections: int | None, scenario: Scenario) -> int:
+    """The detection slots of a state for ``scenario``: its largest step's, or ``max_detections`` (a
+    shared number that lets files share one compiled step; fewer than a step has are refused)."""
+    slots = max_detections or max(scenario.max_detections, 1)
+    if scenario.max_detections > slots:
+        raise ValueError(f"max_detections: {slots} slots, but a step of the scenario has "
+                         f"{scenario.max_detections} detections")
+    return slots
+
+
 def history_length(max_steps: int | None, scenario: Scenario) -> int:
     """The association-history length of a state for ``scenario``: its steps, or ``max_steps`` (a
     shared length that lets files of different lengths run on one compiled step)."""

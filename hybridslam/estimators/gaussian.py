@@ -69,8 +69,8 @@ from ..models.measurement import Detections
 from ..models.model import Model, model_from_scenario
 from ..models.motion import propagate
 from ..models.classifier import ClassifierModel
-from .base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, history_length,
-                   lacks_object_slots, resolve_clutter)
+from .base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, detection_slots,
+                   history_length, lacks_object_slots, object_slots, resolve_clutter)
 from .options import GATE, MAX_CHILDREN, Option, setting
 from .smoothing import (DataLog, Factors, Filter, Full, Lag, Smoother, WindowPrior, active_history, data_log,
                         factor_budget, initial_trajectory, initial_window, new_overflow, smooth_step)
@@ -215,13 +215,8 @@ class SingleGaussian(AbstractEstimator):
         """The belief before step 1: the priors of the scenario's objects, then uncreated slots."""
         disc = scenario.discovery
         n, m = scenario.num_objects, scenario.num_classes
-        n_max = n if disc is None else disc.max_objects
-        if n_max < 1:
-            raise ValueError("objects: the scenario has no objects and no discovery section to create any")
-        slots = self.max_detections or max(scenario.max_detections, 1)
-        if scenario.max_detections > slots:
-            raise ValueError(f"max_detections: {slots} slots, but a step of the scenario has "
-                             f"{scenario.max_detections} detections")
+        n_max = object_slots(scenario)
+        slots = detection_slots(self.max_detections, scenario)
         clutter = self._clutter(scenario)
         model = model_from_scenario(scenario.replace(discovery=None), self.classifier)
         uniform = np.full(m, -math.log(m))

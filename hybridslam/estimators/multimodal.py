@@ -131,8 +131,8 @@ from ..models.measurement import Detections, SensorModel, log_visibility, log_vi
 from ..models.model import Model, model_from_scenario
 from ..inference.batching import map_live, smoothing_chunk
 from ..inference.ties import best_slot, rank_key
-from .base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, history_length,
-                   lacks_object_slots, relevant_children, resolve_clutter)
+from .base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, detection_slots,
+                   history_length, lacks_object_slots, object_slots, relevant_children, resolve_clutter)
 from .options import GATE, MAX_CHILDREN, Option, setting
 from .smoothing import (DataLog, Filter, Full, Lag, Smoother, WindowPrior, data_log, factor_budget,
                         history_factors, initial_trajectory, initial_window, new_overflow, smooth_step)
@@ -938,17 +938,12 @@ class Multimodal(AbstractEstimator):
         return resolve_clutter(self.clutter, scenario)
 
     def _structure(self, scenario: Scenario) -> Structure:
-        n_max = scenario.discovery.max_objects if scenario.discovery is not None else scenario.num_objects
-        if n_max < 1:
-            raise ValueError("multimodal: the scenario has no objects and no discovery section (nothing to associate)")
+        n_max = object_slots(scenario)
         clutter = self._clutter(scenario)
         if clutter is not None and scenario.discovery is not None:
             raise ValueError("multimodal: --clutter is for a known map; on an unknown map (a discovery section) a "
                              "detection of no known object creates one (the null hypothesis, thesis Sec. 3.2.1)")
-        slots = self.max_detections or max(scenario.max_detections, 1)
-        if scenario.max_detections > slots:
-            raise ValueError(f"max_detections: {slots} slots, but a step of the scenario has "
-                             f"{scenario.max_detections} detections")
+        slots = detection_slots(self.max_detections, scenario)
         candidates = min(self.candidates, n_max)
         assignments = (candidates + 1) ** slots if self.max_assignments is None else self.max_assignments
         children = min(2 * self.capacity if self.children is None else self.children, self.capacity * assignments)

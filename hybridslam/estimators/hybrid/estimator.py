@@ -17,8 +17,8 @@ from ...models.measurement import Detections
 from ...models.model import NewObjects, model_from_scenario
 from ..options import GATE, MAX_CHILDREN, SAMPLES, Option, setting
 from ..smoothing import Filter, Full, Lag, Smoother, data_log, factor_budget, initial_trajectory, initial_window
-from ..base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, history_length,
-                    resolve_clutter)
+from ..base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, detection_slots,
+                    history_length, object_slots, resolve_clutter)
 from ...inference.ties import best_slot
 from .belief import Belief, init_belief, priors_from_scenario
 from .branching import Beam, Branching, Exhaustive
@@ -146,10 +146,7 @@ class Hybrid(AbstractEstimator):
 
     def init(self, scenario: Scenario) -> Belief:
         """One component of weight 1, every class open (Eq. 3), sized for ``scenario``."""
-        if (scenario.num_objects if scenario.discovery is None else scenario.discovery.max_objects) < 1:
-            # Nothing to associate: the same refusal as the other estimators', instead of a gather
-            # over an empty object axis failing inside the compiled step.
-            raise ValueError("objects: the scenario has no objects and no discovery section to create any")
+        object_slots(scenario)  # a scenario with nothing to associate is refused
         model = model_from_scenario(scenario, self.classifier, self.prune_ratio, self.visibility_temperature)
         clutter = resolve_clutter(self.clutter, scenario)
         if clutter is not None:
@@ -159,10 +156,7 @@ class Hybrid(AbstractEstimator):
             f = lambda a: jnp.asarray(a, dtype=float)  # noqa: E731
             model = eqx.tree_at(lambda m: m.clutter, model, NewObjects(f(clutter), f(math.pi**2)),
                                 is_leaf=lambda x: x is None)
-        slots = self.max_detections or max(scenario.max_detections, 1)
-        if scenario.max_detections > slots:
-            raise ValueError(f"max_detections: {slots} slots, but a step of the scenario has "
-                             f"{scenario.max_detections} detections")
+        slots = detection_slots(self.max_detections, scenario)
         steps = history_length(self.max_steps, scenario)
         belief = init_belief(priors_from_scenario(scenario), model, self.capacity, steps, slots)
         if isinstance(self.smoother, Filter):
