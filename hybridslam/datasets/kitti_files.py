@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .textfile import read_ascii
+
 CLASSES = ("Car", "Pedestrian", "Cyclist")  # class 0, 1, 2
 DETECTOR_TYPE_IDS = {1: "Pedestrian", 2: "Car", 3: "Cyclist"}  # AB3DMOT's det_id2str
 
@@ -25,16 +27,7 @@ class KITTIError(ValueError):
 
 
 def _lines(path: str):
-    try:
-        with open(path, encoding="ascii") as f:
-            text = f.read()
-    except FileNotFoundError:
-        raise KITTIError(f"{path}: no such file") from None
-    except UnicodeDecodeError:
-        raise KITTIError(f"{path}: not an ASCII text file") from None
-    except OSError as e:
-        raise KITTIError(f"{path}: cannot read: {e.strerror or e}") from None
-    for lineno, line in enumerate(text.splitlines(), 1):
+    for lineno, line in enumerate(read_ascii(path, KITTIError).splitlines(), 1):
         if line.strip():
             yield lineno, line.strip()
 

@@ -105,6 +105,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ..io.scenario import Classifier, Detection, Discovery, Scenario, Step
+from .textfile import read_ascii
 
 ROBOTS = (1, 2, 3, 4, 5)  # MRCLAM subjects 1-5 are robots
 NOISE_SOURCES = ("written", "raw")  # what geometric_cov is calibrated from (import_mrclam)
@@ -154,19 +155,11 @@ def read_table(path: str, columns: int, what: str) -> Table:
     line) when it is missing, unreadable or holds a line that is not ``columns`` finite numbers.
     """
     rows, lines = [], []
-    try:
-        with open(path, encoding="ascii", newline=None) as f:
-            for lineno, line in enumerate(f, 1):
-                text = line.strip()
-                if text and not text.startswith("#"):
-                    rows.append(_numbers(text, columns, what, path, lineno))
-                    lines.append(lineno)
-    except FileNotFoundError:
-        raise MRCLAMError(f"{path}: no such file") from None
-    except UnicodeDecodeError:
-        raise MRCLAMError(f"{path}: not an ASCII text file") from None
-    except OSError as e:
-        raise MRCLAMError(f"{path}: cannot read: {e.strerror or e}") from None
+    for lineno, line in enumerate(read_ascii(path, MRCLAMError).split("\n"), 1):
+        text = line.strip()
+        if text and not text.startswith("#"):
+            rows.append(_numbers(text, columns, what, path, lineno))
+            lines.append(lineno)
     return Table(path, np.array(rows, dtype=np.float64).reshape(len(rows), columns), np.array(lines))
 
 
