@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -105,42 +106,60 @@ def mrclam_summary(path: str, s: Scenario) -> str:
     return "\n".join(lines)
 
 
+def _noise(args: argparse.Namespace) -> dict[str, Any]:
+    """``--motion-cov`` and ``--geometric-cov`` as covariances (``None``: the importer's own)."""
+    return {"motion_cov": _variances(args.motion_cov, 3, "--motion-cov"),
+            "geometric_cov": _variances(args.geometric_cov, 2, "--geometric-cov")}
+
+
+def _write(output: str, build: Callable[[], Scenario], error: type[ValueError],
+           summary: Callable[[str, Scenario], str]) -> int:
+    """Import (``build``), write the scenario to ``output`` and print its ``summary``; the importer's
+    ``error`` is a :class:`CLIError` (checked first: ``output`` can be written)."""
+    check_writable(output)
+    try:
+        scenario = build()
+    except error as e:
+        raise CLIError(str(e)) from None
+    save_scenario(scenario, output)
+    print(summary(output, scenario))
+    return 0
+
+
 def cmd_import_mrclam(args: argparse.Namespace) -> int:
     """Write one robot's MRCLAM log as a scenario file and print a summary."""
-    covs: dict[str, Any] = {"motion_cov": _variances(args.motion_cov, 3, "--motion-cov"),
-            "geometric_cov": _variances(args.geometric_cov, 2, "--geometric-cov"),
-            "robot_prior_cov": _variances(args.robot_prior_cov, 3, "--robot-prior-cov")}
-    check_writable(args.output)
-    try:
-        scenario = import_mrclam(
-            args.dataset, args.robot, start=args.start, duration=args.duration, dt=args.dt,
-            unknown_map=args.unknown_map, max_range=args.max_range, fov=args.fov,
-            correct_range_bias=args.correct_range_bias, motion_compensation=args.motion_compensation,
-            odometry_delay=args.odometry_delay, max_objects=args.max_objects,
-            measurement_noise_from=args.measurement_noise_from, motion_noise_from=args.motion_noise_from,
-            identity_filter=args.identity_filter, merge_repeats=args.merge_repeats,
-            clutter_log_density=args.clutter_log_density, **covs)
-    except MRCLAMError as e:
-        raise CLIError(str(e)) from None
-    save_scenario(scenario, args.output)
-    print(mrclam_summary(args.output, scenario))
-    return 0
+    covs = {**_noise(args), "robot_prior_cov": _variances(args.robot_prior_cov, 3, "--robot-prior-cov")}
+    return _write(args.output, lambda: import_mrclam(
+        args.dataset, args.robot, start=args.start, duration=args.duration, dt=args.dt,
+        unknown_map=args.unknown_map, max_range=args.max_range, fov=args.fov,
+        correct_range_bias=args.correct_range_bias, motion_compensation=args.motion_compensation,
+        odometry_delay=args.odometry_delay, max_objects=args.max_objects,
+        measurement_noise_from=args.measurement_noise_from, motion_noise_from=args.motion_noise_from,
+        identity_filter=args.identity_filter, merge_repeats=args.merge_repeats,
+        clutter_log_density=args.clutter_log_density, **covs), MRCLAMError, mrclam_summary)
+
+
+def _source(sources: argparse._SubParsersAction, name: str, summary: str, description: str,
+            dataset: tuple[str, str], part: tuple[str, str]) -> argparse.ArgumentParser:
+    """An ``import`` subcommand with what every one takes: its data folder (``dataset``: metavar,
+    help), the part of it to write (``part``: an int option, its help) and ``-o``."""
+    p = sources.add_parser(name, help=summary, description=description)
+    p.add_argument("dataset", metavar=dataset[0], help=dataset[1])
+    p.add_argument(part[0], type=int, required=True, help=part[1])
+    p.add_argument("-o", "--output", required=True, help="scenario file to write")
+    return p
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add ``import`` (with its ``mrclam`` and ``kitti-tracking`` subcommands) to the ``hybridslam`` subcommands."""
     p = subparsers.add_parser("import", help="write a real-robot log as a scenario file (MRCLAM, KITTI tracking)")
     sources = p.add_subparsers(dest="source", required=True, metavar="{mrclam,kitti-tracking}")
-    m = sources.add_parser(
-        "mrclam", help="one robot of a UTIAS MRCLAM dataset folder",
-        description="One robot's log of a UTIAS MRCLAM dataset folder as a scenario: a step every --dt "
-                    "seconds, exact odometry arcs, landmark detections, noise calibrated from the ground "
-                    "truth.")
-    m.add_argument("dataset", metavar="DATASET_DIR",
-                   help="folder with Barcodes.dat, Landmark_Groundtruth.dat, "
-                        "RobotN_{Odometry,Measurement,Groundtruth}.dat")
-    m.add_argument("--robot", type=int, required=True, help="robot 1-5")
-    m.add_argument("-o", "--output", required=True, help="scenario file to write")
+    m = _source(sources, "mrclam", "one robot of a UTIAS MRCLAM dataset folder",
+                "One robot's log of a UTIAS MRCLAM dataset folder as a scenario: a step every --dt seconds, "
+                "exact odometry arcs, landmark detections, noise calibrated from the ground truth.",
+                ("DATASET_DIR", "folder with Barcodes.dat, Landmark_Groundtruth.dat, "
+                                "RobotN_{Odometry,Measurement,Groundtruth}.dat"),
+                ("--robot", "robot 1-5"))
     m.add_argument("--start", type=float, default=0.0,
                    help="x_0 this many seconds after the robot's first odometry record (default 0)")
     m.add_argument("--duration", type=float, default=None,
@@ -210,35 +229,23 @@ def kitti_summary(path: str, s: Scenario) -> str:
 
 def cmd_import_kitti(args: argparse.Namespace) -> int:
     """Write one KITTI tracking sequence as a scenario file and print a summary."""
-    motion = _variances(args.motion_cov, 3, "--motion-cov")
-    geometric = _variances(args.geometric_cov, 2, "--geometric-cov")
-    check_writable(args.output)
-    try:
-        scenario = import_kitti(
-            args.dataset, args.sequence, unknown_map=args.unknown_map, start=args.start, end=args.end,
-            every=args.every, odometry=args.odometry, seed=args.seed, max_range=args.max_range, fov=args.fov,
-            min_logit=args.min_logit, merge_radius=args.merge_radius, match_iou=args.match_iou,
-            static_tolerance=args.static_tolerance, motion_cov=motion, geometric_cov=geometric,
-            max_objects=args.max_objects)
-    except KITTIError as e:
-        raise CLIError(str(e)) from None
-    save_scenario(scenario, args.output)
-    print(kitti_summary(args.output, scenario))
-    return 0
+    covs = _noise(args)
+    return _write(args.output, lambda: import_kitti(
+        args.dataset, args.sequence, unknown_map=args.unknown_map, start=args.start, end=args.end,
+        every=args.every, odometry=args.odometry, seed=args.seed, max_range=args.max_range, fov=args.fov,
+        min_logit=args.min_logit, merge_radius=args.merge_radius, match_iou=args.match_iou,
+        static_tolerance=args.static_tolerance, max_objects=args.max_objects, **covs), KITTIError, kitti_summary)
 
 
 def register_kitti(sources: argparse._SubParsersAction) -> None:
     """Add ``import kitti-tracking``."""
-    k = sources.add_parser(
-        "kitti-tracking", help="one KITTI tracking sequence with PointRCNN detections",
-        description="One KITTI tracking sequence as a scenario: planar IMU poses, PointRCNN detections "
-                    "(three detectors merged) as range, bearing and class scores, the static labelled "
-                    "objects as the map (docs/studies/kitti.md says how to assemble DIR).")
-    k.add_argument("dataset", metavar="DIR",
-                   help="folder with label_02/, calib/, detections/pointrcnn_{Car,Pedestrian,Cyclist}_val/, "
-                        "egomotion/ and orbslam3/NNNN/CameraTrajectory.txt")
-    k.add_argument("--sequence", type=int, required=True, help="sequence number (0 for 0000)")
-    k.add_argument("-o", "--output", required=True, help="scenario file to write")
+    k = _source(sources, "kitti-tracking", "one KITTI tracking sequence with PointRCNN detections",
+                "One KITTI tracking sequence as a scenario: planar IMU poses, PointRCNN detections (three "
+                "detectors merged) as range, bearing and class scores, the static labelled objects as the map "
+                "(docs/studies/kitti.md says how to assemble DIR).",
+                ("DIR", "folder with label_02/, calib/, detections/pointrcnn_{Car,Pedestrian,Cyclist}_val/, "
+                        "egomotion/ and orbslam3/NNNN/CameraTrajectory.txt"),
+                ("--sequence", "sequence number (0 for 0000)"))
     k.add_argument("--unknown-map", action="store_true",
                    help="no prior objects: a discovery section, the static objects under true_objects")
     k.add_argument("--max-objects", type=int, default=None, metavar="N",
