@@ -5,7 +5,9 @@
 
 Every subcommand of ``hybridslam`` (``hybridslam.cli.build_parser``) gets a section with its
 one-line description, a synopsis and a table of its arguments (names, value, default, help text),
-so the page cannot drift from the options that exist: ``tests/test_docs_blocks.py`` runs the check.
+and a last section lists every estimator option (``make_estimator`` keywords, read off the estimator
+classes' fields), so the page cannot drift from the options that exist: ``tests/test_docs_blocks.py``
+runs the check.
 """
 
 from __future__ import annotations
@@ -77,6 +79,23 @@ def _section(prog: str, summary: str, parser: argparse.ArgumentParser, level: in
     return lines
 
 
+def _estimator_options() -> list[str]:
+    """Every estimator option (``make_estimator`` keywords), read off the registered estimators' fields."""
+    from hybridslam.estimators.options import option_help
+    from hybridslam.estimators.registry import ESTIMATORS, estimator_options
+
+    lines = ["## Estimator options", "",
+             "Every option of every estimator, read off the estimator classes' fields "
+             "(`hybridslam/estimators/options.py`): `hs.make_estimator(name, **options)` takes them by name, "
+             "the commands above the ones with a flag. An option an estimator has no use for is an error "
+             "naming it.", "",
+             "| option | flag | what it does |", "|---|---|---|"]
+    for name, option in estimator_options().items():
+        flag = f"`{option.flag}`" if option.command_line else ""
+        lines.append(f"| `{name}` | {flag} | {_cell(option_help(option, ESTIMATORS))} |")
+    return lines + [""]
+
+
 def render() -> str:
     from hybridslam.cli import build_parser
 
@@ -84,6 +103,7 @@ def render() -> str:
     lines = [HEADER.rstrip("\n"), ""]
     for name, (summary, sub) in _subparsers(parser).items():
         lines += _section(f"hybridslam {name}", summary, sub, 2)
+    lines += _estimator_options()
     return "\n".join(lines).rstrip("\n") + "\n"
 
 

@@ -891,7 +891,7 @@ class Multimodal(AbstractEstimator):
                              metadata=setting(note="per child, default {default}", show="num_samples"))
     candidates: int = eqx.field(default=DEFAULT_CANDIDATES, static=True, metadata=setting(GATE))
     children: int | None = eqx.field(default=None, static=True, metadata=setting(
-        MAX_CHILDREN, note="children updated, default 2 x capacity",
+        MAX_CHILDREN, note="children that get a Gauss-Newton update, default 2 x capacity",
         show=lambda e: f"children={2 * e.capacity if e.children is None else e.children}"))
     merge_threshold: float = eqx.field(default=DEFAULT_MERGE_THRESHOLD, static=True, metadata=setting(
         Option("merge_threshold", "squared Mahalanobis distance below which components merge", parse=float,

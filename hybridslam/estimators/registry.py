@@ -46,17 +46,10 @@ def make_estimator(name: str, scenario: Scenario | None = None, profile: str | N
     loop closure during the run, which that profile may also choose, is not part of an estimator:
     ``recommended(scenario).close_loops``. Without ``scenario``, the estimator's own defaults.
 
-    The options are those of the estimator class's fields (:mod:`.options`; ``hybridslam run
-    --help`` lists the command-line ones with what each means for each estimator): ``classifier``,
-    ``gn_max_steps``, ``max_detections``, ``max_steps``, ``smoother`` (``"full"``, ``"lag:L"``,
-    ``"filter"`` or the object), ``clutter`` (a clutter log density, ``"none"``, or ``"file"``,
-    the default: the scenario's ``sensor.clutter_log_density``) for every estimator; ``capacity``
-    and ``samples`` (hybrid, multimodal); ``gate`` (the candidate objects per detection);
-    ``max_children`` (the hybrid's beam width, ml/gpda/max-mixture's joint hypotheses,
-    multimodal's updated children); ``weights``, ``prune_ratio``, ``exhaustive``,
-    ``visibility_temperature`` (hybrid); ``gate_probability`` (ml, gpda, max-mixture);
-    ``merge_threshold``, ``association_prior``, ``proposal`` (multimodal). An option the
-    estimator has no use for is an error naming it.
+    The options are read off the estimator class's fields (:mod:`.options`; every one, with what it
+    means for each estimator: ``docs/cli.md``, "Estimator options", or :func:`estimator_options`);
+    ``smoother`` may be its command-line text (``"lag:50"``). An option the estimator has no use
+    for is an error naming it.
     """
     if name not in ESTIMATORS:
         raise ValueError(f"estimator: unknown {name!r} (known: {', '.join(ESTIMATORS)})")

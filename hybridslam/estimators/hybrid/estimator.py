@@ -38,8 +38,9 @@ WEIGHTS = Option("weights", "association weights: laplace-is (low-variance Eq. 1
 EXHAUSTIVE = Option("exhaustive", "enumerate every child (exponential in the detections; the exact reference)",
                     parse=None)
 PRUNE_RATIO = Option("prune_ratio", "drop components below w_max / ratio", parse=float)
-VISIBILITY_TEMPERATURE = Option("visibility_temperature", "the smooth object observation model's temperature",
-                                parse=float, command_line=False)
+VISIBILITY_TEMPERATURE = Option("visibility_temperature", "tau_r or (tau_r, tau_b) of the smooth object observation "
+                                                          "model (docs/gradients.md)",
+                                parse=float, none="the paper's 0/1 footprint", command_line=False)
 
 
 def _weigher(weights: str = LaplaceIS.name, samples: int | None = None) -> AbstractWeigher:
