@@ -123,3 +123,10 @@ def test_the_help_groups_estimators_by_what_an_option_means_for_them():
     assert option_help(gate, estimators, default="5").endswith("(default 5)")
     smoother = all_options(estimators)["smoother"]
     assert option_help(smoother, estimators).endswith("(default full)")  # the same for every estimator: no names
+
+
+@pytest.mark.parametrize("name", list(TAKEN))
+def test_a_scenario_with_more_detections_than_slots_is_refused_by_name(name):
+    scenario = hs.simulate(seed=0, steps=3)  # a step with 2 detections
+    with pytest.raises(ValueError, match="max_detections: 1 slots, but a step of the scenario has 2 detections"):
+        hs.make_estimator(name, max_detections=1).init(scenario)
