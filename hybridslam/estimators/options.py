@@ -149,8 +149,10 @@ SHARED: dict[str, Option] = {o.name: o for o in (CAPACITY, SAMPLES, GATE, MAX_CH
 def field_setting(field: dataclasses.Field) -> Setting:
     """A field's :class:`Setting`: its metadata's, else the shared option of its name, else none."""
     own = field.metadata.get(SETTING)
-    if own is not None:
-        return own if own.options or field.name not in SHARED else dataclasses.replace(own, options=(SHARED[field.name],))
+    if own is not None and (own.options or field.name not in SHARED):
+        return own
+    if own is not None:  # metadata that only says how the field is shown or noted
+        return dataclasses.replace(own, options=(SHARED[field.name],))
     return Setting((SHARED[field.name],)) if field.name in SHARED else Setting()
 
 

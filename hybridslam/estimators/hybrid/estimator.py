@@ -105,7 +105,8 @@ class Hybrid(AbstractEstimator):
         MAX_CHILDREN, EXHAUSTIVE, build=_branching, note={"max_children": f"children, default {Beam.width}"},
         show=lambda e: "" if isinstance(e.branching, Exhaustive) else f"branching=beam({e.branching.width})"))
     capacity: int = eqx.field(default=64, static=True)
-    prune_ratio: float = eqx.field(default=150.0, static=True, metadata=setting(PRUNE_RATIO, note="the paper's {default}"))
+    prune_ratio: float = eqx.field(default=150.0, static=True,
+                                   metadata=setting(PRUNE_RATIO, note="the paper's {default}"))
     gate: int | None = eqx.field(default=None, static=True, metadata=setting(
         GATE, show=lambda e: "" if e.gate is None else f"gate_candidates={e.gate}"))
     clutter: float | str | None = eqx.field(default=CLUTTER_FROM_FILE, static=True,
