@@ -10,6 +10,8 @@ from typing import Any
 
 from tqdm import tqdm
 
+from ..estimators.options import options_of
+from ..estimators.registry import ESTIMATORS
 from ..io.scenario import ScenarioError
 from ..studies import study
 from ..studies.batch import device_mesh
@@ -72,7 +74,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         except ValueError as e:
             raise CLIError(str(e)) from None
     capacity = args.capacity
-    if capacity is None and args.estimator in ("hybrid", "multimodal"):
+    if capacity is None and "capacity" in options_of(ESTIMATORS[args.estimator]):
         capacity = SWEEP_CAPACITY
     estimator = estimator_from_args(args, capacity=capacity)
     models = _models(args.models)
