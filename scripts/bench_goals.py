@@ -55,8 +55,8 @@ import time
 import numpy as np
 
 import hybridslam as hs
-from hybridslam.analysis.trajectory import error_summary
 from hybridslam import driver
+from hybridslam.analysis.trajectory import error_summary
 from hybridslam.driver import clear_compiled
 from hybridslam.estimators.smoothing import Filter, Full
 from hybridslam.sim import hallway

@@ -151,7 +151,7 @@ def gauss_logpdf(r, cov):
 class Component:
     """One hypothesis: weight, class realization (``-1`` open), association history, EKF."""
 
-    __slots__ = ("log_w", "classes", "history", "mean", "cov")
+    __slots__ = ("classes", "cov", "history", "log_w", "mean")
 
     def __init__(self, log_w, classes, history, mean, cov):
         self.log_w, self.classes, self.history, self.mean, self.cov = log_w, classes, history, mean, cov
@@ -191,7 +191,7 @@ def log_likelihood_table(sc: Scenario, samples, geo, scores):
     return table, visible
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _grid(n: int, j_count: int, m: int) -> tuple[np.ndarray, np.ndarray]:
     """Every injective assignment of ``j_count`` detections to ``n`` objects, ``(P, J)``, and every
     class per slot, ``(M^J, J)``."""
@@ -369,7 +369,7 @@ def generate(seed: int, steps: int = 10, alpha: float = 0.25, k: float = 15.0, m
                 dets.append({"range": max(z[0], 0.0), "bearing": z[1], "scores": s.tolist(), "true_object": n})
         order = g.permutation(len(dets))[:max_detections]
         out_steps.append({"odometry": odometry, "detections": [dets[i] for i in order]})
-    diag = lambda v: np.diag(v).tolist()  # noqa: E731
+    diag = lambda v: np.diag(v).tolist()
     return {
         "format": "hybridslam-scenario/1",
         "generator": f"scripts/numpy_reference.py generate seed={seed} steps={steps} alpha={alpha} K={k}",

@@ -54,7 +54,7 @@ def test_numpy_reference_agrees_with_hybridslam_run(tmp_path, file_seed):
     ours = [_hybrid_weights(hs.run(est, hs.load_scenario(path), seed=s)) for s in SEEDS]
     theirs = [_reference_weights(ref.run(sc, samples=1000, capacity=8, seed=s)) for s in SEEDS]
     keys = sorted(set().union(*ours, *theirs))
-    mean = lambda runs: np.mean([[r.get(k, 0.0) for k in keys] for r in runs], axis=0)  # noqa: E731
+    mean = lambda runs: np.mean([[r.get(k, 0.0) for k in keys] for r in runs], axis=0)
     a, b = mean(ours), mean(theirs)
     assert len(keys) >= 3 and np.sort(b)[-2] > 0.1  # an ambiguous file: several hypotheses of weight
     np.testing.assert_allclose(a, b, atol=0.05)

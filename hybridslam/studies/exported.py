@@ -133,10 +133,9 @@ def _load_or_export(fn: Callable, args: tuple, path: str) -> tuple[Callable, flo
         exported = None  # no file yet, or one this version cannot read: export it again
     if exported is not None:
         try:
-            program = _compile(exported, leaves, out_skeleton, quick=False)
-            return program, time.perf_counter() - t0
+            return _compile(exported, leaves, out_skeleton, quick=False), time.perf_counter() - t0
         except Exception:  # noqa: BLE001 - a stale export must never stop a study: trace it instead
-            pass
+            exported = None
     treedef = jax.tree_util.tree_structure(dynamic)
     out_tree: list = []  # the output's structure, seen while tracing (no second trace for it)
 
@@ -153,7 +152,7 @@ def _load_or_export(fn: Callable, args: tuple, path: str) -> tuple[Callable, flo
         blob = _serialize(exported)
         exported = _deserialize(pickle.loads(pickle.dumps(blob)))  # what a later process compiles: the same executable
         program = _compile(exported, leaves, out_skeleton, quick=False)
-    except Exception as e:  # noqa: BLE001 - jax.export refused the program (e.g. a host callback): no export
+    except Exception:  # noqa: BLE001 - jax.export refused the program (e.g. a host callback): no export
         return compiled(fn, *args)
     try:
         os.makedirs(os.path.dirname(path), exist_ok=True)
