@@ -22,8 +22,20 @@ Workloads:
   --samples 1000`` in a fresh process, once per ``--batching`` strategy, each twice on one
   persistent compilation cache (cold, then warm: the issue's end to end), beside the same files one
   at a time (``hs.run_many``: one compile, then each file's steps as ``hybridslam.run`` runs them).
+* ``files-reference``: issue 48's goal, measured. 64 ten-step files of ``scripts/numpy_reference.py
+  generate`` (a generator that is not ``hs.simulate``: the paper's layout, robot prior variances 1, 1,
+  0.04, ``mirror`` at alpha 0.25, 0-3 detections per step), run end to end in fresh processes, in
+  alternation: the numpy reference (``numpy_reference.py run``, one EKF per hypothesis, 1000 draws),
+  ``hybridslam sweep --scenarios DIR --samples 1000`` cold then warm on one persistent cache (with
+  ``--repeats R``: R warm sweeps, each beside a reference run), and ``hybridslam run`` on two of the
+  files with the sweep's settings (its result's per-step times). Prints wall and CPU seconds of
+  every process, the batched work per track-step, a warm sweep's start-up (end to end minus the
+  batched work: imports, reading files, tracing, loading the executable, writing results), the
+  goals' ratios (reference / warm sweep end to end, goal >= 3; batched per track-step / single-run
+  step, goal <= 1) and whether the sweep's results agree with the reference (best hypothesis,
+  class posterior).
 
-    python scripts/bench_goals.py [--workloads paper4,paper,hallway,mrclam,files,files-hard] [--mrclam DIR]
+    python scripts/bench_goals.py [--workloads paper4,paper,hallway,mrclam,files,files-hard,files-reference] [--mrclam DIR]
         [--repeats 2] [--smoothers full,lag:10,filter] [--batching auto,vmap] [--hard-files 64]
 """
 
@@ -31,6 +43,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import os
 import re
 import resource
@@ -42,8 +55,8 @@ import time
 import numpy as np
 
 import hybridslam as hs
-from hybridslam.analysis.trajectory import error_summary
 from hybridslam import driver
+from hybridslam.analysis.trajectory import error_summary
 from hybridslam.driver import clear_compiled
 from hybridslam.estimators.smoothing import Filter, Full
 from hybridslam.sim import hallway
@@ -147,16 +160,105 @@ def _files_hard(count: int, strategies: list[str]) -> None:
         clear_compiled()
 
 
+def _timed(cmd: list[str], env: dict | None = None) -> tuple[subprocess.CompletedProcess, float, float]:
+    """Run ``cmd`` to its end; the process, its wall seconds and its CPU seconds (children included)."""
+    t0, cpu0 = time.perf_counter(), _children_cpu()
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
+    wall, cpu = time.perf_counter() - t0, _children_cpu() - cpu0
+    if done.returncode:
+        raise RuntimeError(f"{' '.join(cmd)} failed:\n{done.stdout[-2000:]}{done.stderr[-2000:]}")
+    return done, wall, cpu
+
+
+def _agreement(results: str, reference: dict) -> str:
+    """How the sweep's final beliefs compare with the numpy reference's: files whose best hypothesis
+    (association history) is the reference's, and the largest difference of a class posterior."""
+    same, worst, count = 0, 0.0, 0
+    for path, ref in reference.items():
+        r = hs.load_result(os.path.join(results, os.path.basename(path)))
+        comps = r.steps[-1].components
+        same += [[int(o) for o in a] for a in comps[0].associations] == ref["best_associations"]
+        prior = np.full((len(ref["class_posterior"]), 2), 0.5)
+        post = np.zeros_like(prior)
+        for c in comps:
+            for n, k in enumerate(c.classes):
+                post[n] += c.weight * (prior[n] if k < 0 else np.eye(2)[k])
+        worst = max(worst, float(np.max(np.abs(post - np.asarray(ref["class_posterior"])))))
+        count += 1
+    return f"best hypothesis equal on {same} of {count} files, class posteriors within {worst:.3f}"
+
+
+def _files_reference(count: int, repeats: int) -> None:
+    """The ``files-reference`` workload (module docstring)."""
+    script = os.path.join(os.path.dirname(os.path.abspath(__file__)), "numpy_reference.py")
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = os.path.join(tmp, "files")
+        subprocess.run([sys.executable, script, "generate", folder, "--count", str(count)], check=True,
+                       capture_output=True)
+        steps = sum(hs.load_scenario(os.path.join(folder, f)).num_steps for f in os.listdir(folder))
+        env = dict(os.environ, HYBRIDSLAM_CACHE_DIR=os.path.join(tmp, "cache"))
+        env.pop("JAX_COMPILATION_CACHE_DIR", None)
+        print(f"# files-reference: {count} files of numpy_reference.py generate, {steps} track-steps; "
+              f"hybridslam sweep --scenarios DIR --samples 1000 (hybrid, capacity 16, laplace-is, full smoother) "
+              f"against numpy_reference.py run (capacity 16, 1000 draws, filter)", flush=True)
+        refs, warm = [], []
+        summary = os.path.join(tmp, "reference.json")
+
+        def reference() -> None:
+            _, wall, cpu = _timed([sys.executable, script, "run", folder, "-q", "-o", summary])
+            refs.append((wall, cpu))
+            print(f"files-reference numpy reference: end to end {wall:.1f} s ({cpu:.1f} CPU s)", flush=True)
+
+        def sweep(label: str) -> str:
+            out = os.path.join(tmp, f"out-{label}")
+            done, wall, cpu = _timed([sys.executable, "-m", "hybridslam", "sweep", "--scenarios", folder,
+                                      "--samples", "1000", "-o", out], env)
+            found = re.search(r"compile ([0-9.]+) s, batched runs ([0-9.]+) s", done.stdout)
+            if not found:
+                raise RuntimeError(f"hybridslam sweep printed no timing:\n{done.stdout[-2000:]}")
+            compile_s, run_s = float(found[1]), float(found[2])
+            if label != "cold":
+                warm.append((wall, cpu, run_s))
+            print(f"files-reference hybridslam sweep {label:<6}: end to end {wall:.1f} s ({cpu:.1f} CPU s); compile "
+                  f"{compile_s:.1f} s, batched work {run_s:.2f} s = {1e3 * run_s / steps:.1f} ms per track-step; "
+                  f"start-up and writing {wall - run_s:.1f} s", flush=True)
+            return os.path.join(out, "results")
+
+        reference()
+        results = sweep("cold")
+        for i in range(max(1, repeats)):
+            reference()
+            sweep(f"warm{i + 1}")
+        step_ms = []
+        for name in sorted(os.listdir(folder))[:2]:
+            out = os.path.join(tmp, f"run-{name}")
+            _, wall, cpu = _timed([sys.executable, "-m", "hybridslam", "run", os.path.join(folder, name), "-o", out,
+                                   "--capacity", "16", "--samples", "1000", "--profile", "paper"], env)
+            timing = hs.load_result(out).timing or {"step_s": [np.nan]}
+            step_ms += [1e3 * t for t in timing["step_s"]]
+            print(f"files-reference hybridslam run {name}: end to end {wall:.1f} s ({cpu:.1f} CPU s), compile "
+                  f"{timing.get('compile_s', np.nan):.1f} s, median step {1e3 * np.median(timing['step_s']):.1f} ms",
+                  flush=True)
+        with open(summary) as f:
+            agreement = _agreement(results, json.load(f)["files"])
+        ref_wall, ref_cpu = np.median([r[0] for r in refs]), np.median([r[1] for r in refs])
+        w_wall, w_cpu, w_run = (float(np.median([w[i] for w in warm])) for i in range(3))
+        print(f"files-reference goals: reference / warm sweep end to end {ref_wall / w_wall:.2f}x wall, "
+              f"{ref_cpu / w_cpu:.2f}x CPU (goal >= 3); batched work per track-step {1e3 * w_run / steps:.1f} ms "
+              f"against a single run's median step {np.median(step_ms):.1f} ms (goal: at most); warm start-up "
+              f"(end to end minus batched work) {w_wall - w_run:.1f} s (goal < 5 s); {agreement}", flush=True)
+
+
 def _paper4(seed: int) -> hs.Scenario:
     return hs.simulate(seed, steps=10, setup=hs.PaperSetup(max_detections=4, max_range=12.0))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--workloads", default="paper4,paper,hallway,mrclam,files,files-hard")
+    parser.add_argument("--workloads", default="paper4,paper,hallway,mrclam,files,files-hard,files-reference")
     parser.add_argument("--batching", default="auto,vmap",
                         help="files-hard: the sweep's --batching strategies to measure, comma-separated")
-    parser.add_argument("--hard-files", type=int, default=64, help="files-hard: how many files")
+    parser.add_argument("--hard-files", type=int, default=64, help="files-hard, files-reference: how many files")
     parser.add_argument("--estimators", default="hybrid,ml,gpda,max-mixture,multimodal")
     parser.add_argument("--mrclam", default=None, help="an MRCLAM dataset folder (skip the workload without it)")
     parser.add_argument("--repeats", type=int, default=1)
@@ -219,6 +321,8 @@ def main() -> None:
                       f"(goal 1.1 s); end to end {wall:.1f} s", flush=True)
     if "files-hard" in workloads:
         _files_hard(a.hard_files, a.batching.split(","))
+    if "files-reference" in workloads:
+        _files_reference(a.hard_files, a.repeats)
 
 
 if __name__ == "__main__":

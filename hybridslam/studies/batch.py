@@ -39,10 +39,11 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, Float, Key, UInt32
 
-from ..driver import Inputs, Trace, compiled, inputs_from_scenario, trace_record
+from ..driver import Inputs, Trace, inputs_from_scenario, trace_record
 from ..estimators.base import AbstractEstimator
 from ..io.result import StepRecord
 from ..io.scenario import Scenario
+from .exported import compiled_exported
 from .strategies import BATCH_AXIS, BatchStrategy, MapBatches, VmapBatches, default_strategy
 
 MAX_TRACKS_PER_DEVICE = 64
@@ -222,7 +223,7 @@ def run_batch(estimator: AbstractEstimator, batch: Batch, mesh: Mesh | None = No
                               jax.device_get(batch))
         first = jax.device_put(jax.tree.map(lambda x, width=width: x[:width], padded),
                                NamedSharding(mesh, PartitionSpec(BATCH_AXIS)))
-        executable, seconds = compiled(_run_batch, estimator, first, strategy)
+        executable, seconds = compiled_exported(_run_batch, estimator, first, strategy)
         compile_s += seconds
         need = batch_bytes(executable)
         if need <= budget or width_per_device == 1:
