@@ -74,6 +74,17 @@ on top, CRLF line ends, times in Unix seconds; subjects 1-5 are robots, the rest
   square about zero: an estimator takes the noise as zero-mean, so an uncorrected bias must be
   covered by the variance. MRCLAM ranges are biased (the median residual is reported as
   ``range_bias``); ``correct_range_bias=True`` subtracts it from the ranges instead.
+* **Motion noise with clutter.** A file with a clutter hypothesis gets by default a ``motion_cov``
+  calibrated from the odometry's drift (``motion_noise_from="drift"``, below), the per-step one
+  otherwise. The clutter density is constant and competes with ``N(z; h, S)``: a reading whose
+  innovation lies more than a few sds of ``S`` out is explained as clutter. The per-step
+  calibration undercounts the drift of the velocity commands (errors correlated in time), so after
+  a stretch without landmarks ``S`` is too small for the pose's real error, the readings of the
+  right landmark are explained as clutter, and the estimate is never corrected again (dataset 7,
+  robot 1, 20-120 s: no landmark for the first 28 s, heading 0.39 rad off at 4 sds; 120 of 186
+  landmark readings then called clutter by the hybrid belief, smoothed APE 0.385 m;
+  docs/studies/mrclam_unfiltered.md). Without clutter every reading must be some object's, which
+  pulls the estimate back whatever ``S`` says.
 
 What the data hold (datasets 6 and 7, all robots), and what the import does about it:
 
@@ -178,6 +189,7 @@ __all__ = [
     "compensate",
     "compose",
     "data_span",
+    "default_motion_noise",
     "default_sensor",
     "drift_per_step",
     "import_mrclam",
@@ -250,7 +262,7 @@ def import_mrclam(
     motion_compensation: bool = True,
     odometry_delay: float = 0.0,
     measurement_noise_from: str = "written",
-    motion_noise_from: str = "steps",
+    motion_noise_from: str | None = None,
     landmark_sd_floor: float = 0.01,
     landmark_heading_var: float = math.pi**2,
     discovery_margin: int = 10,
@@ -293,11 +305,13 @@ def import_mrclam(
     * ``measurement_noise_from``: ``"written"`` (default) calibrates ``geometric_cov`` from the
       detections as written, at their step times; ``"raw"`` from the raw measurements at their
       own times (module docstring, Noise).
-    * ``motion_noise_from``: ``"steps"`` (default) calibrates ``motion_cov`` from the per-step
-      odometry residuals; ``"drift"`` takes per component the larger of that and the variance per
-      step that their sums over 5 s imply (``generator.calibration.odometry_drift_sd_per_step``), so
-      that dead reckoning's covariance grows as fast as its error does over seconds (the errors
-      are correlated in time: module docstring). Needs a window of at least 25 s.
+    * ``motion_noise_from``: ``"steps"`` calibrates ``motion_cov`` from the per-step odometry
+      residuals; ``"drift"`` takes per component the larger of that and the variance per step that
+      their sums over 5 s imply (``generator.calibration.odometry_drift_sd_per_step``), so that dead
+      reckoning's covariance grows as fast as its error does over seconds (the errors are
+      correlated in time: module docstring). Needs a window of at least 25 s. Default (``None``):
+      ``"drift"`` when the file declares a clutter hypothesis and the window holds the 25 s,
+      ``"steps"`` otherwise (module docstring, Noise: why clutter needs a consistent covariance).
 
     Everything the import measured (calibration, counts, dead-reckoning error, data gaps) is in
     ``scenario.metadata["generator"]``. Raises :class:`MRCLAMError` (one line naming the file and
@@ -308,7 +322,7 @@ def import_mrclam(
         raise MRCLAMError(f"{folder}: not a dataset folder (no such directory)")
     _check_settings(max_range, fov, landmark_sd_floor, landmark_heading_var, discovery_margin,
                     new_object_log_density, odometry_delay)
-    if motion_noise_from not in MOTION_NOISE_SOURCES:
+    if motion_noise_from is not None and motion_noise_from not in MOTION_NOISE_SOURCES:
         raise MRCLAMError(f"motion_noise_from: expected one of {', '.join(MOTION_NOISE_SOURCES)}, "
                           f"got {motion_noise_from!r}")
     if measurement_noise_from not in NOISE_SOURCES:
@@ -329,8 +343,10 @@ def import_mrclam(
     window = make_window(log_, robot, start, duration, dt, odometry_delay)
     track = _track(log_, barcodes, landmarks, window, odometry_delay, motion_compensation, max_range, fov,
                    identity_filter)
+    motion_source = motion_noise_from or default_motion_noise(
+        _declares_clutter(clutter_log_density, identity_filter), len(window.times) - 1, window.dt)
     noise = _calibrate(track, log_, landmarks, given, robot, correct_range_bias, measurement_noise_from,
-                       motion_noise_from, window.dt)
+                       motion_source, window.dt)
     sd = np.sqrt(np.diag(noise.geometric))
     if merge_repeats and not identity_filter:
         merged = merge_repeats_of(track.measurements, track.written, window, track.kept, sd)
@@ -350,7 +366,9 @@ def import_mrclam(
 
     settings = {"robot": int(robot), "start_s": float(start), "map": "unknown" if unknown_map else "known",
                 "motion_compensation": bool(motion_compensation), "odometry_delay_s": float(odometry_delay),
-                "range_bias_corrected": bool(correct_range_bias)}
+                "range_bias_corrected": bool(correct_range_bias),
+                "motion_noise_chosen": "given" if motion_noise_from is not None else
+                "default: drift with a clutter hypothesis and 25 s of window, else steps"}
     generator = _generator(folder, settings, window, track, noise, given, landmarks, log_)
     generator["identities"] = {
         "identity_filter": bool(identity_filter),
@@ -388,6 +406,26 @@ def import_mrclam(
         object_prior_covs=landmark_covariances(landmarks[:, 3:5], landmark_sd_floor, landmark_heading_var),
         class_prior=np.ones((len(landmarks), 1)), true_object_poses=poses,
         true_classes=np.zeros(len(landmarks), dtype=np.int64), **common)
+
+
+def _declares_clutter(value: float | str | None, identity_filter: bool) -> bool:
+    """Whether the file written will hold ``sensor.clutter_log_density`` (:func:`_clutter_density`)."""
+    return value != "none" if value is not None else not identity_filter
+
+
+def default_motion_noise(clutter: bool, steps: int, dt: float) -> str:
+    """``motion_noise_from`` by default: ``"drift"`` for a file with a clutter hypothesis
+    (``clutter``) whose ``steps`` of ``dt`` seconds hold :data:`MIN_BLOCKS` drift blocks, else
+    ``"steps"``.
+
+    A clutter hypothesis competes with ``N(z; h, S)`` at a constant density, so a reading is
+    explained as clutter once its innovation lies a few sds of ``S`` out; with ``S`` built on a
+    per-step ``motion_cov`` that undercounts the odometry's time-correlated drift, the readings of
+    a landmark seen after a stretch of dead reckoning lie far out, and the estimate stops being
+    corrected (module docstring, Noise). Without clutter every reading must be some object's,
+    which corrects the drift anyway, and the per-step calibration is the more accurate one.
+    """
+    return "drift" if clutter and steps // _drift_block(dt) >= MIN_BLOCKS else "steps"
 
 
 def _clutter_density(value: float | str | None, identity_filter: bool, max_range: float, fov: float) -> float | None:
@@ -520,6 +558,7 @@ def _generator(folder: str, settings: dict[str, Any], window: Window, track: Tra
                          "at the measurement time") + ", and the surveyed landmark)",
             "measurement_noise_from": noise.source,
             "motion_noise_from": noise.motion_source,
+            "motion_noise_chosen": settings["motion_noise_chosen"],
             "motion_cov": "calibrated" if given["motion_cov"] is None else "given",
             "geometric_cov": "calibrated" if given["geometric_cov"] is None else "given",
             "odometry_residuals": _stats(noise.odometry_residuals),
