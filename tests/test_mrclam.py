@@ -620,3 +620,42 @@ def test_cli_default_import_says_what_it_kept(tmp_path, capsys):
     assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out), "--clutter-log-density", "none"]) == 0
     assert hs.load_scenario(out).clutter_log_density is None
     assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out), "--clutter-log-density", "x"]) == 2
+
+
+def test_a_file_with_clutter_gets_the_drift_calibrated_motion_noise_by_default():
+    """With a clutter hypothesis (the default conversion) ``motion_cov`` is calibrated from the
+    odometry's 5 s drift, so that ``S`` covers dead reckoning's real error and a landmark seen after
+    a stretch without any is not explained as clutter; without clutter (the identity filter,
+    ``clutter_log_density="none"``) or with a window too short for 5 drift blocks it stays per step.
+    A given ``motion_noise_from`` is kept."""
+    s = import_mrclam(DATA, 1)
+    cal = s.metadata["generator"]["calibration"]
+    assert s.clutter_log_density is not None and cal["motion_noise_from"] == "drift"
+    assert cal["motion_noise_chosen"].startswith("default")
+    np.testing.assert_array_equal(s.motion_cov, import_mrclam(DATA, 1, motion_noise_from="drift").motion_cov)
+    steps = import_mrclam(DATA, 1, motion_noise_from="steps")
+    assert steps.metadata["generator"]["calibration"]["motion_noise_chosen"] == "given"
+    assert np.all(np.diag(s.motion_cov) >= np.diag(steps.motion_cov))
+    assert np.any(np.diag(s.motion_cov) > 2 * np.diag(steps.motion_cov))  # the excerpt's heading drifts
+    for kwargs in ({"identity_filter": True}, {"clutter_log_density": "none"}, {"duration": 20.0}):
+        other = import_mrclam(DATA, 1, **kwargs)
+        assert other.metadata["generator"]["calibration"]["motion_noise_from"] == "steps", kwargs
+    assert import_mrclam(DATA, 1, identity_filter=True, clutter_log_density=-4.0) \
+        .metadata["generator"]["calibration"]["motion_noise_from"] == "drift"
+
+
+@pytest.mark.parametrize("clutter, steps, dt, expected", [
+    (True, 50, 0.5, "drift"), (True, 49, 0.5, "steps"), (False, 1000, 0.5, "steps"),
+    (True, 25, 1.0, "drift"), (True, 24, 1.0, "steps"),
+])
+def test_default_motion_noise_rule(clutter, steps, dt, expected):
+    """Drift needs :data:`mrclam.MIN_BLOCKS` blocks of 5 s; only a file with clutter gets it by default."""
+    assert mrclam.default_motion_noise(clutter, steps, dt) == expected
+
+
+def test_cli_default_import_calibrates_the_motion_noise_from_the_drift(tmp_path, capsys):
+    out = tmp_path / "robot1.json"
+    assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out)]) == 0
+    assert "motion_cov (calibrated, from the 5 s drift)" in capsys.readouterr().out
+    assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out), "--identity-filter"]) == 0
+    assert "motion_cov (calibrated): sd" in capsys.readouterr().out

@@ -200,9 +200,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     m.add_argument("--measurement-noise-from", choices=NOISE_SOURCES, default="written",
                    help="calibrate geometric_cov from the detections as written, at their step times "
                         "(default), or from the raw measurements at their own times")
-    m.add_argument("--motion-noise-from", choices=MOTION_NOISE_SOURCES, default="steps",
-                   help="calibrate motion_cov from the per-step odometry errors (default) or from their "
-                        "sums over 5 s (drift: larger, as the errors are correlated in time)")
+    m.add_argument("--motion-noise-from", choices=MOTION_NOISE_SOURCES, default=None,
+                   help="calibrate motion_cov from the per-step odometry errors (steps) or from their "
+                        "sums over 5 s (drift: larger, as the errors are correlated in time); default: "
+                        "drift for a file with a clutter hypothesis (the default conversion) and a window "
+                        "of 25 s or more, steps otherwise (--identity-filter, --clutter-log-density none)")
     m.set_defaults(func=cmd_import_mrclam)
     register_kitti(sources)
 

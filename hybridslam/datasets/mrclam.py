@@ -74,6 +74,19 @@ on top, CRLF line ends, times in Unix seconds; subjects 1-5 are robots, the rest
   square about zero: an estimator takes the noise as zero-mean, so an uncorrected bias must be
   covered by the variance. MRCLAM ranges are biased (the median residual is reported as
   ``range_bias``); ``correct_range_bias=True`` subtracts it from the ranges instead.
+* **Motion noise with clutter.** A file with a clutter hypothesis gets by default a ``motion_cov``
+  calibrated from the odometry's drift (``motion_noise_from="drift"``, below), the per-step one
+  otherwise. The clutter density is constant and competes with ``N(z; h, S)``: a reading whose
+  innovation lies more than a few sds of ``S`` out is explained as clutter. The per-step
+  calibration undercounts the drift of the velocity commands (errors correlated in time), so after
+  a stretch without landmarks ``S`` is too small for the pose's real error, the readings of the
+  right landmark are explained as clutter, and the estimate is never corrected again (dataset 7,
+  robot 1, 20-120 s: no landmark for the first 28 s, heading 0.39 rad off at 4 sds; 120 of 186
+  landmark readings then called clutter by the hybrid belief, smoothed APE 0.385 m;
+  docs/studies/mrclam_unfiltered.md). Without clutter every reading must be some object's, which
+  pulls the estimate back whatever ``S`` says. The drift noise recovers the hybrid belief, ``ml``
+  and ``max-mixture`` there (0.116-0.137 m smoothed APE) but not ``gpda`` and ``multimodal``, and it
+  costs the single-Gaussian estimators accuracy on dataset 6, robot 2 (the study's table).
 
 What the data hold (datasets 6 and 7, all robots), and what the import does about it:
 
@@ -102,452 +115,111 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike
 
 from ..io.scenario import Classifier, Detection, Discovery, Scenario, Step
-from .textfile import read_ascii
+from .mrclam_calibration import (
+    DRIFT_BLOCK_S,
+    MAD_TO_SD,
+    MIN_BLOCKS,
+    _drift,
+    _drift_block,
+    _stats,
+    between,
+    compose,
+    drift_per_step,
+    integrate_odometry,
+    interpolate_groundtruth,
+    log,
+    measurement_residuals,
+    odometry_residuals,
+    range_bearing,
+    robust_location_scale,
+    robust_variance,
+    wrap,
+)
+from .mrclam_detections import (
+    FOV_STEP,
+    MERGE_GATE,
+    RANGE_STEP,
+    SAME_FRAME_S,
+    Measurements,
+    Window,
+    closest_per_landmark,
+    compensate,
+    data_span,
+    default_sensor,
+    landmark_measurements,
+    make_window,
+    merge_repeats_of,
+)
+from .mrclam_files import (
+    ROBOTS,
+    MRCLAMError,
+    RobotLog,
+    Table,
+    covariance,
+    finite,
+    read_barcodes,
+    read_landmarks,
+    read_robot,
+    read_table,
+)
 
-ROBOTS = (1, 2, 3, 4, 5)  # MRCLAM subjects 1-5 are robots
+# The readers (mrclam_files), the numpy geometry and calibration (mrclam_calibration) and the
+# window and detections (mrclam_detections) are importable from here too.
+__all__ = [
+    "CLUTTER_FRACTION",
+    "DRIFT_BLOCK_S",
+    "FOV_STEP",
+    "GEOMETRIC_SD_FLOOR",
+    "MAD_TO_SD",
+    "MERGE_GATE",
+    "MIN_BLOCKS",
+    "MOTION_NOISE_SOURCES",
+    "MOTION_SD_FLOOR",
+    "NOISE_SOURCES",
+    "RANGE_STEP",
+    "ROBOTS",
+    "SAME_FRAME_S",
+    "MRCLAMError",
+    "Measurements",
+    "RobotLog",
+    "Table",
+    "Window",
+    "between",
+    "closest_per_landmark",
+    "compensate",
+    "compose",
+    "data_span",
+    "default_motion_noise",
+    "default_sensor",
+    "drift_per_step",
+    "import_mrclam",
+    "integrate_odometry",
+    "interpolate_groundtruth",
+    "landmark_covariances",
+    "landmark_measurements",
+    "log",
+    "make_window",
+    "measurement_residuals",
+    "merge_repeats_of",
+    "odometry_residuals",
+    "range_bearing",
+    "read_barcodes",
+    "read_landmarks",
+    "read_robot",
+    "read_table",
+    "robust_location_scale",
+    "robust_variance",
+    "wrap",
+]
+
 NOISE_SOURCES = ("written", "raw")  # what geometric_cov is calibrated from (import_mrclam)
 MOTION_NOISE_SOURCES = ("steps", "drift")  # what motion_cov is calibrated from (import_mrclam)
-MAD_TO_SD = 1.4826  # 1 / Φ⁻¹(3/4): MAD · this is the sd of a Gaussian
 ROBOT_PRIOR_VAR = 1e-4  # x_0 is the ground truth: it anchors the world frame (m², m², rad²)
 MOTION_SD_FLOOR = 1e-4  # m, m, rad per step: keeps the calibrated covariance positive definite
 GEOMETRIC_SD_FLOOR = 1e-3  # m, rad
-RANGE_STEP, FOV_STEP = 0.5, 0.1  # default max_range and fov round up to these (m, rad)
-DRIFT_BLOCK_S, MIN_BLOCKS = 5.0, 5  # the drift check sums odometry residuals over 5 s blocks
-MERGE_GATE = 9.21  # chi-square (2 dof) 0.99 quantile: two readings this close are one object's (merge_repeats)
-SAME_FRAME_S = 1e-3  # readings this close in time are one sensor frame (never merged)
 CLUTTER_FRACTION = 0.5  # default prior probability that a reading is spurious (import_mrclam, Clutter)
-
-
-class MRCLAMError(ValueError):
-    """A missing or malformed MRCLAM file, or an import setting the data cannot serve. One line."""
-
-
-@dataclass(frozen=True)
-class Table:
-    """The numbers of one ``.dat`` file: ``rows`` (n, columns) and the 1-based line of each row."""
-
-    path: str
-    rows: np.ndarray
-    lines: np.ndarray
-
-
-@dataclass(frozen=True)
-class RobotLog:
-    """One robot's three files; times in Unix seconds."""
-
-    odometry: Table  # time, v [m/s], ω [rad/s]
-    measurements: Table  # time, barcode, range [m], bearing [rad]
-    groundtruth: Table  # time, x [m], y [m], θ [rad]
-
-
-# --------------------------------------------------------------------------- #
-# Reading
-# --------------------------------------------------------------------------- #
-
-
-def read_table(path: str, columns: int, what: str) -> Table:
-    """The numeric rows of a ``.dat`` file; ``#`` lines and blank lines are skipped.
-
-    ``what`` names the columns for messages. Raises :class:`MRCLAMError` naming the file (and the
-    line) when it is missing, unreadable or holds a line that is not ``columns`` finite numbers.
-    """
-    rows, lines = [], []
-    for lineno, line in enumerate(read_ascii(path, MRCLAMError).split("\n"), 1):
-        text = line.strip()
-        if text and not text.startswith("#"):
-            rows.append(_numbers(text, columns, what, path, lineno))
-            lines.append(lineno)
-    return Table(path, np.array(rows, dtype=np.float64).reshape(len(rows), columns), np.array(lines))
-
-
-def _numbers(text: str, columns: int, what: str, path: str, lineno: int) -> list[float]:
-    parts = text.split()
-    try:
-        values = [float(p) for p in parts]
-    except ValueError:
-        values = []
-    if len(parts) != columns or len(values) != columns or not all(map(math.isfinite, values)):
-        shown = text if len(text) <= 60 else text[:57] + "..."
-        raise MRCLAMError(f"{path}:{lineno}: expected {columns} numbers ({what}), got {shown!r}")
-    return values
-
-
-def _check_times(table: Table, allow_empty: bool = False) -> None:
-    """Times (column 0) must not decrease: the files are logs in time order."""
-    t = table.rows[:, 0]
-    if not len(t) and not allow_empty:
-        raise MRCLAMError(f"{table.path}: no records")
-    back = np.flatnonzero(np.diff(t) < 0)
-    if back.size:
-        i = back[0] + 1
-        raise MRCLAMError(f"{table.path}:{table.lines[i]}: time {t[i]:.3f} is before the previous "
-                          f"record's {t[i - 1]:.3f} (records must be in time order)")
-
-
-def read_barcodes(dataset_dir: str) -> dict[int, int]:
-    """``Barcodes.dat`` as ``{barcode: subject}``."""
-    table = read_table(os.path.join(dataset_dir, "Barcodes.dat"), 2, "subject, barcode")
-    return {int(b): int(s) for s, b in table.rows}
-
-
-def read_landmarks(dataset_dir: str) -> Table:
-    """``Landmark_Groundtruth.dat``: rows (subject, x, y, x sd, y sd) [m], subjects unique and > 5."""
-    table = read_table(os.path.join(dataset_dir, "Landmark_Groundtruth.dat"), 5, "subject, x, y, x sd, y sd")
-    seen: set[int] = set()
-    for (subject, *_), line in zip(table.rows, table.lines):
-        if subject in seen or subject in ROBOTS or subject != int(subject):
-            raise MRCLAMError(f"{table.path}:{line}: subject {subject:g} is a robot, not an integer, "
-                              "or listed twice")
-        seen.add(subject)
-    if not seen:
-        raise MRCLAMError(f"{table.path}: no landmarks")
-    return table
-
-
-def read_robot(dataset_dir: str, robot: int) -> RobotLog:
-    """Robot ``robot``'s odometry, measurements and ground truth, each checked to be in time order."""
-    if robot not in ROBOTS:
-        raise MRCLAMError(f"robot {robot}: no such robot (MRCLAM robots are 1-5)")
-    name = os.path.join(dataset_dir, f"Robot{robot}_")
-    tables = []
-    for suffix, columns, what in (("Odometry", 3, "time, v, omega"),
-                                  ("Measurement", 4, "time, barcode, range, bearing"),
-                                  ("Groundtruth", 4, "time, x, y, theta")):
-        path = f"{name}{suffix}.dat"
-        if not os.path.exists(path):
-            raise MRCLAMError(f"{path}: no such file (robot {robot} has no {suffix.lower()} log)")
-        table = read_table(path, columns, what)
-        _check_times(table, allow_empty=suffix == "Measurement")  # a robot may see nothing
-        tables.append(table)
-    return RobotLog(*tables)
-
-
-# --------------------------------------------------------------------------- #
-# SE(2) on arrays of poses (N, 3): numpy, no JAX compiles (conventions of se2.py)
-# --------------------------------------------------------------------------- #
-
-
-def wrap(angle: np.ndarray | float) -> np.ndarray | float:
-    """Angles (rad) wrapped to (-π, π]."""
-    return np.pi - np.mod(np.pi - np.asarray(angle, dtype=np.float64), 2.0 * np.pi)
-
-
-def _rotate(theta: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    c, s = np.cos(theta), np.sin(theta)
-    return np.stack([c * xy[..., 0] - s * xy[..., 1], s * xy[..., 0] + c * xy[..., 1]], axis=-1)
-
-
-def compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a ∘ b`` for poses (..., 3)."""
-    t = a[..., :2] + _rotate(a[..., 2], b[..., :2])
-    return np.concatenate([t, wrap(a[..., 2:] + b[..., 2:])], axis=-1)
-
-
-def between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a⁻¹ ∘ b`` for poses (..., 3): ``b`` seen from ``a``."""
-    t = _rotate(-a[..., 2], b[..., :2] - a[..., :2])
-    return np.concatenate([t, wrap(b[..., 2:] - a[..., 2:])], axis=-1)
-
-
-def _arc_coeffs(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``sin(t)/t`` and ``(1 − cos t)/t``, with Taylor series below 1e-4 rad (no 0/0)."""
-    small = np.abs(theta) < 1e-4
-    safe = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(safe) / safe)
-    b = np.where(small, theta / 2.0 - theta**3 / 24.0, (1.0 - np.cos(safe)) / safe)
-    return a, b
-
-
-def log(p: np.ndarray) -> np.ndarray:
-    """SE(2) logarithm of poses (..., 3): the tangent ``[v_x, v_y, ω]`` with ``Exp`` of it ``p``."""
-    theta = np.asarray(wrap(p[..., 2]))
-    a, b = _arc_coeffs(theta)
-    det = a * a + b * b
-    x, y = p[..., 0], p[..., 1]
-    return np.stack([(a * x + b * y) / det, (-b * x + a * y) / det, theta], axis=-1)
-
-
-# --------------------------------------------------------------------------- #
-# Odometry and ground truth
-# --------------------------------------------------------------------------- #
-
-
-def integrate_odometry(times: np.ndarray, v: np.ndarray, omega: np.ndarray, query: np.ndarray) -> np.ndarray:
-    """Poses (Q, 3) at the sorted times ``query`` (Q,) of the path the velocity samples drive,
-    relative to the pose at ``query[0]`` (the identity there).
-
-    ``times`` (n,) [s] non-decreasing, ``v`` (n,) [m/s], ``omega`` (n,) [rad/s]. Sample ``i`` is
-    held on ``[times[i], times[i+1])`` (the last one from then on; of samples with equal times the
-    last counts); before ``times[0]`` nothing is known, so ``query[0] >= times[0]``. On each piece
-    of constant ``(v, ω)`` between consecutive breakpoints (sample times and query times) the
-    motion is the exact arc ``Exp([v·τ, 0, ω·τ])``; headings accumulate unwrapped, then wrap.
-    """
-    times, query = np.asarray(times, np.float64), np.asarray(query, np.float64)
-    if query[0] < times[0]:
-        raise ValueError(f"query starts at {query[0]}, before the first sample at {times[0]}")
-    inner = times[(times > query[0]) & (times < query[-1])]
-    breaks = np.sort(np.concatenate([query, inner]))
-    active = np.searchsorted(times, breaks[:-1], side="right") - 1
-    tau = np.diff(breaks)
-    dist, turn = np.asarray(v)[active] * tau, np.asarray(omega)[active] * tau
-    a, b = _arc_coeffs(turn)
-    heading = np.concatenate([[0.0], np.cumsum(turn)])
-    step = _rotate(heading[:-1], np.stack([a * dist, b * dist], axis=-1))
-    xy = np.concatenate([np.zeros((1, 2)), np.cumsum(step, axis=0)])
-    at = np.searchsorted(breaks, query, side="left")  # equal breakpoints hold the same pose
-    return np.column_stack([xy[at], wrap(heading[at])])
-
-
-def interpolate_groundtruth(groundtruth: np.ndarray, times: ArrayLike) -> np.ndarray:
-    """Poses (Q, 3) at ``times`` (Q,) [s], linear in x, y and the unwrapped heading, then wrapped.
-
-    ``groundtruth`` (n, 4): time, x, y, θ, times non-decreasing; ``times`` within its span.
-    """
-    t, q = groundtruth[:, 0], np.asarray(times, dtype=float)
-    heading = np.unwrap(groundtruth[:, 3])
-    cols = [np.interp(q, t, groundtruth[:, i]) for i in (1, 2)]
-    return np.column_stack([*cols, np.asarray(wrap(np.interp(q, t, heading)))])
-
-
-def range_bearing(poses: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """``[range, bearing]`` (N, 2) of points (N, 2) seen from poses (N, 3) (SCENARIO_FORMAT.md)."""
-    q = _rotate(-poses[:, 2], points - poses[:, :2])
-    return np.column_stack([np.hypot(q[:, 0], q[:, 1]), np.arctan2(q[:, 1], q[:, 0])])
-
-
-def _polar(rb: np.ndarray) -> np.ndarray:
-    return rb[:, :1] * np.column_stack([np.cos(rb[:, 1]), np.sin(rb[:, 1])])
-
-
-# --------------------------------------------------------------------------- #
-# The window and the detections
-# --------------------------------------------------------------------------- #
-
-
-@dataclass(frozen=True)
-class Window:
-    """The imported stretch of one robot's log. Times in Unix seconds."""
-
-    origin: float  # the robot's first odometry record: ``start`` counts from here
-    times: np.ndarray  # (T + 1,) t_0..t_T
-    end: float  # the end of the data (odometry and ground truth)
-
-    @property
-    def dt(self) -> float:
-        return float(self.times[1] - self.times[0])
-
-
-def _finite(value: Any, name: str, unit: str, positive: bool = True) -> float:
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-    if not ok or (positive and value <= 0):
-        raise MRCLAMError(f"{name}: expected a {'positive' if positive else 'finite'} number of {unit}, "
-                          f"got {value!r}")
-    return float(value)
-
-
-def data_span(log: RobotLog, delay: float = 0.0) -> tuple[float, float, float]:
-    """``(origin, first, last)`` [Unix s]: the robot's first odometry record as logged, and the
-    span that both the odometry (its times plus ``delay``) and the ground truth cover."""
-    odo, gt = log.odometry.rows[:, 0], log.groundtruth.rows[:, 0]
-    return float(odo[0]), max(odo[0] + delay, gt[0]), min(odo[-1] + delay, gt[-1])
-
-
-def make_window(log: RobotLog, robot: int, start: float, duration: float | None, dt: float,
-                delay: float = 0.0) -> Window:
-    """Steps every ``dt`` seconds from ``start`` seconds after the first odometry record, for
-    ``duration`` seconds (``T = floor(duration / dt)`` steps; default: to the end of the data)."""
-    dt = _finite(dt, "dt", "seconds")
-    start = _finite(start, "start", "seconds", positive=False)
-    origin, first, last = data_span(log, delay)
-    span = (f"robot {robot}'s data cover {first - origin:.3f} to {last - origin:.3f} s after its first "
-            f"odometry record (Unix {origin:.3f} s; odometry and ground truth both)")
-    if not first <= origin + start < last:
-        raise MRCLAMError(f"start {start:g} s: outside the data; {span}")
-    t0 = origin + start
-    if duration is None:
-        steps = math.floor((last - t0) / dt + 1e-9)
-    else:
-        duration = _finite(duration, "duration", "seconds")
-        steps = math.floor(duration / dt + 1e-9)
-        if t0 + steps * dt > last + 1e-9:
-            raise MRCLAMError(f"window {start:g} s + {duration:g} s: ends at {start + duration:.3f} s, "
-                              f"after the data; {span}")
-    if steps < 1:
-        raise MRCLAMError(f"window from {start:g} s: holds no step of dt = {dt:g} s; {span}")
-    return Window(origin, t0 + dt * np.arange(steps + 1), last)
-
-
-@dataclass(frozen=True)
-class Measurements:
-    """The landmark measurements (n,) that a step can hold, and what was dropped on the way."""
-
-    time: np.ndarray  # (n,) Unix s
-    step: np.ndarray  # (n,) int, 1..T
-    landmark: np.ndarray  # (n,) int, index into the (sorted) landmark table; -1: a robot or an unknown barcode
-    raw: np.ndarray  # (n, 2) range [m], bearing [rad] as measured at `time`
-    counts: dict[str, Any]
-
-
-def landmark_measurements(log: RobotLog, barcodes: dict[int, int], subjects: np.ndarray,
-                          window: Window, identity_filter: bool = True) -> Measurements:
-    """Every measurement of step k's interval ``(t_k − dt/2, t_k + dt/2]`` (within the data), with
-    counts of the robot-robot and unknown-barcode ones. ``subjects`` (L,) sorted.
-
-    ``identity_filter`` (the oracle-assisted conversion): landmark measurements only, the others
-    dropped. Otherwise every measurement is kept, those of no landmark with ``landmark = -1``.
-    """
-    rows = log.measurements.rows.reshape(-1, 4)
-    subject = np.array([barcodes.get(int(b), -1) for b in rows[:, 1]], dtype=np.int64)
-    index = np.minimum(np.searchsorted(subjects, subject), len(subjects) - 1)
-    is_landmark = subjects[index] == subject
-    robot = np.isin(subject, ROBOTS)
-    t, t0, dt, T = rows[:, 0], window.times[0], window.dt, len(window.times) - 1
-    step = np.ceil((t - t0) / dt - 0.5).astype(np.int64)
-    inside = (step >= 1) & (step <= T) & (t <= window.end)
-    within = (t > t0) & (t <= window.times[-1] + dt / 2)
-    keep = inside & is_landmark if identity_filter else inside
-    unknown = within & ~robot & ~is_landmark
-    counts = {
-        "in_window": int(within.sum()),
-        "robot_robot": int((within & robot).sum()),
-        "unknown_barcode": int(unknown.sum()),
-        "unknown_barcodes": sorted({int(b) for b in rows[unknown, 1]}),
-        "before_first_step": int((within & is_landmark & ~inside).sum()),
-    }
-    return Measurements(t[keep], step[keep], np.where(is_landmark, index, -1)[keep], rows[keep, 2:4].copy(), counts)
-
-
-def compensate(m: Measurements, path_at_steps: np.ndarray, path_at_measurements: np.ndarray) -> np.ndarray:
-    """``[range, bearing]`` (n, 2) of each measured point seen from the pose at its step's time
-    ``t_k`` instead of from the pose at its own time; ``path_*`` are the integrated odometry."""
-    offset = between(path_at_steps[m.step], path_at_measurements)  # P(t) seen from P(t_k)
-    point = offset[:, :2] + _rotate(offset[:, 2], _polar(m.raw))
-    return np.column_stack([np.hypot(point[:, 0], point[:, 1]), np.arctan2(point[:, 1], point[:, 0])])
-
-
-def merge_repeats_of(m: Measurements, written: np.ndarray, window: Window, kept: np.ndarray, sd: np.ndarray,
-                  gate: float = MERGE_GATE) -> np.ndarray:
-    """The readings ``kept`` (indices, time order) without the repeats of one object within a step,
-    found by geometry alone (no barcode): per step, readings in order of closeness in time to ``t_k``
-    (the first in the file on a tie); one is dropped when a reading already kept in the step, taken
-    at another time (another sensor frame: a frame reads each object once), lies within
-    ``((Δr / sd_r)² + (Δb / sd_b)²) / 2 <= gate`` of it as written (the difference of two readings of
-    one point has twice the variance of one). ``sd`` (2,) the range and bearing noise sds."""
-    out = []
-    for k in np.unique(m.step[kept]):
-        here = kept[m.step[kept] == k]
-        lag = np.abs(m.time[here] - window.times[k])
-        chosen: list[int] = []
-        for i in here[np.lexsort((here, lag))]:
-            diff = (written[chosen] - written[i]) / sd
-            diff[:, 1] = np.asarray(wrap(diff[:, 1] * sd[1])) / sd[1]
-            near = 0.5 * np.sum(diff**2, axis=1) <= gate
-            other_frame = np.abs(m.time[chosen] - m.time[i]) > SAME_FRAME_S
-            if not np.any(near & other_frame):
-                chosen.append(int(i))
-        out.extend(chosen)
-    return np.sort(np.array(out, dtype=np.int64))
-
-
-def closest_per_landmark(m: Measurements, window: Window, keep: np.ndarray) -> np.ndarray:
-    """Indices of the measurements kept: among ``keep`` (bool (n,)), per step and landmark the one
-    closest in time to ``t_k`` (the first in the file on a tie), in time order."""
-    candidates = np.flatnonzero(keep)
-    lag = np.abs(m.time[candidates] - window.times[m.step[candidates]])
-    order = candidates[np.lexsort((candidates, lag, m.landmark[candidates], m.step[candidates]))]
-    pairs = np.column_stack([m.step[order], m.landmark[order]])
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = np.any(pairs[1:] != pairs[:-1], axis=1)
-    return np.sort(order[first])
-
-
-# --------------------------------------------------------------------------- #
-# Calibration
-# --------------------------------------------------------------------------- #
-
-
-def robust_location_scale(residuals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per column of ``residuals`` (n, d): the median and ``1.4826 · median |r − median|``."""
-    median = np.median(residuals, axis=0)
-    return median, MAD_TO_SD * np.median(np.abs(residuals - median), axis=0)
-
-
-def robust_variance(residuals: np.ndarray, floor: float) -> np.ndarray:
-    """Per column (d,): ``scale² + median²``, the robust mean square about zero, at least ``floor²``."""
-    median, scale = robust_location_scale(residuals)
-    return np.maximum(scale**2 + median**2, floor**2)
-
-
-def drift_per_step(residuals: np.ndarray, block: int) -> np.ndarray | None:
-    """The per-step sd (d,) that the sums of ``residuals`` (T, d) over blocks of ``block`` steps
-    imply, ``sqrt(mean(block sum²) / block)``; None with fewer than ``MIN_BLOCKS`` blocks.
-
-    For white noise it equals the per-step RMS; larger, the errors are correlated in time (a
-    velocity scale error, command latency) and dead reckoning drifts faster than the per-step
-    covariance says.
-    """
-    n = len(residuals) // block
-    if n < MIN_BLOCKS:
-        return None
-    sums = residuals[: n * block].reshape(n, block, -1).sum(axis=1)
-    return np.sqrt(np.mean(sums**2, axis=0) / block)
-
-
-def odometry_residuals(odometry: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    """``Log(u_k⁻¹ ∘ between(g_{k-1}, g_k))`` (T, 3) for odometry (T, 3) and true poses (T + 1, 3)."""
-    return log(between(odometry, between(truth[:-1], truth[1:])))
-
-
-def measurement_residuals(measured: np.ndarray, poses: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """``z − h(pose, point)`` (n, 2), the bearing wrapped; ``measured`` (n, 2) [range, bearing]."""
-    r = measured - range_bearing(poses, points)
-    return np.column_stack([r[:, 0], wrap(r[:, 1])])
-
-
-def _covariance(value: Any, n: int, name: str) -> np.ndarray | None:
-    """A user's covariance: ``None``, ``n`` variances (diagonal) or an n×n SPD matrix."""
-    if value is None:
-        return None
-    try:
-        m = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise MRCLAMError(f"{name}: expected {n} variances or a {n}x{n} matrix, got {value!r}") from None
-    m = np.diag(m) if m.shape == (n,) else m
-    if m.shape != (n, n) or not np.all(np.isfinite(m)):
-        raise MRCLAMError(f"{name}: expected {n} finite variances or a {n}x{n} matrix, got shape {m.shape}")
-    try:
-        if not np.allclose(m, m.T):
-            raise np.linalg.LinAlgError
-        np.linalg.cholesky(m)
-    except np.linalg.LinAlgError:
-        raise MRCLAMError(f"{name}: not symmetric positive definite") from None
-    return m
-
-
-def _stats(residuals: np.ndarray) -> dict[str, Any]:
-    """Median and robust scale per component, for the ``generator`` metadata."""
-    if not len(residuals):
-        return {"count": 0}
-    median, scale = robust_location_scale(residuals)
-    return {"count": len(residuals), "median": _floats(median), "scale": _floats(scale)}
-
-
-def _drift_block(dt: float) -> int:
-    """Steps of ``dt`` seconds in one drift block of :data:`DRIFT_BLOCK_S`."""
-    return max(1, round(DRIFT_BLOCK_S / dt))
-
-
-def _drift(residuals: np.ndarray, dt: float) -> dict[str, Any] | None:
-    block = _drift_block(dt)
-    sd = drift_per_step(residuals, block)
-    return None if sd is None else {"block_steps": block, "sd": _floats(sd)}
-
-
-def _floats(a: Any) -> Any:
-    return np.round(np.asarray(a, dtype=np.float64), 9).tolist()
 
 
 # --------------------------------------------------------------------------- #
@@ -555,38 +227,22 @@ def _floats(a: Any) -> Any:
 # --------------------------------------------------------------------------- #
 
 
-def default_sensor(log: RobotLog, barcodes: dict[int, int], subjects: np.ndarray, written: np.ndarray,
-                   sd: np.ndarray, identity_filter: bool = True) -> tuple[float, float]:
-    """``(max_range, fov)`` from the robot's whole log of measurements (``identity_filter``: of
-    landmark measurements only) and the written detections (n, 2), with ``sd`` (2,) the range and
-    bearing noise sds: the largest range plus 3 sds rounded up to 0.5 m, and twice the largest
-    |bearing| plus 3 sds rounded up to 0.1 rad."""
-    rows = log.measurements.rows.reshape(-1, 4)
-    seen = (np.isin([barcodes.get(int(b), -1) for b in rows[:, 1]], subjects) if identity_filter
-            else np.ones(len(rows), dtype=bool))
-    rb = np.concatenate([rows[seen][:, 2:4], written])
-    max_range = RANGE_STEP * math.ceil((rb[:, 0].max(initial=0.0) + 3 * sd[0]) / RANGE_STEP)
-    half = np.abs(rb[:, 1]).max(initial=0.0) + 3 * sd[1]
-    return float(max_range), float(min(2 * math.pi, FOV_STEP * math.ceil(2 * half / FOV_STEP)))
-
-
 def _max_gap(times: np.ndarray, lo: float, hi: float) -> float:
     """The longest time without a record within [lo, hi] (s), its ends counted as records."""
     t = np.concatenate([[lo], times[(times > lo) & (times < hi)], [hi]])
     return float(np.diff(t).max())
 
-
 def _check_settings(max_range: Any, fov: Any, landmark_sd_floor: Any, landmark_heading_var: Any,
                     discovery_margin: Any, new_object_log_density: Any, odometry_delay: Any) -> None:
     if max_range is not None:
-        _finite(max_range, "max_range", "metres")
-    if fov is not None and not 0 < _finite(fov, "fov", "radians") <= 2 * math.pi:
+        finite(max_range, "max_range", "metres")
+    if fov is not None and not 0 < finite(fov, "fov", "radians") <= 2 * math.pi:
         raise MRCLAMError(f"fov: expected radians in (0, 2*pi], got {fov!r}")
-    _finite(landmark_sd_floor, "landmark_sd_floor", "metres")
-    _finite(landmark_heading_var, "landmark_heading_var", "rad^2")
-    _finite(odometry_delay, "odometry_delay", "seconds", positive=False)
+    finite(landmark_sd_floor, "landmark_sd_floor", "metres")
+    finite(landmark_heading_var, "landmark_heading_var", "rad^2")
+    finite(odometry_delay, "odometry_delay", "seconds", positive=False)
     if new_object_log_density is not None:
-        _finite(new_object_log_density, "new_object_log_density", "nats", positive=False)
+        finite(new_object_log_density, "new_object_log_density", "nats", positive=False)
     if not isinstance(discovery_margin, int) or isinstance(discovery_margin, bool) or discovery_margin < 0:
         raise MRCLAMError(f"discovery_margin: expected a non-negative integer, got {discovery_margin!r}")
 
@@ -608,7 +264,7 @@ def import_mrclam(
     motion_compensation: bool = True,
     odometry_delay: float = 0.0,
     measurement_noise_from: str = "written",
-    motion_noise_from: str = "steps",
+    motion_noise_from: str | None = None,
     landmark_sd_floor: float = 0.01,
     landmark_heading_var: float = math.pi**2,
     discovery_margin: int = 10,
@@ -651,11 +307,13 @@ def import_mrclam(
     * ``measurement_noise_from``: ``"written"`` (default) calibrates ``geometric_cov`` from the
       detections as written, at their step times; ``"raw"`` from the raw measurements at their
       own times (module docstring, Noise).
-    * ``motion_noise_from``: ``"steps"`` (default) calibrates ``motion_cov`` from the per-step
-      odometry residuals; ``"drift"`` takes per component the larger of that and the variance per
-      step that their sums over 5 s imply (``generator.calibration.odometry_drift_sd_per_step``), so
-      that dead reckoning's covariance grows as fast as its error does over seconds (the errors
-      are correlated in time: module docstring). Needs a window of at least 25 s.
+    * ``motion_noise_from``: ``"steps"`` calibrates ``motion_cov`` from the per-step odometry
+      residuals; ``"drift"`` takes per component the larger of that and the variance per step that
+      their sums over 5 s imply (``generator.calibration.odometry_drift_sd_per_step``), so that dead
+      reckoning's covariance grows as fast as its error does over seconds (the errors are
+      correlated in time: module docstring). Needs a window of at least 25 s. Default (``None``):
+      ``"drift"`` when the file declares a clutter hypothesis and the window holds the 25 s,
+      ``"steps"`` otherwise (module docstring, Noise: why clutter needs a consistent covariance).
 
     Everything the import measured (calibration, counts, dead-reckoning error, data gaps) is in
     ``scenario.metadata["generator"]``. Raises :class:`MRCLAMError` (one line naming the file and
@@ -666,7 +324,7 @@ def import_mrclam(
         raise MRCLAMError(f"{folder}: not a dataset folder (no such directory)")
     _check_settings(max_range, fov, landmark_sd_floor, landmark_heading_var, discovery_margin,
                     new_object_log_density, odometry_delay)
-    if motion_noise_from not in MOTION_NOISE_SOURCES:
+    if motion_noise_from is not None and motion_noise_from not in MOTION_NOISE_SOURCES:
         raise MRCLAMError(f"motion_noise_from: expected one of {', '.join(MOTION_NOISE_SOURCES)}, "
                           f"got {motion_noise_from!r}")
     if measurement_noise_from not in NOISE_SOURCES:
@@ -678,17 +336,19 @@ def import_mrclam(
                               "(unknown_map=True, --unknown-map)")
         if not isinstance(max_objects, int) or isinstance(max_objects, bool) or max_objects < 2:
             raise MRCLAMError(f"max_objects: expected an integer >= 2, got {max_objects!r}")
-    given = {"motion_cov": _covariance(motion_cov, 3, "motion_cov"),
-             "geometric_cov": _covariance(geometric_cov, 2, "geometric_cov"),
-             "robot_prior_cov": _covariance(robot_prior_cov, 3, "robot_prior_cov")}
+    given = {"motion_cov": covariance(motion_cov, 3, "motion_cov"),
+             "geometric_cov": covariance(geometric_cov, 2, "geometric_cov"),
+             "robot_prior_cov": covariance(robot_prior_cov, 3, "robot_prior_cov")}
     barcodes, landmarks = read_barcodes(folder), read_landmarks(folder).rows
     landmarks = landmarks[np.argsort(landmarks[:, 0])]  # subject order: searchsorted needs it
     log_ = read_robot(folder, robot)
     window = make_window(log_, robot, start, duration, dt, odometry_delay)
     track = _track(log_, barcodes, landmarks, window, odometry_delay, motion_compensation, max_range, fov,
                    identity_filter)
+    motion_source = motion_noise_from or default_motion_noise(
+        _declares_clutter(clutter_log_density, identity_filter), len(window.times) - 1, window.dt)
     noise = _calibrate(track, log_, landmarks, given, robot, correct_range_bias, measurement_noise_from,
-                       motion_noise_from, window.dt)
+                       motion_source, window.dt)
     sd = np.sqrt(np.diag(noise.geometric))
     if merge_repeats and not identity_filter:
         merged = merge_repeats_of(track.measurements, track.written, window, track.kept, sd)
@@ -708,7 +368,9 @@ def import_mrclam(
 
     settings = {"robot": int(robot), "start_s": float(start), "map": "unknown" if unknown_map else "known",
                 "motion_compensation": bool(motion_compensation), "odometry_delay_s": float(odometry_delay),
-                "range_bias_corrected": bool(correct_range_bias)}
+                "range_bias_corrected": bool(correct_range_bias),
+                "motion_noise_chosen": "given" if motion_noise_from is not None else
+                "default: drift with a clutter hypothesis and 25 s of window, else steps"}
     generator = _generator(folder, settings, window, track, noise, given, landmarks, log_)
     generator["identities"] = {
         "identity_filter": bool(identity_filter),
@@ -748,6 +410,26 @@ def import_mrclam(
         true_classes=np.zeros(len(landmarks), dtype=np.int64), **common)
 
 
+def _declares_clutter(value: float | str | None, identity_filter: bool) -> bool:
+    """Whether the file written will hold ``sensor.clutter_log_density`` (:func:`_clutter_density`)."""
+    return value != "none" if value is not None else not identity_filter
+
+
+def default_motion_noise(clutter: bool, steps: int, dt: float) -> str:
+    """``motion_noise_from`` by default: ``"drift"`` for a file with a clutter hypothesis
+    (``clutter``) whose ``steps`` of ``dt`` seconds hold :data:`MIN_BLOCKS` drift blocks, else
+    ``"steps"``.
+
+    A clutter hypothesis competes with ``N(z; h, S)`` at a constant density, so a reading is
+    explained as clutter once its innovation lies a few sds of ``S`` out; with ``S`` built on a
+    per-step ``motion_cov`` that undercounts the odometry's time-correlated drift, the readings of
+    a landmark seen after a stretch of dead reckoning lie far out, and the estimate stops being
+    corrected (module docstring, Noise). Without clutter every reading must be some object's,
+    which corrects the drift anyway, and the per-step calibration is the more accurate one.
+    """
+    return "drift" if clutter and steps // _drift_block(dt) >= MIN_BLOCKS else "steps"
+
+
 def _clutter_density(value: float | str | None, identity_filter: bool, max_range: float, fov: float) -> float | None:
     """``sensor.clutter_log_density`` to write: ``value`` (a number; ``"none"``: none), or by default
     ``log(CLUTTER_FRACTION / (max_range · fov))`` (none with the identity filter)."""
@@ -756,7 +438,7 @@ def _clutter_density(value: float | str | None, identity_filter: bool, max_range
             raise MRCLAMError(f"clutter_log_density: expected a finite number or 'none', got {value!r}")
         return None
     if value is not None:
-        return _finite(value, "clutter_log_density", "nats", positive=False)
+        return finite(value, "clutter_log_density", "nats", positive=False)
     return None if identity_filter else round(math.log(CLUTTER_FRACTION / (max_range * fov)), 9)
 
 
@@ -878,6 +560,7 @@ def _generator(folder: str, settings: dict[str, Any], window: Window, track: Tra
                          "at the measurement time") + ", and the surveyed landmark)",
             "measurement_noise_from": noise.source,
             "motion_noise_from": noise.motion_source,
+            "motion_noise_chosen": settings["motion_noise_chosen"],
             "motion_cov": "calibrated" if given["motion_cov"] is None else "given",
             "geometric_cov": "calibrated" if given["geometric_cov"] is None else "given",
             "odometry_residuals": _stats(noise.odometry_residuals),
