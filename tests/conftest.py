@@ -76,3 +76,17 @@ def scenario() -> hs.Scenario:
 @pytest.fixture
 def key() -> jax.Array:
     return jax.random.PRNGKey(0)
+
+
+# The test files that take longest, longest first (the sums of their tests' times in a run of the
+# whole suite, `python3 -m pytest -q -m "" --junitxml=...`, 2026-11-27). The two workers take whole
+# files in collection order (pyproject's `--dist loadfile --no-loadscope-reorder`), so starting the
+# long ones first lets the short ones fill the gaps and both workers finish together
+# (longest-processing-time-first scheduling). A file not listed runs after these, in name order;
+# the order changes nothing but the run's length.
+LONGEST_FIRST: tuple[str, ...] = ("test_readme_run.py", "test_gradients.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: a file's tests keep their order
