@@ -139,7 +139,7 @@ def test_run_with_no_flags_on_a_paper_file_is_the_paper_profile(tmp_path, capsys
     assert _result(tmp_path / "auto.json") == _result(tmp_path / "paper.json")
 
 
-def test_run_prints_what_it_chose_and_flags_override(tmp_path, capsys):
+def test_run_prints_what_it_chose_and_flags_override(tmp_path, capsys, monkeypatch):
     path = tmp_path / "s.json"
     hs.save_scenario(_twelve_objects(), path)
     assert cli.main(["run", str(path), "-o", str(tmp_path / "r.json"), "--smoother", "filter"]) == 0
@@ -148,15 +148,26 @@ def test_run_prints_what_it_chose_and_flags_override(tmp_path, capsys):
     assert first.startswith("settings for a 3-step file with 12 objects (known map)")
     assert "--capacity 16 --gate 3 --weights linearized" in first and "explicit flags override" in first
     assert "capacity=16" in out and "gate_candidates=3" in out and "weights=linearized" in out
+    assert len(hs.load_result(tmp_path / "r.json").steps) == 3
+    # The overrides change the settings line and the estimator handed to the run: that is checked,
+    # and the run stops there (the whole run is the one above's; each estimator would compile its own).
+    received: list = []
+
+    def stop(estimator, scenario, **kwargs):
+        received.append(estimator)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli.run, "run", stop)
     assert cli.main(["run", str(path), "-o", str(tmp_path / "r.json"), "--smoother", "filter", "--capacity", "8",
-                     "--samples", "16"]) == 0
+                     "--samples", "16"]) == 130
     out = capsys.readouterr().out
     first = out.splitlines()[0]
     assert first.split(": ", 1)[1].startswith("--gate 3 (") and "overridden: --capacity, --weights" in first
     assert "capacity=8" in out and "gate_candidates=3" in out and "weights=laplace-is, samples=16" in out
+    assert "capacity=8" in received[-1].describe() and "weights=laplace-is, samples=16" in received[-1].describe()
     assert cli.main(["run", str(path), "-o", str(tmp_path / "r.json"), "--profile", "paper", "--smoother",
-                     "filter"]) == 0
-    assert "capacity=64" in capsys.readouterr().out
+                     "filter"]) == 130
+    assert "capacity=64" in capsys.readouterr().out and "capacity=64" in received[-1].describe()
     assert cli.main(["run", str(path), "-o", str(tmp_path / "r.json"), "--profile", "fast"]) == 2
     assert cli.main(["run", str(path), "-o", str(tmp_path / "r.json"), "--close-loops", "--no-close-loops"]) == 2
     assert "--no-close-loops" in capsys.readouterr().err

@@ -23,7 +23,8 @@ checked against the script's own ``--help``: every option the page gives exists.
 test and docs-build lines (``pip``, ``pytest``, ``mypy``, ``mkdocs``) are what CI itself runs.
 
 Marked ``readme`` (minutes on 2 cores; the default study alone about 1.5 of them), so ``python3 -m
-pytest -q`` skips it and ``.ci/run`` runs it after the suite: ``python3 -m pytest -q -m readme``. A
+pytest -q`` skips it; ``.ci/run`` runs it in one session with the rest (``python3 -m pytest -q -m ""``),
+alone it is ``python3 -m pytest -q -m readme``. A
 README command without an entry in ``EXPECT`` fails here: every command of the README is checked
 for what it prints.
 """
