@@ -26,6 +26,7 @@ ESTIMATORS: dict[str, type[AbstractEstimator]] = {
 
 # Which estimator setting each option sets (an option an estimator lacks is an error, never ignored).
 _COMMON = {"classifier": "classifier", "gn_max_steps": "gn_max_steps", "max_detections": "max_detections",
+           "new_landmark": "new_landmark",
            "max_steps": "max_steps", "smoother": "smoother"}
 _OPTIONS: dict[str, dict[str, str]] = {
     "hybrid": {**_COMMON, "capacity": "capacity", "prune_ratio": "prune_ratio", "gate": "gate",

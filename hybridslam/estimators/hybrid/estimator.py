@@ -16,6 +16,7 @@ from ...io.scenario import Scenario
 from ...models.classifier import ClassifierModel
 from ...models.measurement import Detections
 from ...models.model import NewObjects, model_from_scenario
+from .. import novelty
 from ..smoothing import Filter, Full, Lag, Smoother, data_log, factor_budget, initial_trajectory, initial_window
 from ..base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, classifier_name,
                     clutter_text, history_length, resolve_clutter)
@@ -55,6 +56,9 @@ class Hybrid(AbstractEstimator):
       (prior probability of clutter included; e.g. ``log(0.01 / (max_range · fov))``), its scores
       of no known class; ``"file"`` (default): the scenario's ``sensor.clutter_log_density``, none
       without it; ``None`` or ``"none"``: every detection is of an object (the paper's model);
+    * ``new_landmark`` — an unknown map's rule for a new object: ``"density"`` (default: "new" is a
+      hypothesis of the scenario's new-object density everywhere) or ``"mahalanobis:TAU"`` (thesis
+      Sec. 3.2.1: "new" only where no known object lies within ``d² <= TAU``; :mod:`..novelty`);
     * ``gn_max_steps`` — Gauss-Newton iteration budget of the update (Eq. 9) and of the laplace-is
       mode search. 50: the semantic factors of a strongly viewpoint-dependent classifier make
       Gauss-Newton converge only linearly (the default study at alpha 0.5 has 4 of 263 mode
@@ -79,6 +83,7 @@ class Hybrid(AbstractEstimator):
     prune_ratio: float = eqx.field(default=150.0, static=True)
     gate: int | None = eqx.field(default=None, static=True)
     clutter: float | str | None = eqx.field(default=CLUTTER_FROM_FILE, static=True)
+    new_landmark: str = eqx.field(default=novelty.DENSITY, static=True)
     gn_max_steps: int = eqx.field(default=50, static=True)
     smoother: Smoother = Full()
     classifier: str | ClassifierModel | None = None
@@ -96,6 +101,7 @@ class Hybrid(AbstractEstimator):
         if not isinstance(self.smoother, (Filter, Full, Lag)):
             raise ValueError(f"Hybrid.smoother: expected Full(), Lag(L) or Filter(), got {self.smoother!r}")
         check_clutter("Hybrid", self.clutter)
+        novelty.parse_new_landmark("Hybrid", self.new_landmark)
         if isinstance(self.clutter, (int, float)) and not isinstance(self.branching, Beam):
             raise ValueError("Hybrid.clutter: the clutter hypothesis needs branching=Beam(...)")
         if not isinstance(self.weights, AbstractWeigher):
@@ -173,6 +179,7 @@ class Hybrid(AbstractEstimator):
             + ("" if self.gate is None else f", gate_candidates={self.gate}")
             + ("" if isinstance(self.branching, Exhaustive) else f", branching=beam({self.branching.width})")
             + clutter_text(self.clutter, scenario)
+            + ("" if self.new_landmark == novelty.DENSITY else f", new_landmark={self.new_landmark}")
             + f", smoother={self.smoother.name}"
         )
 
