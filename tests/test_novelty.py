@@ -134,3 +134,14 @@ def test_recall_needs_ground_truth():
         closure_recall(scenario.replace(true_robot_poses=None), result)
     with pytest.raises(ValueError, match="29 steps"):
         closure_recall(scenario, Result("test", result.steps[:-1]))
+
+
+def test_the_command_line_takes_the_rule_and_names_a_bad_one(tmp_path, capsys):
+    from hybridslam.cli import main
+    from hybridslam.io.scenario import save_scenario
+
+    save_scenario(hallway(0, steps=2), tmp_path / "s.json")
+    argv = ["run", str(tmp_path / "s.json"), "-o", str(tmp_path / "r.json"), "--estimator", "ml"]
+    assert main([*argv, "--new-landmark", "mahalanobis:-1"]) != 0
+    assert "new_landmark" in capsys.readouterr().err
+    assert not (tmp_path / "r.json").exists()

@@ -93,7 +93,7 @@ def add_result_format_option(p: argparse.ArgumentParser) -> None:
 # --------------------------------------------------------------------------- #
 
 ESTIMATOR_OPTIONS = ("capacity", "samples", "weights", "prune_ratio", "gate", "max_children", "exhaustive", "clutter",
-                     "max_detections", "max_steps", "smoother")
+                     "max_detections", "max_steps", "smoother", "new_landmark")
 
 
 def add_estimator_options(p: argparse.ArgumentParser, seed_help: str = "PRNG seed of the Monte-Carlo draws",
@@ -131,6 +131,10 @@ def add_estimator_options(p: argparse.ArgumentParser, seed_help: str = "PRNG see
                         "as the papers' smoothers do; lag:L: only the last L steps and the map, older poses "
                         "marginalized (bounded cost per step); filter: the joint Gaussian over the current pose "
                         "and the map only")
+    p.add_argument("--new-landmark", default=None, metavar="{density,mahalanobis:TAU}",
+                   help="an unknown map's rule for a new object: density (default: the file's new-object density "
+                        "competes with the known objects) or mahalanobis:TAU (thesis Sec. 3.2.1: new only where "
+                        "every known object lies beyond the squared Mahalanobis distance TAU, e.g. 9.21)")
     p.add_argument("--max-detections", type=int, default=None,
                    help="detection slots per step (default: the largest step); a shared value lets files share "
                         "one compiled step")
