@@ -21,6 +21,13 @@ Writes, under ``--output``:
 
     python experiments/hallway_odometry_sweep.py [-o runs/hallway] [--seeds 3] [--estimators ml,gpda,...]
 
+``--first-seed N`` starts the seeds at ``N`` (held-out files: seeds no earlier study used);
+``--new-landmark mahalanobis:TAU`` gives every estimator the thesis's new-landmark rule (Sec.
+3.2.1; :mod:`hybridslam.estimators.novelty`) instead of the density rule; write each rule to its own
+folder. Beside the errors it prints, per estimator, the recall of the true loop closure
+(:func:`hybridslam.analysis.recall.closure_recall`): the runs whose top component associates every
+loop-closing re-detection right, the runs where some kept component does, and their final-pose errors.
+
 ``--estimators`` also takes ``hybrid+loops``: the hybrid belief with loop closure during the run
 (:class:`hybridslam.estimators.hybrid.loops.OnlineLoopClosure`, the pass's default settings).
 """
@@ -41,6 +48,7 @@ from tqdm import tqdm
 from hybridslam import driver
 from hybridslam.analysis import trajectory
 from hybridslam.analysis.map_error import map_error
+from hybridslam.analysis.recall import closure_recall
 from hybridslam.analysis.plot import plot_trajectory
 from hybridslam.estimators import ESTIMATORS, AbstractEstimator, make_estimator
 from hybridslam.estimators.hybrid.loops import OnlineLoopClosure
@@ -67,6 +75,7 @@ SETTINGS: dict[str, dict] = {
 }
 
 
+NEW_LANDMARK = "density"  # main(new_landmark=...): every estimator's rule for a new object (.novelty)
 SMOOTHER = "full"  # main(smoother=...): "full" (the papers' smoothers, the default) or "filter"
 # Not an estimator of its own: the hybrid belief with loop closure during the run (its merge
 # hypotheses added between steps, hybridslam.estimators.hybrid.loops; full smoother only).
@@ -77,7 +86,8 @@ def estimator(name: str, max_detections: int | None = None) -> AbstractEstimator
     """Estimator ``name`` with the study's :data:`SETTINGS` and :data:`SMOOTHER`; ``max_detections`` pads
     every step to that many detection slots (``None``: the scenario's largest step)."""
     base = "hybrid" if name == ONLINE else name
-    return make_estimator(base, max_detections=max_detections, smoother=SMOOTHER, **SETTINGS.get(base, {}))
+    return make_estimator(base, max_detections=max_detections, smoother=SMOOTHER, new_landmark=NEW_LANDMARK,
+                          **SETTINGS.get(base, {}))
 
 
 def _scenario(folder: str, trace: float, seed: int, steps: int | None):
@@ -229,6 +239,30 @@ def summarize_map(folder: str, records: list[dict], estimators: list[str], level
             print(f"{name:<12} " + " ".join(f"{m:>8.3f}" for m in means) + f" {np.mean(every):>8.3f}")
 
 
+def summarize_recall(folder: str, records: list[dict], estimators: list[str], steps: int | None) -> None:
+    """Print, per estimator, the recall of the true loop closure over its runs
+    (:func:`hybridslam.analysis.recall.closure_recall`): re-detections the top component closes right,
+    runs it closes whole, runs where some kept component does, and the mean final-pose error of the top
+    component and, where one holds the truth, of the highest-weight one that does."""
+    print("\nloop closure against the truth: re-detections closed right by the top component; runs closed "
+          "whole by the top / by some kept component; final-pose error (m) of the top and of that component")
+    print(f"{'estimator':<13} {'re-dets':>9} {'top runs':>9} {'kept runs':>9} {'top err':>8} {'kept err':>9} "
+          f"{'components':>10}")
+    for name in estimators:
+        cells = [r for r in records if r["cell"]["estimator"] == name]
+        recs = []
+        for r in cells:
+            _, scenario = _scenario(folder, r["cell"]["trace"], r["cell"]["seed"], steps)
+            recs.append(closure_recall(scenario, load_result(os.path.join(folder, r["result"]))))
+        if not recs:
+            continue
+        kept = [x.kept_error for x in recs if x.kept_error is not None]
+        print(f"{name:<13} {sum(x.top_closed for x in recs):>4}/{sum(x.redetections for x in recs):<4} "
+              f"{sum(x.top_right for x in recs):>4}/{len(recs):<4} {sum(x.kept for x in recs):>4}/{len(recs):<4} "
+              f"{np.mean([x.top_error for x in recs]):>8.2f} {np.mean(kept) if kept else float('nan'):>9.2f} "
+              f"{np.mean([x.components for x in recs]):>10.1f}")
+
+
 def plot_errors(folder: str, records: list[dict], estimators: list[str], levels: list[float], lines: dict) -> str:
     fig = Figure(figsize=(6.5, 4.5), layout="constrained")
     ax = fig.subplots()
@@ -267,20 +301,22 @@ def plot_examples(folder: str, records: list[dict], estimators: list[str]) -> st
 
 
 def main(output: str = os.path.join("runs", "hallway"), seeds: int = 3, estimators=DEFAULT_ESTIMATORS,
-         levels=hallway.LEVELS, steps: int | None = None, smoother: str = "full") -> list[dict]:
-    global SMOOTHER
-    SMOOTHER = smoother
+         levels=hallway.LEVELS, steps: int | None = None, smoother: str = "full", first_seed: int = 0,
+         new_landmark: str = "density") -> list[dict]:
+    global SMOOTHER, NEW_LANDMARK
+    SMOOTHER, NEW_LANDMARK = smoother, new_landmark
     estimators, levels = list(estimators), [float(t) for t in levels]
     unknown = [n for n in estimators if n not in ESTIMATORS and n != ONLINE]
     if unknown:
         raise SystemExit(f"--estimators: unknown {', '.join(unknown)} (known: {', '.join([*ESTIMATORS, ONLINE])})")
     os.makedirs(output, exist_ok=True)
     with Records(output, {"study": "hallway", "steps": steps}) as records:  # the folder is locked until the end
-        cells = [(n, t, s) for t in levels for s in range(seeds) for n in estimators]
-        cells += [(n, EXAMPLE_TRACE, 0) for n in estimators]
+        cells = [(n, t, s) for t in levels for s in range(first_seed, first_seed + seeds) for n in estimators]
+        cells += [(n, EXAMPLE_TRACE, first_seed) for n in estimators if (n, EXAMPLE_TRACE, first_seed) not in cells]
         todo = [c for c in cells if _cell(*c) not in records]
-        print(f"{len(cells)} cells ({len(estimators)} estimators x {len(levels)} levels x {seeds} seeds, plus the "
-              f"example at tr = {EXAMPLE_TRACE}); {len(cells) - len(todo)} done already", flush=True)
+        print(f"{len(cells)} cells ({len(estimators)} estimators x {len(levels)} levels x {seeds} seeds from "
+              f"{first_seed}, and the example at tr = {EXAMPLE_TRACE}); {len(cells) - len(todo)} done already",
+              flush=True)
         max_detections = max(max(_scenario(output, t, s, steps)[1].max_detections, 1) for _, t, s in cells)
         t0 = time.perf_counter()
         for name, trace, seed in tqdm(todo, desc="hallway cells", unit="cell"):
@@ -291,6 +327,7 @@ def main(output: str = os.path.join("runs", "hallway"), seeds: int = 3, estimato
     lines = summarize(done, estimators, levels)
     summarize_final(output, done, estimators, levels)
     summarize_map(output, done, estimators, levels)
+    summarize_recall(output, done, estimators, steps)
     print(f"wrote {plot_errors(output, done, estimators, levels, lines)}")
     print(f"wrote {plot_examples(output, done, estimators)}")
     return done
@@ -305,5 +342,9 @@ if __name__ == "__main__":
     parser.add_argument("--levels", default=",".join(str(t) for t in hallway.LEVELS),
                         help="odometry noise levels tr(Λ_t) (default: the thesis's five)")
     parser.add_argument("--smoother", default="full", help="full, lag:L or filter")
+    parser.add_argument("--first-seed", type=int, default=0, help="the first seed (default 0)")
+    parser.add_argument("--new-landmark", default="density",
+                        help="every estimator's new-landmark rule: density (default) or mahalanobis:TAU")
     a = parser.parse_args()
-    main(a.output, a.seeds, a.estimators.split(","), [float(t) for t in a.levels.split(",")], a.steps, a.smoother)
+    main(a.output, a.seeds, a.estimators.split(","), [float(t) for t in a.levels.split(",")], a.steps, a.smoother,
+         a.first_seed, a.new_landmark)

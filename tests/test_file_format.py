@@ -69,7 +69,8 @@ def kinds(table: dict[str, str]) -> None:
 
 
 def full_scenario(model: str = "mirror") -> dict:
-    """A simulated 2-step scenario with every optional section (ground truth, discovery, clutter)."""
+    """A simulated 2-step scenario with every optional section (ground truth, discovery, clutter,
+    detection probability)."""
     s = simulate(0, steps=2)
     obj = scenario_to_json(s)
     obj["true_objects"] = [{"pose": list(map(float, p)), "class": int(c)}
@@ -77,6 +78,7 @@ def full_scenario(model: str = "mirror") -> dict:
     obj["discovery"] = {"max_objects": s.num_objects + 4, "new_object_log_density": -4.0,
                         "new_object_orientation_var": 9.87}
     obj["sensor"]["clutter_log_density"] = -6.0
+    obj["sensor"]["detection_probability"] = 0.95
     assert any(step["detections"] for step in obj["steps"])
     classifier = {"mirror": {"model": "mirror", "alpha": 0.25, "K": 15.0},
                   "independent": {"model": "independent", "alpha": 0.25, "K": 15.0},

@@ -65,13 +65,15 @@ def test_a_registered_estimator_is_offered_with_its_options(monkeypatch):
     assert "--boost" not in _actions(cli.build_parser(), "run")
 
 
-# The options each estimator took when they were listed by hand beside the classes.
+# The options each estimator took when they were listed by hand beside the classes, and the
+# unknown map's new-landmark rule (thesis Sec. 3.2.1) that every estimator takes.
+COMMON = {"classifier", "gn_max_steps", "max_detections", "max_steps", "smoother", "new_landmark"}
 TAKEN = {
-    "hybrid": {"classifier", "gn_max_steps", "max_detections", "max_steps", "smoother", "capacity", "prune_ratio",
+    "hybrid": COMMON | {"capacity", "prune_ratio",
                "gate", "weights", "samples", "visibility_temperature", "max_children", "exhaustive", "clutter"},
-    "ml": {"classifier", "gn_max_steps", "max_detections", "max_steps", "smoother", "gate", "gate_probability",
+    "ml": COMMON | {"gate", "gate_probability",
            "max_children", "clutter"},
-    "multimodal": {"classifier", "gn_max_steps", "max_detections", "max_steps", "smoother", "capacity", "samples",
+    "multimodal": COMMON | {"capacity", "samples",
                    "gate", "max_children", "merge_threshold", "association_prior", "proposal", "clutter"},
 }
 TAKEN["gpda"] = TAKEN["max-mixture"] = TAKEN["ml"]
@@ -85,7 +87,8 @@ def test_each_estimator_takes_the_options_it_always_took(name):
 def test_the_commands_offer_the_flags_they_always_offered():
     offered = {o.flag for o in all_options(hs.ESTIMATORS).values() if o.command_line}
     assert offered == {"--samples", "--capacity", "--prune-ratio", "--weights", "--gate", "--max-children",
-                       "--exhaustive", "--clutter", "--smoother", "--max-detections", "--max-steps"}
+                       "--exhaustive", "--clutter", "--smoother", "--max-detections", "--max-steps",
+                       "--new-landmark"}
 
 
 @pytest.mark.parametrize("options, field, value", [

@@ -69,6 +69,7 @@ from ..models.measurement import Detections
 from ..models.model import Model, model_from_scenario
 from ..models.motion import propagate
 from ..models.classifier import ClassifierModel
+from . import novelty
 from .base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, detection_slots,
                    history_length, lacks_object_slots, object_slots, resolve_clutter)
 from .options import GATE, MAX_CHILDREN, Option, setting
@@ -85,6 +86,7 @@ class Structure:
     discovery: bool  # the null hypothesis creates objects (scenario has a "discovery" section)
     num_candidates: int  # G, at most the object capacity
     clutter: bool = False  # a known map's null hypothesis is clutter (Params.clutter_log_density)
+    mahalanobis_new: bool = False  # new_landmark="mahalanobis:TAU" (Params.new_landmark_tau; .novelty)
 
 
 class Params(eqx.Module):
@@ -95,6 +97,7 @@ class Params(eqx.Module):
     new_object_orientation_var: Float[Array, ""]
     new_class_log_prior: Float[Array, " M"]  # uniform: a new object's class prior
     clutter_log_density: Float[Array, ""]  # -inf without a clutter hypothesis
+    new_landmark_tau: Float[Array, ""]  # τ of new_landmark="mahalanobis:TAU" (inf under "density")
 
 
 class GaussianState(eqx.Module):
@@ -179,7 +182,9 @@ class SingleGaussian(AbstractEstimator):
     :class:`~.smoothing.Lag`: the last ``L`` steps, older poses marginalized;
     :class:`~.smoothing.Filter`: the joint Gaussian over ``[x_k, objects]`` only), ``clutter``
     (a known map's clutter log density over ``[range, bearing]``; ``"file"``, the default: the
-    scenario's ``sensor.clutter_log_density``, none without it; ``None`` or ``"none"``: none).
+    scenario's ``sensor.clutter_log_density``, none without it; ``None`` or ``"none"``: none), ``new_landmark``
+    (an unknown map's rule for a new object: ``"density"``, the default, or ``"mahalanobis:TAU"``,
+    thesis Sec. 3.2.1; :mod:`.novelty`).
     """
 
     candidates: int = eqx.field(default=3, static=True, metadata=setting(GATE))
@@ -193,8 +198,10 @@ class SingleGaussian(AbstractEstimator):
     max_steps: int | None = eqx.field(default=None, static=True)
     clutter: float | str | None = eqx.field(default=CLUTTER_FROM_FILE, static=True,
                                             metadata=setting(note="a known map only"))
+    new_landmark: str = eqx.field(default=novelty.DENSITY, static=True)
 
-    described = ("candidates", "gate_probability", "gn_max_steps", "max_hypotheses", "smoother", "clutter")
+    described = ("candidates", "gate_probability", "gn_max_steps", "max_hypotheses", "smoother", "clutter",
+                 "new_landmark")
     factor_mode: ClassVar[Literal["sum", "max"]] = "sum"  # how the smoother reads a detection's candidates (max-mixtures: "max")
 
     def __check_init__(self):
@@ -207,6 +214,7 @@ class SingleGaussian(AbstractEstimator):
                 raise ValueError(f"{type(self).__name__}.{name}: expected a positive int, got {value!r}")
         chi2_gate(self.gate_probability)
         check_clutter(type(self).__name__, self.clutter)
+        novelty.parse_new_landmark(type(self).__name__, self.new_landmark)
         if self.max_detections is not None and not (isinstance(self.max_detections, int) and self.max_detections >= 1):
             raise ValueError(f"{type(self).__name__}.max_detections: expected a positive int or None, "
                              f"got {self.max_detections!r}")
@@ -218,6 +226,7 @@ class SingleGaussian(AbstractEstimator):
         n_max = object_slots(scenario)
         slots = detection_slots(self.max_detections, scenario)
         clutter = self._clutter(scenario)
+        tau = novelty.parse_new_landmark(type(self).__name__, self.new_landmark)
         model = model_from_scenario(scenario.replace(discovery=None), self.classifier)
         uniform = np.full(m, -math.log(m))
         class_log_post = np.tile(uniform, (n_max, 1))
@@ -239,6 +248,7 @@ class SingleGaussian(AbstractEstimator):
             new_object_orientation_var=f(1.0 if disc is None else disc.new_object_orientation_var),
             new_class_log_prior=f(uniform),
             clutter_log_density=f(-np.inf if clutter is None else clutter),
+            new_landmark_tau=f(np.inf if tau is None else tau),
         )
         steps = history_length(self.max_steps, scenario)
         g = min(self.candidates, n_max)
@@ -247,7 +257,7 @@ class SingleGaussian(AbstractEstimator):
             class_log_post=f(class_log_post), observed=put(np.zeros(n_max, dtype=bool)),
             history=put(np.full((steps, slots), -1, dtype=np.int32)),
             k=put(np.zeros((), dtype=np.int32)), model=model, params=params,
-            structure=Structure(disc is not None, g, clutter is not None),
+            structure=Structure(disc is not None, g, clutter is not None, disc is not None and tau is not None),
         )
         if isinstance(self.smoother, Filter):
             return state
@@ -339,6 +349,12 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
     inn = gating.innovations(sensor, mean, cov, detections)
     candidates, d2 = gating.nearest(inn.d2, state.num_created, g)
     candidate_ok = (d2 <= params.gate) & detections.mask[:, None]
+    # The thesis's new-landmark rule (Sec. 3.2.1, .novelty): candidates within τ only, and "new" only
+    # where none is (the nearest G hold the nearest object, so none inside the G means none at all).
+    near = jnp.zeros(dmax, bool)
+    if cfg.mahalanobis_new:
+        candidate_ok &= d2 <= params.new_landmark_tau
+        near = jnp.any(candidate_ok, axis=-1)
 
     # Semantic terms (Eq. 4.13 / 2.14): per object, and under the null hypothesis.
     classifier = sensor.classifier
@@ -387,7 +403,9 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
             term = jnp.where(used[upto],
                              sequential.innovation_log_density(inn, partial_row, upto, obj[upto]) + sem_cand[upto, pick[upto]],
                              jnp.where(new[upto] | unmapped[upto] | clutter[upto], null_w[upto], 0.0))
-            return jnp.where(ok, parent + term, -jnp.inf), jnp.sum(skip)
+            # A new object where a known one lies within τ breaks the Mahalanobis rule: ranked with
+            # the skips, so only the assignments that break it fewest compete (never none at all).
+            return jnp.where(ok, parent + term, -jnp.inf), jnp.sum(skip) + jnp.sum((new | unmapped) & near)
 
         def advance(partial_row, opts, upto):
             _, used, _, obj, *_ = flags(opts, upto)
@@ -399,7 +417,7 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
         ok, _, _, _, new, unmapped, skip, clutter = jax.vmap(flags, (0, None))(options, dmax - 1)
         ok &= found.valid  # a row the beam did not fill is no hypothesis (it may repeat another)
         log_w = found.score
-    num_skip = jnp.sum(skip, axis=-1)
+    num_skip = jnp.sum(skip, axis=-1) + jnp.sum((new | unmapped) & near[None], axis=-1)  # rule breaks rank as skips
     ok &= num_skip == jnp.min(jnp.where(ok, num_skip, dmax + 1))  # the all-null row is always ok
     log_w = jnp.where(ok, log_w, -jnp.inf)
     log_prob = log_w - logsumexp(log_w)

@@ -131,6 +131,7 @@ from ..models.measurement import Detections, SensorModel, log_visibility, log_vi
 from ..models.model import Model, model_from_scenario
 from ..inference.batching import map_live, smoothing_chunk
 from ..inference.ties import best_slot, rank_key
+from . import novelty
 from .base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, detection_slots,
                    history_length, lacks_object_slots, object_slots, relevant_children, resolve_clutter)
 from .options import GATE, MAX_CHILDREN, Option, setting
@@ -175,6 +176,7 @@ class Structure:
     proposal: str  # "posterior" (importance sampling) or "prior" (Eq. 5.10 as written)
     beam: int | None = None  # joint assignments kept per component while they are built (None: all)
     clutter: bool = False  # a known map's null choice is a clutter detection (scored), not a skip
+    mahalanobis_new: bool = False  # new_landmark="mahalanobis:TAU" (Params.new_landmark_tau; .novelty)
 
 
 class Params(eqx.Module):
@@ -184,6 +186,7 @@ class Params(eqx.Module):
     orientation_var: Float[Array, ""]
     merge_threshold: Float[Array, ""]
     clutter_log_density: Float[Array, ""]  # used where Structure.clutter
+    new_landmark_tau: Float[Array, ""]  # τ of new_landmark="mahalanobis:TAU" (inf under "density")
 
 
 class State(eqx.Module):
@@ -630,6 +633,9 @@ def hypotheses(
     def per_component(m, c, class_lp, created):
         pred = gating.innovations(sensor, m, c, detections)
         cand = gate(pred.d2, created, cfg.candidates)
+        near = jnp.zeros(cfg.max_detections, bool)  # a known object within τ: "new" breaks the rule (.novelty)
+        if cfg.mahalanobis_new:
+            cand, near = novelty.restrict(cand, pred.d2, params.new_landmark_tau)
         if cfg.beam is not None:  # built one detection at a time, the `beam` best kept (inference.beam), scored sequentially
             terms = slot_terms(sensor, params, pred, m, c, class_lp, cand, detections, cfg.clutter)
             if 3 + 3 * cand.size < m.shape[0]:  # static: the candidates' rows are fewer than the map's
@@ -642,7 +648,7 @@ def hypotheses(
                 is_clutter = cfg.clutter & mask[j] & (opts[j] >= cfg.candidates)
                 inc = slot_log_likelihood(terms, row, j, opts[j], objects[0, j], new[0, j], is_clutter)
                 # Ranked by the detections left unassociated first (a known map's null choice).
-                skips = skipped_detections(opts[None], mask, cfg.candidates, scored_null)[0]
+                skips = skipped_detections(opts[None], mask, cfg.candidates, scored_null)[0] + jnp.sum(new[0] & near)
                 return jnp.where(feasible[0], parent + inc, -jnp.inf), skips
 
             start = sequential.start(cfg.beam, terms.cov.shape[0], cfg.max_detections, m.dtype)
@@ -651,7 +657,8 @@ def hypotheses(
             objects, new, feasible = assignment_objects(found.options, cand, detections.mask, created, cfg.max_objects,
                                                         cfg.discovery)
             # A row the beam did not fill is no hypothesis (it may repeat another).
-            skips = skipped_detections(found.options, detections.mask, cfg.candidates, scored_null)
+            skips = skipped_detections(found.options, detections.mask, cfg.candidates, scored_null) + jnp.sum(
+                new & near[None], axis=1)
             return objects, new, jnp.where(feasible & found.valid, found.score, -jnp.inf), skips, found.dropped
         # Every joint assignment, (G+1)^Dmax rows, each scored at once: the reference.
         choices = jnp.asarray(gating.joint_options(cfg.candidates, cfg.max_detections))
@@ -659,7 +666,8 @@ def hypotheses(
         clutter = clutter_slots(choices, detections.mask)
         screen = jax.vmap(partial(screen_log_likelihood, sensor, params, pred, m, c, class_lp), (0, 0, None, 0))(
             objects, new, detections, clutter)
-        skips = skipped_detections(choices, detections.mask, cfg.candidates, scored_null)
+        skips = skipped_detections(choices, detections.mask, cfg.candidates, scored_null) + jnp.sum(
+            new & near[None], axis=1)
         return objects, new, jnp.where(feasible, screen, -jnp.inf), skips, jnp.zeros((), jnp.int32)
 
     rows = (cfg.candidates + 1) ** cfg.max_detections if cfg.beam is None else cfg.beam
@@ -880,7 +888,8 @@ class Multimodal(AbstractEstimator):
     (children that get a Gauss-Newton update; ``None``: ``2·capacity``), ``merge_threshold``
     (squared Mahalanobis distance over the whole state), ``association_prior`` (``"mc"``: thesis
     Eq. 5.11; ``"uniform"``), ``proposal`` (``"posterior"`` or ``"prior"``), ``clutter`` (a known
-    map's clutter log density; module docstring), ``gn_max_steps``,
+    map's clutter log density; module docstring), ``new_landmark`` (``"density"`` or
+    ``"mahalanobis:TAU"``, thesis Sec. 3.2.1: :mod:`.novelty`), ``gn_max_steps``,
     ``classifier``, ``max_detections``, ``max_steps`` and ``smoother`` (:class:`~.smoothing.Full` by
     default: each component's trajectory relinearized at every step, the thesis's mm-iSAM in spirit;
     :class:`~.smoothing.Filter`) as in every estimator.
@@ -908,6 +917,7 @@ class Multimodal(AbstractEstimator):
     max_steps: int | None = eqx.field(default=None, static=True)
     clutter: float | str | None = eqx.field(default=CLUTTER_FROM_FILE, static=True,
                                             metadata=setting(note="a known map only"))
+    new_landmark: str = eqx.field(default=novelty.DENSITY, static=True)
 
     name: ClassVar[str] = "multimodal"
     title: ClassVar[str] = "multimodal sum-mixture semantic SLAM"
@@ -930,6 +940,7 @@ class Multimodal(AbstractEstimator):
         if not (isinstance(self.merge_threshold, (int, float)) and self.merge_threshold > 0):
             raise ValueError(f"Multimodal.merge_threshold: must be positive, got {self.merge_threshold!r}")
         check_clutter("Multimodal", self.clutter)
+        novelty.parse_new_landmark("Multimodal", self.new_landmark)
 
     def _clutter(self, scenario: Scenario) -> float | None:
         """The clutter log density used on ``scenario`` (a known map's only; ``None``: none)."""
@@ -949,7 +960,8 @@ class Multimodal(AbstractEstimator):
         children = min(2 * self.capacity if self.children is None else self.children, self.capacity * assignments)
         return Structure(self.capacity, n_max, slots, history_length(self.max_steps, scenario), self.samples, candidates, children,
                          self.gn_max_steps, scenario.discovery is not None, self.association_prior, self.proposal,
-                         self.max_assignments, clutter is not None)
+                         self.max_assignments, clutter is not None,
+                         scenario.discovery is not None and novelty.parse_new_landmark("Multimodal", self.new_landmark) is not None)
 
     def init(self, scenario: Scenario) -> State:
         """One component of weight 1: the robot and object priors, uncreated slots ``N(0, I)`` (Eq. 3)."""
@@ -975,6 +987,7 @@ class Multimodal(AbstractEstimator):
             f(disc.new_object_orientation_var if disc else 1.0),
             f(float(self.merge_threshold)),
             f(-np.inf if (clutter := self._clutter(scenario)) is None else clutter),
+            f(tau if (tau := novelty.parse_new_landmark("Multimodal", self.new_landmark)) is not None else np.inf),
         )
         # The class prior padded to Nmax rows: runs with the same capacities share one compiled step.
         model = eqx.tree_at(lambda mo: mo.class_prior, model, put(np.exp(class_lp)))

@@ -28,6 +28,7 @@ import math
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
+from . import novelty
 from .smoothing import parse_smoother
 
 SETTING = "hybridslam.setting"  # the key of a field's metadata that holds its Setting
@@ -109,6 +110,18 @@ def smoother_text(text: str) -> str:
     return text
 
 
+def new_landmark_text(text: str) -> str:
+    """``--new-landmark``'s value, checked (:func:`.novelty.parse_new_landmark`)."""
+    novelty.parse_new_landmark("--new-landmark", text)
+    return text
+
+
+def _new_landmark_shown(estimator: Any) -> str:
+    """The estimator text names the rule only where it is not the default (older texts stay as they were)."""
+    value = getattr(estimator, "new_landmark")
+    return "" if value == novelty.DENSITY else f"new_landmark={value}"
+
+
 def _smoother(value: Any) -> Any:
     return parse_smoother(value) if isinstance(value, str) else value
 
@@ -135,10 +148,17 @@ MAX_STEPS = Option("max_steps", "history length; a shared value lets files share
                    none="the file's steps", described=False)
 CLASSIFIER = Option("classifier", "a classifier model name or object replacing the file's", parse=str,
                     none="the file's", command_line=False)
+NEW_LANDMARK = Option(
+    "new_landmark", "an unknown map's rule for a new object: density (the file's new-object density competes "
+                    "with the known objects) or mahalanobis:TAU (thesis Sec. 3.2.1: new only where every known "
+                    "object lies beyond the squared Mahalanobis distance TAU, e.g. 9.21)",
+    parse=new_landmark_text, metavar="{density,mahalanobis:TAU}", default="density")
 GN_MAX_STEPS = Option("gn_max_steps", "Gauss-Newton iteration budget of an update", command_line=False)
 
+_SHOWN = {"new_landmark": _new_landmark_shown}  # shared options written their own way in the estimator text
 SHARED: dict[str, Option] = {o.name: o for o in (CAPACITY, SAMPLES, GATE, MAX_CHILDREN, CLUTTER, SMOOTHER,
-                                                  MAX_DETECTIONS, MAX_STEPS, CLASSIFIER, GN_MAX_STEPS)}
+                                                  MAX_DETECTIONS, MAX_STEPS, CLASSIFIER, GN_MAX_STEPS,
+                                                  NEW_LANDMARK)}
 
 
 # --------------------------------------------------------------------------- #
@@ -153,7 +173,7 @@ def field_setting(field: dataclasses.Field) -> Setting:
         return own
     if own is not None:  # metadata that only says how the field is shown or noted
         return dataclasses.replace(own, options=(SHARED[field.name],))
-    return Setting((SHARED[field.name],)) if field.name in SHARED else Setting()
+    return Setting((SHARED[field.name],), show=_SHOWN.get(field.name)) if field.name in SHARED else Setting()
 
 
 def settable(cls: type) -> Iterator[tuple[dataclasses.Field, Setting]]:
@@ -268,5 +288,5 @@ def shown(estimator: Any, order: Sequence[str] | None) -> list[tuple[str, Callab
 
 
 __all__ = ["CAPACITY", "CLASSIFIER", "CLUTTER", "GATE", "GN_MAX_STEPS", "MAX_CHILDREN", "MAX_DETECTIONS", "MAX_STEPS",
-           "SAMPLES", "SHARED", "SMOOTHER", "Option", "Setting", "all_options", "clutter_density", "field_values",
+           "NEW_LANDMARK", "SAMPLES", "SHARED", "SMOOTHER", "Option", "Setting", "all_options", "clutter_density", "field_values",
            "option_help", "options_of", "setting", "value_text"]

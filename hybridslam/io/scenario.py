@@ -105,6 +105,7 @@ class Scenario:
     discovery: Discovery | None = None
     true_objects: tuple[tuple[np.ndarray, int], ...] | None = None  # (pose (3,), class)
     clutter_log_density: float | None = None  # sensor.clutter_log_density: a detection may be spurious
+    detection_probability: float | None = None  # sensor.detection_probability: P(detected | in view)
     metadata: dict = field(default_factory=dict)  # unknown top-level keys, verbatim
     __eq__ = jf.dataclass_eq
 
@@ -167,12 +168,21 @@ def _classifier(obj: Any, path: str, num_classes: int) -> Classifier:
     return Classifier(model)
 
 
-def _sensor(obj: Any, path: str) -> tuple[float, float, float | None]:
+def _sensor(obj: Any, path: str) -> tuple[float, float, float | None, float | None]:
     obj = jf.as_object(obj, path)
     max_range = jf.get(obj, "max_range", path, jf.positive)
     # Any positive field of view: from 2π on, every bearing is inside it (|bearing| <= fov / 2).
     fov = jf.get(obj, "fov", path, jf.positive)
-    return max_range, fov, jf.maybe(obj, "clutter_log_density", path, jf.number)
+    return (max_range, fov, jf.maybe(obj, "clutter_log_density", path, jf.number),
+            jf.maybe(obj, "detection_probability", path, _probability))
+
+
+def _probability(obj: Any, path: str) -> float:
+    """A detection probability: in (0, 1]."""
+    value = jf.number(obj, path)
+    if not 0.0 < value <= 1.0:
+        jf.fail(path, f"expected a number in (0, 1], got {value!r}")
+    return value
 
 
 def _discovery(obj: Any, path: str, num_objects: int) -> Discovery:
@@ -243,7 +253,7 @@ def parse_scenario(obj: Any) -> Scenario:
     if true_poses is not None and len(true_poses) != len(raw_steps) + 1:
         jf.fail("robot.true_poses", f"expected {len(raw_steps) + 1} poses (x_0 and one per step), "
                                   f"got {len(true_poses)}")
-    max_range, fov, clutter = jf.get(top, "sensor", "", _sensor)
+    max_range, fov, clutter, detection_probability = jf.get(top, "sensor", "", _sensor)
     discovery = jf.maybe(top, "discovery", "", _discovery, N)
     true_objects = jf.maybe(top, "true_objects", "", jf.as_list)
     if true_objects is not None:
@@ -265,6 +275,7 @@ def parse_scenario(obj: Any) -> Scenario:
         max_range=max_range,
         fov=fov,
         clutter_log_density=clutter,
+        detection_probability=detection_probability,
         steps=tuple(_step(s, f"steps[{k}]", M, num_truth) for k, s in enumerate(raw_steps)),
         true_object_poses=_all_or_none([jf.maybe(o, "true_pose", p, jf.vector, 3)
                                         for o, p in zip(objects, paths)]),
@@ -328,7 +339,9 @@ def scenario_to_json(s: Scenario) -> dict:
         geometric_cov=jf.floats(s.geometric_cov),
         classifier=_classifier_json(s.classifier),
         sensor={"max_range": float(s.max_range), "fov": float(s.fov),
-                **({} if s.clutter_log_density is None else {"clutter_log_density": float(s.clutter_log_density)})},
+                **({} if s.clutter_log_density is None else {"clutter_log_density": float(s.clutter_log_density)}),
+                **({} if s.detection_probability is None
+                   else {"detection_probability": float(s.detection_probability)})},
         steps=[{"odometry": jf.floats(st.odometry),
                 "detections": [_detection_json(d) for d in st.detections]} for st in s.steps],
     )

@@ -8,8 +8,8 @@ centerline, every ``spacing`` metres) with classes in the repeating ``pattern`` 
 stretch of wall looks like every other (perceptual aliasing).
 
 The sensor and noise are the thesis's: detections of every landmark within a 120° field of view up
-to 3.5 m, range and bearing noise of variance 0.01 each, semantic labels drawn from a confusion
-matrix of 90% accuracy (thesis Eq. 2.14; scores are the one-hot label), and odometry
+to 3.5 m (the file's ``sensor.detection_probability`` is 1), range and bearing noise of variance
+0.01 each, semantic labels drawn from a confusion matrix of 90% accuracy (thesis Eq. 2.14; scores are the one-hot label), and odometry
 ``u_k = between(x_{k-1}, x_k) ∘ Exp(w_k)``, ``w_k ~ N(0, Λ_t)`` with
 ``Λ_t = diag(σ², σ², σ_θ²)`` (:func:`odometry_cov`). The study sweeps ``tr(Λ_t)`` over
 :data:`LEVELS`.
@@ -201,6 +201,7 @@ def hallway(
         classifier=Classifier("confusion", matrix=setup.confusion),
         max_range=setup.max_range,
         fov=setup.fov,
+        detection_probability=1.0,  # every landmark in view is detected (_detections)
         steps=tuple(Step(u, d) for u, d in zip(odometry, dets)),
         true_robot_poses=poses,
         metadata={"generator": f"hybridslam.hallway seed={seed} trace={trace!r} steps={steps} "

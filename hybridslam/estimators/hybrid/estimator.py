@@ -15,6 +15,7 @@ from ...io.scenario import Scenario
 from ...models.classifier import ClassifierModel
 from ...models.measurement import Detections
 from ...models.model import NewObjects, model_from_scenario
+from .. import novelty
 from ..options import GATE, MAX_CHILDREN, SAMPLES, Option, setting
 from ..smoothing import Filter, Full, Lag, Smoother, data_log, factor_budget, initial_trajectory, initial_window
 from ..base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, detection_slots,
@@ -79,6 +80,9 @@ class Hybrid(AbstractEstimator):
       (prior probability of clutter included; e.g. ``log(0.01 / (max_range · fov))``), its scores
       of no known class; ``"file"`` (default): the scenario's ``sensor.clutter_log_density``, none
       without it; ``None`` or ``"none"``: every detection is of an object (the paper's model);
+    * ``new_landmark`` — an unknown map's rule for a new object: ``"density"`` (default: "new" is a
+      hypothesis of the scenario's new-object density everywhere) or ``"mahalanobis:TAU"`` (thesis
+      Sec. 3.2.1: "new" only where no known object lies within ``d² <= TAU``; :mod:`..novelty`);
     * ``gn_max_steps`` — Gauss-Newton iteration budget of the update (Eq. 9) and of the laplace-is
       mode search. 50: the semantic factors of a strongly viewpoint-dependent classifier make
       Gauss-Newton converge only linearly (the default study at alpha 0.5 has 4 of 263 mode
@@ -111,6 +115,7 @@ class Hybrid(AbstractEstimator):
         GATE, show=lambda e: "" if e.gate is None else f"gate_candidates={e.gate}"))
     clutter: float | str | None = eqx.field(default=CLUTTER_FROM_FILE, static=True,
                                             metadata=setting(note="a known or an unknown map"))
+    new_landmark: str = eqx.field(default=novelty.DENSITY, static=True)
     gn_max_steps: int = eqx.field(default=50, static=True)
     smoother: Smoother = Full()
     classifier: str | ClassifierModel | None = None
@@ -123,7 +128,7 @@ class Hybrid(AbstractEstimator):
     name: ClassVar[str] = "hybrid"
     title: ClassVar[str] = "hybrid belief"
     reference: ClassVar[str] = "Tchuiev et al. 2019, Alg. 1"
-    described = ("weights", "capacity", "prune_ratio", "gate", "branching", "clutter", "smoother")
+    described = ("weights", "capacity", "prune_ratio", "gate", "branching", "clutter", "new_landmark", "smoother")
 
     def __check_init__(self):
         if not isinstance(self.branching, (Exhaustive, Beam)):
@@ -131,6 +136,7 @@ class Hybrid(AbstractEstimator):
         if not isinstance(self.smoother, (Filter, Full, Lag)):
             raise ValueError(f"Hybrid.smoother: expected Full(), Lag(L) or Filter(), got {self.smoother!r}")
         check_clutter("Hybrid", self.clutter)
+        novelty.parse_new_landmark("Hybrid", self.new_landmark)
         if isinstance(self.clutter, (int, float)) and not isinstance(self.branching, Beam):
             raise ValueError("Hybrid.clutter: the clutter hypothesis needs branching=Beam(...)")
         if not isinstance(self.weights, AbstractWeigher):

@@ -155,7 +155,7 @@ class OnlineLoopClosure:
         k = int(b.k)
         log_w = np.asarray(b.log_weights)
         i = int(np.argmax(log_w))
-        settings = self.settings
+        settings = self.settings.for_scenario(self.scenario)
         history, classes, num = np.asarray(b.history[i]), np.asarray(b.classes[i]), int(b.num_created[i])
         mean, poses = np.asarray(b.mean[i]), np.asarray(b.poses[i])
         geo = np.asarray(b.log.geo)

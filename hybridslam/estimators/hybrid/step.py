@@ -29,11 +29,12 @@ from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from ...inference.batching import map_distinct, map_live, smoothing_chunk
 from ...inference.discovery import create_objects
-from ...inference.gating import contradicted, gate
+from ...inference.gating import contradicted, gate, mahalanobis
 from ...inference.update import gauss_newton_update
 from ...inference.ties import best_slot
 from ...models.measurement import Detections
 from ...models.motion import propagate
+from .. import novelty
 from ..base import StepInfo, lacks_object_slots, relevant_children
 from ..smoothing import Filter, Smoother, history_factors, new_overflow, smooth_step
 from .belief import Belief
@@ -55,6 +56,8 @@ class HybridSettings(Protocol):
     def branching(self) -> Branching: ...
     @property
     def gate(self) -> int | None: ...
+    @property
+    def new_landmark(self) -> str: ...
     @property
     def gn_max_steps(self) -> int: ...
     @property
@@ -95,13 +98,17 @@ def _create_and_update(sensor, discovery, mean, cov, assign, creates, slot_class
     return gauss_newton_update(sensor, mean, cov, jnp.where(creates, -1, assign), slot_class, detections, max_steps)
 
 
-def _new_object_terms(belief: Belief, mean, cov, detections: Detections, kids: Children) -> Float[Array, "K A Mc"]:
+def _new_object_terms(belief: Belief, mean, cov, detections: Detections, kids: Children,
+                      near: Bool[Array, "K Dmax"] | None) -> Float[Array, "K A Mc"]:
     """Σ over a child's creating slots of :func:`~hybridslam.weights.new_object_log_likelihood`, and
-    over its unmapped ones of the class marginal :func:`~.weights.class_marginal`."""
+    over its unmapped ones of the class marginal :func:`~.weights.class_marginal`; ``-inf`` where
+    ``near`` (the Mahalanobis rule rules "new" out: :func:`_near_known`)."""
     sensor = belief.model.sensor
     lik = jax.vmap(new_object_log_likelihood, (None, 0, 0, None, None))(
         sensor, mean[:, :3], cov[:, :3, :3], detections, belief.model.discovery
     )  # (K, Dmax, M)
+    if near is not None:
+        lik = jnp.where(near[..., None], -jnp.inf, lik)
     pick = kids.slot_class[..., None] == jnp.arange(lik.shape[-1]).reshape(1, 1, 1, 1, -1)  # (K, A, Mc, Dmax, M)
     picked = jnp.sum(jnp.where(pick, lik[:, None, None], 0.0), axis=-1)
     unmapped = jnp.sum(jnp.where(kids.unmapped, class_marginal(lik)[:, None, :], 0.0), axis=-1)
@@ -138,6 +145,18 @@ class _Scored(NamedTuple):
     dropped: Int[Array, ""]
 
 
+def _near_known(settings, belief: Belief, mean, cov, detections: Detections) -> Bool[Array, "K Dmax"] | None:
+    """Under ``new_landmark="mahalanobis:TAU"`` (thesis Sec. 3.2.1, :mod:`..novelty`): per component
+    and detection, whether a created object lies within ``d² <= τ``, where "new" is no hypothesis.
+    ``None`` under the density rule. A step whose every child would break the rule keeps its parents
+    and skips its detections (counted), as a step no child explains."""
+    tau = novelty.parse_new_landmark("Hybrid", settings.new_landmark)
+    if tau is None or belief.model.discovery is None:
+        return None
+    d2 = jax.vmap(mahalanobis, (None, 0, 0, None))(belief.model.sensor, mean, cov, detections)  # (K, Dmax, N)
+    return jax.vmap(novelty.known_within, (0, 0, None))(d2, belief.num_created, tau)
+
+
 def _exhaustive(settings, belief: Belief, mean, cov, detections: Detections, candidates, realize, discovery, key):
     """Every child of the static table (:mod:`.hypotheses`), weighed on the ``(K, A, Mc)`` grid."""
     model = belief.model
@@ -151,7 +170,8 @@ def _exhaustive(settings, belief: Belief, mean, cov, detections: Detections, can
     # (so the laplace-is screen ranks by it too).
     prior = belief.log_weights[:, None, None] + kids.log_prior
     if discovery:
-        prior = prior + _new_object_terms(belief, mean, cov, detections, kids)
+        prior = prior + _new_object_terms(belief, mean, cov, detections, kids,
+                                          _near_known(settings, belief, mean, cov, detections))
     ctx = Context(model.sensor, belief.alive, mean, cov, detections, table, kids, prior, settings.gn_max_steps,
                   settings.batch_axis)
     log_lik, log_lik_free, ess, converged = settings.weights.weigh(ctx, key)
@@ -172,6 +192,9 @@ def _beam(settings, belief: Belief, mean, cov, detections: Detections, candidate
     if discovery:
         new_terms = jax.vmap(new_object_log_likelihood, (None, 0, 0, None, None))(
             model.sensor, mean[:, :3], cov[:, :3, :3], detections, model.discovery)  # (K, Dmax, M)
+        near = _near_known(settings, belief, mean, cov, detections)
+        if near is not None:  # the Mahalanobis rule: no "new" where a known object lies within τ
+            new_terms = jnp.where(near[..., None], -jnp.inf, new_terms)
     clutter_terms = None
     if model.clutter is not None:  # set by Hybrid.init from its clutter setting (the scenario's by default)
         clutter = model.clutter
