@@ -19,8 +19,7 @@ from ...models.measurement import Detections
 from ...models.model import model_from_scenario
 from ..base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, classifier_name,
                     clutter_text, history_length, resolve_clutter)
-from ..smoothing import (Filter, Full, Lag, Smoother, data_log, factor_budget, initial_trajectory,
-                         initial_window)
+from ..smoothing import Full, Smoother, check_smoother, data_log, factor_budget, initial_trajectory
 from .state import (ASSOCIATION_PRIORS, DEFAULT_CANDIDATES, DEFAULT_MERGE_THRESHOLD, DEFAULT_SAMPLES,
                     PROPOSALS, Params, State, Structure)
 from .step import _step
@@ -66,6 +65,7 @@ class Multimodal(AbstractEstimator):
     reference: ClassVar[str] = "Doherty thesis Ch. 5, Eq. 5.9-5.11"
 
     def __check_init__(self):
+        check_smoother("Multimodal", self.smoother)
         for field in ("capacity", "samples", "candidates", "gn_max_steps"):
             value = getattr(self, field)
             if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
@@ -136,12 +136,12 @@ class Multimodal(AbstractEstimator):
         # The class prior padded to Nmax rows: runs with the same capacities share one compiled step.
         model = eqx.tree_at(lambda mo: mo.class_prior, model, put(np.exp(class_lp)))
         k = cfg.capacity
-        smoothing: dict[str, Any] = {} if isinstance(self.smoother, Filter) else dict(
+        smoothing: dict[str, Any] = {} if not self.smoother.smooths else dict(
             poses=put(np.broadcast_to(np.asarray(initial_trajectory(scenario, cfg.max_steps)), (k, cfg.max_steps + 1, 3))),
             log=data_log(scenario, cfg.max_steps, cfg.max_detections, n_max,
                          factor_budget(scenario, self.max_steps, cfg.max_detections)))
-        if isinstance(self.smoother, Lag):
-            smoothing["window"] = initial_window(smoothing["log"], k)
+        if self.smoother.smooths:
+            smoothing["window"] = self.smoother.init_window(smoothing["log"], k)
         return State(
             log_weights=put(np.concatenate([[0.0], np.full(k - 1, -np.inf)])),
             mean=put(np.broadcast_to(mean, (k, dim))),

@@ -16,7 +16,7 @@ from ...inference.update import downdate, wrap_angles
 from ...models import motion
 from ...models.measurement import Detections
 from ..base import StepInfo, lacks_object_slots, relevant_children
-from ..smoothing import Filter, Smoother, history_factors, new_overflow, smooth_step
+from ..smoothing import Smoother, history_factors, new_overflow, smooth_step
 from .children import finish_child, hypotheses
 from .clustering import clustered, spread
 from .likelihood import draws
@@ -46,7 +46,7 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
     # Every child's covariance only where the filter moment-matches whole clusters; with a smoother
     # only the K centres' are formed (child_full_cov, in the clustering), not C × D × D: the
     # covariances finish_child makes of zeros are then unused, and XLA drops that work.
-    filtering = isinstance(smoother, Filter)
+    filtering = not smoother.smooths
     # (One at a time: XLA's batched product with the short inner axis m is slower on CPU: 59 against
     # 46 ms per hallway step.)
     pre_cov = (_chunked(lambda i, k, js: downdate(cov[i], k, js), ch.parent, ch.gain, ch.gain_js, batch_size=1)
@@ -67,7 +67,7 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
     shift, scatter = spread(wn, c_mean[centres], c_mean)
     poses, log, smooth_failed = state.poses, state.log, jnp.zeros(cfg.capacity, bool)
     window = state.window
-    if isinstance(smoother, Filter):  # each cluster moment-matched from its members' own Gaussians
+    if filtering:  # each cluster moment-matched from its members' own Gaussians
         m_mean = jax.vmap(wrap_angles)(c_mean[centres] + shift)
         m_cov = jnp.einsum("kc,cde->kde", wn, c_cov) + scatter
     else:
