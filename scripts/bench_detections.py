@@ -24,7 +24,7 @@ import argparse
 import numpy as np
 
 import hybridslam as hs
-from hybridslam import driver
+from hybridslam import compilation
 from hybridslam.driver import clear_compiled
 
 hs.setup()  # float64 and XLA's CPU thread pool, before any array (hybridslam.config)
@@ -47,7 +47,7 @@ def main() -> None:
     parser.add_argument("--smoother", default="full")
     parser.add_argument("--repeats", type=int, default=2)
     a = parser.parse_args()
-    driver.QUICK_RUN_STEPS = 0  # every program compiled fully: the step times of the optimized program
+    compilation.QUICK_RUN_STEPS = 0  # every program compiled fully: the step times of the optimized program
     counts = [int(d) for d in a.detections.split(",")]
     print(f"{'estimator':12s} {'D':>3s} {'per step':>9s} {'compile s':>9s} {'median ms':>9s} {'growth':>7s}")
     for name in a.estimators.split(","):

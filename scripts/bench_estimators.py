@@ -16,7 +16,7 @@ import sys
 
 import numpy as np
 
-from hybridslam import driver
+from hybridslam import compilation, driver
 from hybridslam.analysis import trajectory
 from hybridslam.sim import hallway
 from hybridslam.config import setup
@@ -33,7 +33,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=None, help="default: one loop (60 steps)")
     parser.add_argument("--seed", type=int, default=0)
     a = parser.parse_args()
-    driver.QUICK_RUN_STEPS = 0  # every program compiled fully: the step times of the optimized program
+    compilation.QUICK_RUN_STEPS = 0  # every program compiled fully: the step times of the optimized program
     scenario = hallway.hallway(a.seed, EXAMPLE_TRACE, steps=a.steps)
     _, truth = trajectory.trajectory_from_scenario(scenario)
     print(f"hallway seed {a.seed}, tr(Λ_t) = {EXAMPLE_TRACE}: {scenario.num_steps} steps, "

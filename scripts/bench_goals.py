@@ -55,7 +55,7 @@ import time
 import numpy as np
 
 import hybridslam as hs
-from hybridslam import driver
+from hybridslam import compilation
 from hybridslam.analysis.trajectory import error_summary
 from hybridslam.driver import clear_compiled
 from hybridslam.estimators.smoothing import Filter, Full
@@ -263,7 +263,7 @@ def main() -> None:
     parser.add_argument("--mrclam", default=None, help="an MRCLAM dataset folder (skip the workload without it)")
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("--quick-compile", action="store_true",
-                        help="compile runs of at most hybridslam.driver.QUICK_RUN_STEPS steps quickly, as "
+                        help="compile runs of at most hybridslam.compilation.QUICK_RUN_STEPS steps quickly, as "
                              "hybridslam.run does (LLVM level 0: less compile, slower steps); default: every "
                              "program fully, so that the step times are those of the optimized program the "
                              "per-step goals are about")
@@ -272,7 +272,7 @@ def main() -> None:
                              "e.g. full,lag:10,filter")
     a = parser.parse_args()
     if not a.quick_compile:
-        driver.QUICK_RUN_STEPS = 0
+        compilation.QUICK_RUN_STEPS = 0
     workloads, names = a.workloads.split(","), a.estimators.split(",")
     print(f"{'workload':<8} {'estimator':<12} {'smoother':<7} {'compile s':>9} {'median ms':>10} {'mean ms':>9} "
           f"{'goal ms':>8}")

@@ -7,7 +7,7 @@ Two settings make the compiles cheaper, for this process and for the CLI subproc
 
 * XLA's optimizations are off (``jax_disable_most_optimizations``): the programs under test are
   tiny, so compiling them costs far more than running them; the suite's CPU time drops by ~20%.
-* XLA's elemental emitters and LLVM level 1 on the CPU (``driver.CPU_COMPILER_OPTIONS`` in ``XLA_FLAGS``):
+* XLA's elemental emitters and LLVM level 1 on the CPU (``compilation.CPU_COMPILER_OPTIONS`` in ``XLA_FLAGS``):
   the library passes the same option to its own compiles (``hybridslam.driver.compile_lowered``);
   in the flags it also reaches the tests' own ``jax.jit`` compiles and the CLI subprocesses, and
   the quick suite takes about half the time (``driver.use_elemental_emitters_everywhere``: only

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import hybridslam as hs
-from hybridslam import driver
+from hybridslam import compilation
 from hybridslam.studies import batch as sweep
 from hybridslam.studies.strategies import MapBatches, VmapBatches, default_strategy, parse_strategy
 
@@ -58,8 +58,8 @@ def test_run_many_compiles_once_and_equals_single_runs(monkeypatch):
                  hs.simulate(21, steps=4), hs.simulate(22, steps=3)]
     estimator = hs.Hybrid(weights=hs.Linearized(), smoother=hs.Filter(), capacity=5)
     compiles = []
-    real = driver.compile_lowered
-    monkeypatch.setattr(driver, "compile_lowered", lambda *a, **k: compiles.append(1) or real(*a, **k))
+    real = compilation.compile_lowered
+    monkeypatch.setattr(compilation, "compile_lowered", lambda *a, **k: compiles.append(1) or real(*a, **k))
     runs = hs.run_many(estimator, scenarios, seed=[3, 4, 5])
     assert len(compiles) == 1
     assert [len(r.result.steps) for r in runs] == [2, 4, 3]

@@ -167,9 +167,9 @@ def test_clear_compiled_forgets_the_kept_executables(monkeypatch):
     """``driver.compiled`` keeps one executable per program (a second equal call compiles nothing);
     after ``clear_compiled`` the same call compiles again, and JAX's caches were cleared. (On a
     private cache and a stand-in for ``jax.clear_caches``: the rest of the suite keeps its programs.)"""
-    from hybridslam import driver
+    from hybridslam import compilation, driver
 
-    monkeypatch.setattr(driver, "_COMPILED", {})
+    monkeypatch.setattr(compilation, "_COMPILED", {})
     cleared = []
     monkeypatch.setattr(jax, "clear_caches", lambda: cleared.append(True))
 

@@ -12,7 +12,6 @@ from ..analysis.trajectory import error_summary
 from ..driver import run
 from ..estimators.base import AbstractEstimator, StepInfo
 from ..estimators.profiles import LONG_RUN_STEPS, PROFILES, Profile, file_summary, recommended
-from ..estimators.smoothing import Full
 from ..io.result import ResultWriter, StepRecord
 from ..io.scenario import Scenario, ScenarioError, load_scenario
 from .common import (
@@ -82,7 +81,8 @@ def long_run_note(estimator: AbstractEstimator, scenario: Scenario) -> str | Non
     goes (docs/studies/mrclam.md, "Whole logs": 871 s of MRCLAM, the hybrid belief from 20 to about 550 ms
     per step, past the log's 0.5 s steps near the end); ``lag:L`` keeps them bounded.
     """
-    if not isinstance(getattr(estimator, "smoother", None), Full) or scenario.num_steps <= LONG_RUN_STEPS:
+    smoother = getattr(estimator, "smoother", None)
+    if smoother is None or not smoother.whole_trajectory or scenario.num_steps <= LONG_RUN_STEPS:
         return None
     return (f"note: {scenario.num_steps} steps under the full smoother, which re-solves the whole trajectory at "
             f"every step: the steps slow as the run goes; --smoother lag:50 keeps them bounded "

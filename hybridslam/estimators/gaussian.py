@@ -73,8 +73,8 @@ from . import novelty
 from .base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, detection_slots,
                    history_length, lacks_object_slots, object_slots, resolve_clutter)
 from .options import GATE, MAX_CHILDREN, Option, setting
-from .smoothing import (DataLog, Factors, Filter, Full, Lag, Smoother, WindowPrior, active_history, data_log,
-                        factor_budget, initial_trajectory, initial_window, new_overflow, smooth_step)
+from .smoothing import (DataLog, Factors, Full, Smoother, WindowPrior, active_history, check_smoother,
+                        data_log, factor_budget, initial_trajectory, new_overflow, smooth_step)
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -205,6 +205,7 @@ class SingleGaussian(AbstractEstimator):
     factor_mode: ClassVar[Literal["sum", "max"]] = "sum"  # how the smoother reads a detection's candidates (max-mixtures: "max")
 
     def __check_init__(self):
+        check_smoother(type(self).__name__, self.smoother)
         if self.max_hypotheses is not None and not (isinstance(self.max_hypotheses, int) and self.max_hypotheses >= 1):
             raise ValueError(f"{type(self).__name__}.max_hypotheses: expected a positive int or None, "
                              f"got {self.max_hypotheses!r}")
@@ -259,13 +260,13 @@ class SingleGaussian(AbstractEstimator):
             k=put(np.zeros((), dtype=np.int32)), model=model, params=params,
             structure=Structure(disc is not None, g, clutter is not None, disc is not None and tau is not None),
         )
-        if isinstance(self.smoother, Filter):
+        if not self.smoother.smooths:
             return state
         none = Factors(put(np.zeros((steps, slots, g), np.int32)), put(np.full((steps, slots, g), -np.inf)),
                        put(np.full((steps, slots), -np.inf)), put(np.zeros((steps, slots, g), np.int32)))
         log = data_log(scenario, steps, slots, n_max, factor_budget(scenario, self.max_steps, slots))
         return dataclasses.replace(state, poses=initial_trajectory(scenario, steps), log=log, factors=none,
-                                   window=initial_window(log) if isinstance(self.smoother, Lag) else None)
+                                   window=self.smoother.init_window(log))
 
     def _clutter(self, scenario: Scenario) -> float | None:
         """The clutter log density used on ``scenario`` (a known map's only; ``None``: none)."""
@@ -538,7 +539,7 @@ def commit(est: SingleGaussian, state: GaussianState, mean, cov, class_log_post,
     num_created = (state.num_created + num_new).astype(jnp.int32)
     result = info["solver_result"]
     poses, log, stored, window = state.poses, state.log, state.factors, state.window
-    if not isinstance(est.smoother, Filter):
+    if est.smoother.smooths:
         # The whole trajectory and map relinearized with every factor so far (smoothing.py); the
         # associations stay as decided online, except a max-mixture's under Full (below).
         assert state.log is not None and state.factors is not None and state.poses is not None  # Full keeps them
@@ -551,7 +552,7 @@ def commit(est: SingleGaussian, state: GaussianState, mean, cov, class_log_post,
                           state.model.motion_cov, False, est.factor_mode, state.poses, mean, cov, state.window)
         mean, cov, result, poses, window = out.mean, out.cov, out.result, out.poses, out.window
     history = state.history.at[state.k].set(assigned)
-    if est.factor_mode == "max" and isinstance(est.smoother, Full):
+    if est.factor_mode == "max" and est.smoother.whole_trajectory:
         # A max-mixture's associations are the components active at the solution the file reports
         # (re-chosen over the whole trajectory at every relinearization), not those chosen online.
         assert log is not None and stored is not None and out.active is not None

@@ -108,10 +108,9 @@ class Profile:
         from .hybrid.estimator import Hybrid
         from .hybrid.loops import OnlineLoopClosure
         from .loop_closure import LoopClosureSettings
-        from .smoothing import Full
 
         gap = self.close_loops if gap is None else gap
-        if gap is None or not (isinstance(estimator, Hybrid) and isinstance(estimator.smoother, Full)):
+        if gap is None or not (isinstance(estimator, Hybrid) and estimator.smoother.whole_trajectory):
             return None
         return OnlineLoopClosure(estimator, scenario, LoopClosureSettings(gap=gap))
 

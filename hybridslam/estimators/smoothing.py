@@ -61,13 +61,61 @@ def _check_atol(owner: str, value: float) -> None:
         raise ValueError(f"{owner}.step_atol: expected a non-negative number of nats, got {value!r}")
 
 
-class Filter(eqx.Module):
+class AbstractSmoother(eqx.Module):
+    """What an estimator does after each step's update: nothing (:class:`Filter`), re-solve each
+    component's whole trajectory and map (:class:`Full`) or a fixed-lag window of it (:class:`Lag`).
+
+    The estimators ask the smoother, never its type: :attr:`smooths` (whether a state keeps a
+    trajectory and a data log), :attr:`whole_trajectory` (whether every solve covers ``x_0..x_k``),
+    :meth:`init_window` (a window prior per component, or none) and :meth:`smooth` (one component's
+    smoothing after ``k`` steps). ``str()`` of a smoother is its ``--smoother`` text
+    (:func:`parse_smoother` reads it back).
+    """
+
+    smooths: ClassVar[bool] = True
+    whole_trajectory: ClassVar[bool] = False
+
+    @property
+    def name(self) -> str:
+        """The ``--smoother`` text: ``filter``, ``full`` or ``lag:L``."""
+        raise NotImplementedError
+
+    def __str__(self) -> str:
+        return self.name
+
+    def init_window(self, log: DataLog, components: int | None = None) -> WindowPrior | None:
+        """Each component's window prior at the start (``components``: a leading axis of that size),
+        or ``None`` where the smoother has no window."""
+        del log, components
+        return None
+
+    def smooth(
+        self, log: DataLog, factors: Factors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
+        sensor: SensorModel, motion_cov: Float[Array, "3 3"], semantic: bool, mode: sm.Mode,
+        poses: Float[Array, "T1 3"], mean: Float[Array, " D0"], cov: Float[Array, "D0 D0"],
+        window: WindowPrior | None = None,
+    ) -> Smoothed:
+        """A component's smoothing after ``k`` steps (:func:`smooth_step`)."""
+        raise ValueError(f"smoother={self.name}: this smoother does not smooth")
+
+
+def check_smoother(owner: str, value: object) -> None:
+    """A ``ValueError`` naming ``owner.smoother`` unless ``value`` is a smoother."""
+    if not isinstance(value, AbstractSmoother):
+        raise ValueError(f"{owner}.smoother: expected Full(), Lag(L) or Filter(), got {value!r}")
+
+
+class Filter(AbstractSmoother):
     """No smoothing: the joint Gaussian over ``[x_k, objects]`` of the filter step."""
 
-    name: ClassVar[str] = "filter"
+    smooths: ClassVar[bool] = False
+
+    @property
+    def name(self) -> str:
+        return "filter"
 
 
-class Full(eqx.Module):
+class Full(AbstractSmoother):
     """The whole trajectory re-solved at every step (``max_steps`` Levenberg-Marquardt iterations at
     most; the semantic factors of a strongly viewpoint-dependent classifier make Gauss-Newton
     converge linearly and take up to ~15: see :mod:`hybridslam.inference.smoother`).
@@ -84,15 +132,29 @@ class Full(eqx.Module):
 
     max_steps: int = eqx.field(default=20, static=True)
     step_atol: float = eqx.field(default=STEP_ATOL, static=True)
-    name: ClassVar[str] = "full"
+    whole_trajectory: ClassVar[bool] = True
+
+    @property
+    def name(self) -> str:
+        return "full"
 
     def __check_init__(self):
         if not (isinstance(self.max_steps, int) and self.max_steps >= 1):
             raise ValueError(f"Full.max_steps: expected a positive int, got {self.max_steps!r}")
         _check_atol("Full", self.step_atol)
 
+    def smooth(
+        self, log: DataLog, factors: Factors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
+        sensor: SensorModel, motion_cov: Float[Array, "3 3"], semantic: bool, mode: sm.Mode,
+        poses: Float[Array, "T1 3"], mean: Float[Array, " D0"], cov: Float[Array, "D0 D0"],
+        window: WindowPrior | None = None,
+    ) -> Smoothed:
+        """The whole graph (:func:`graph`) re-solved (:func:`smooth`)."""
+        g = graph(log, factors, k, num_created, sensor, motion_cov, semantic, mode)
+        return smooth(self, g, poses, mean, cov, k, step_tolerance(self, log, k))
 
-class Lag(eqx.Module):
+
+class Lag(AbstractSmoother):
     """Fixed-lag smoothing: the last ``length`` steps and the map re-solved at every step (at most
     ``max_steps`` Levenberg-Marquardt iterations), older poses marginalized (module docstring).
     The cost of a step is bounded by ``length``, not by the steps taken so far."""
@@ -112,8 +174,23 @@ class Lag(eqx.Module):
                 raise ValueError(f"Lag.{field}: expected a positive int, got {value!r}")
         _check_atol("Lag", self.step_atol)
 
+    def init_window(self, log: DataLog, components: int | None = None) -> WindowPrior | None:
+        return initial_window(log, components)
 
-Smoother = Filter | Full | Lag
+    def smooth(
+        self, log: DataLog, factors: Factors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
+        sensor: SensorModel, motion_cov: Float[Array, "3 3"], semantic: bool, mode: sm.Mode,
+        poses: Float[Array, "T1 3"], mean: Float[Array, " D0"], cov: Float[Array, "D0 D0"],
+        window: WindowPrior | None = None,
+    ) -> Smoothed:
+        """The fixed-lag window re-solved (:func:`smooth_lag`; ``window`` required)."""
+        if window is None:
+            raise ValueError("smoother=Lag(...): this state carries no window prior (build it with the estimator's init)")
+        return smooth_lag(self, log, factors, k, num_created, sensor, motion_cov, semantic, mode, poses, mean,
+                          cov, window)
+
+
+Smoother = AbstractSmoother
 
 
 def parse_smoother(text: str) -> Smoother:
@@ -439,20 +516,16 @@ def smooth_lag(
 
 
 def smooth_step(
-    settings: Full | Lag, log: DataLog, factors: Factors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
+    settings: AbstractSmoother, log: DataLog, factors: Factors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
     sensor: SensorModel, motion_cov: Float[Array, "3 3"], semantic: bool, mode: sm.Mode,
     poses: Float[Array, "T1 3"], mean: Float[Array, " D0"], cov: Float[Array, "D0 D0"],
     window: WindowPrior | None = None,
 ) -> Smoothed:
     """A component's smoothing after ``k`` steps: the whole graph (:class:`Full`, :func:`graph` and
-    :func:`smooth`) or a fixed-lag window (:class:`Lag`, :func:`smooth_lag`; ``window`` required)."""
-    if isinstance(settings, Lag):
-        if window is None:
-            raise ValueError("smoother=Lag(...): this state carries no window prior (build it with the estimator's init)")
-        return smooth_lag(settings, log, factors, k, num_created, sensor, motion_cov, semantic, mode, poses, mean,
-                          cov, window)
-    g = graph(log, factors, k, num_created, sensor, motion_cov, semantic, mode)
-    return smooth(settings, g, poses, mean, cov, k, step_tolerance(settings, log, k))
+    :func:`smooth`) or a fixed-lag window (:class:`Lag`, :func:`smooth_lag`; ``window`` required):
+    ``settings.smooth(...)``."""
+    return settings.smooth(log, factors, k, num_created, sensor, motion_cov, semantic, mode, poses, mean, cov,
+                           window)
 
 
 def active_history(log: DataLog, factors: Factors, k: Int[Array, ""], active: Int[Array, " F"],

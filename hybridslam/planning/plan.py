@@ -24,7 +24,6 @@ scores.
 
 from __future__ import annotations
 
-import dataclasses
 
 import equinox as eqx
 import jax

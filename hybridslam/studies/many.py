@@ -4,7 +4,7 @@ A loop of ``hybridslam.run`` calls over files of different lengths and detection
 one step program per shape (seconds each on a CPU). :func:`run_many` sizes the estimator for all of
 them at once (:func:`~hybridslam.studies.batch.shared_shapes`: the most detections of any step,
 the longest run), so every scenario of equal objects and classes runs the same executable; it is
-compiled fully (not at LLVM level 0, as a lone short run is: :data:`hybridslam.driver.QUICK_RUN_STEPS`)
+compiled fully (not at LLVM level 0, as a lone short run is: :data:`hybridslam.compilation.QUICK_RUN_STEPS`)
 when the scenarios together have more steps than a short run.
 
 A scenario's numbers equal those :func:`hybridslam.run` gives it with the padded estimator exactly,
@@ -19,7 +19,7 @@ from collections.abc import Callable, Sequence
 import jax
 import numpy as np
 
-from .. import driver
+from .. import compilation, driver
 from ..driver import Run, inputs_from_scenario, run, scan
 from ..estimators.base import AbstractEstimator
 from ..io.scenario import Scenario
@@ -64,7 +64,7 @@ def run_many(estimator: AbstractEstimator, scenarios: Sequence[Scenario], *, see
         group = [scenarios[i] for i in members]
         shared = shared_shapes(estimator, group)
         compile_s = None  # compiled here, before the first run (which then finds it compiled)
-        if sum(s.num_steps for s in group) > driver.QUICK_RUN_STEPS:
+        if sum(s.num_steps for s in group) > compilation.QUICK_RUN_STEPS:
             compile_s = _compile_fully(shared, group[0], seeds[members[0]])
         for n, i in enumerate(members):
             r = run(shared, scenarios[i], seed=seeds[i], **options)

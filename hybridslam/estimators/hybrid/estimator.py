@@ -17,7 +17,7 @@ from ...models.measurement import Detections
 from ...models.model import NewObjects, model_from_scenario
 from .. import novelty
 from ..options import GATE, MAX_CHILDREN, SAMPLES, Option, setting
-from ..smoothing import Filter, Full, Lag, Smoother, data_log, factor_budget, initial_trajectory, initial_window
+from ..smoothing import (Full, Smoother, check_smoother, data_log, factor_budget, initial_trajectory)
 from ..base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, detection_slots,
                     history_length, object_slots, resolve_clutter)
 from ...inference.ties import best_slot
@@ -133,8 +133,7 @@ class Hybrid(AbstractEstimator):
     def __check_init__(self):
         if not isinstance(self.branching, (Exhaustive, Beam)):
             raise ValueError(f"Hybrid.branching: expected Exhaustive() or Beam(width), got {self.branching!r}")
-        if not isinstance(self.smoother, (Filter, Full, Lag)):
-            raise ValueError(f"Hybrid.smoother: expected Full(), Lag(L) or Filter(), got {self.smoother!r}")
+        check_smoother("Hybrid", self.smoother)
         check_clutter("Hybrid", self.clutter)
         novelty.parse_new_landmark("Hybrid", self.new_landmark)
         if isinstance(self.clutter, (int, float)) and not isinstance(self.branching, Beam):
@@ -167,11 +166,11 @@ class Hybrid(AbstractEstimator):
         slots = detection_slots(self.max_detections, scenario)
         steps = history_length(self.max_steps, scenario)
         belief = init_belief(priors_from_scenario(scenario), model, self.capacity, steps, slots)
-        if isinstance(self.smoother, Filter):
+        if not self.smoother.smooths:
             return belief
         log = data_log(scenario, steps, slots, belief.num_objects, factor_budget(scenario, self.max_steps, slots))
         poses = jnp.broadcast_to(initial_trajectory(scenario, steps), (self.capacity, steps + 1, 3))
-        window = initial_window(log, self.capacity) if isinstance(self.smoother, Lag) else None
+        window = self.smoother.init_window(log, self.capacity)
         return eqx.tree_at(lambda b: (b.poses, b.log, b.window), belief, (poses, log, window),
                            is_leaf=lambda x: x is None)
 

@@ -29,7 +29,6 @@ trajectory re-solved, and only an unknown map has late objects.
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 from typing import NamedTuple, cast
 
@@ -43,7 +42,7 @@ from ...inference import smoother as sm
 from ...io.scenario import Scenario
 from .. import loop_closure as lc
 from ..base import AbstractEstimator
-from ..smoothing import FINAL_ATOL, DataLog, Full, graph, history_factors
+from ..smoothing import FINAL_ATOL, DataLog, graph, history_factors
 from .belief import Belief
 from .estimator import Hybrid
 
@@ -130,7 +129,7 @@ class OnlineLoopClosure:
     seconds: float = 0.0  # wall time spent searching, summed over the steps
 
     def __post_init__(self):
-        if not isinstance(self.estimator, Hybrid) or not isinstance(self.estimator.smoother, Full):
+        if not isinstance(self.estimator, Hybrid) or not self.estimator.smoother.whole_trajectory:
             raise ValueError("OnlineLoopClosure: needs the hybrid belief with the full smoother "
                              "(Hybrid(smoother=Full()))")
         if not (isinstance(self.every, int) and self.every >= 1):

@@ -36,7 +36,7 @@ from ...models.measurement import Detections
 from ...models.motion import propagate
 from .. import novelty
 from ..base import StepInfo, lacks_object_slots, relevant_children
-from ..smoothing import Filter, Smoother, history_factors, new_overflow, smooth_step
+from ..smoothing import Smoother, history_factors, new_overflow, smooth_step
 from .belief import Belief
 from .branching import Beam, Branching, beam_children
 from .hypotheses import Children, children, hypothesis_table
@@ -264,7 +264,7 @@ def hybrid_step(
 
     # Line 11: update every kept child with its measurement factors (Eq. 9-10).
     alive = new_log_w > -jnp.inf
-    smoothing = not isinstance(settings.smoother, Filter)
+    smoothing = settings.smoother.smooths
     if smoothing:
         # The smoother below re-solves each kept child's whole graph, this step's factors included:
         # the filter's update would only be its warm start, so the child starts from its prediction

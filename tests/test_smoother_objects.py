@@ -1,0 +1,67 @@
+"""Strategies as objects: the smoother settings (Filter / Full / Lag) answer what the estimators ask
+of them, and the factor-graph solver's elimination orders and termination config are objects that
+give what their names give."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import hybridslam as hs
+from hybridslam.estimators.smoothing import AbstractSmoother, Filter, Full, Lag, data_log, parse_smoother
+from hybridslam.inference import smoother as sm
+from tests.test_smoother import N, P, _graph
+
+
+@pytest.mark.parametrize("text", ["filter", "full", "lag:1", "lag:50"])
+def test_a_smoother_prints_as_its_option_and_parses_back(text):
+    smoother = parse_smoother(text)
+    assert isinstance(smoother, AbstractSmoother)
+    assert str(smoother) == smoother.name == text
+    assert parse_smoother(str(smoother)) == smoother
+
+
+def test_what_the_estimators_ask_a_smoother(unchecked_types):
+    assert (Filter().smooths, Full().smooths, Lag(3).smooths) == (False, True, True)
+    assert (Filter().whole_trajectory, Full().whole_trajectory, Lag(3).whole_trajectory) == (False, True, False)
+    scenario = hs.simulate(0, steps=3)
+    log = data_log(scenario, 3, max(scenario.max_detections, 1), scenario.num_objects)
+    assert Filter().init_window(log) is None and Full().init_window(log, 5) is None
+    window = Lag(3).init_window(log, 5)
+    assert window is not None and window.mean.shape == (5, log.prior_mean.shape[0])
+    np.testing.assert_array_equal(np.asarray(window.info[2]), np.asarray(log.prior_info))
+    with pytest.raises(ValueError, match="filter"):
+        Filter().smooth(*([None] * 11))  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("make", [lambda s: hs.Hybrid(smoother=s), lambda s: hs.Multimodal(smoother=s),
+                                  lambda s: hs.make_estimator("ml", smoother=s)])
+def test_a_smoother_that_is_no_smoother_is_refused_by_name(make, unchecked_types):
+    with pytest.raises(ValueError, match=r"\.smoother: expected Full\(\), Lag\(L\) or Filter\(\)"):
+        make(object())
+
+
+def test_elimination_objects_give_what_their_names_give(unchecked_types):
+    graph = _graph(np.random.default_rng(3))
+    lin = sm.linearize(graph, jnp.zeros((P, 3)), jnp.zeros((N, 3))).damped(jnp.asarray(1e-3))
+    for name, strategy in [("poses-first", sm.PosesFirst()), ("objects-first", sm.ObjectsFirst()),
+                           ("dense", sm.Dense()), ("auto", sm.Auto())]:
+        assert sm.as_elimination(name) == strategy
+        by_name, by_object = sm.solve_normal(lin, name), sm.solve_normal(lin, strategy)
+        for a, b in zip(by_name, by_object):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-13, err_msg=name)
+    assert sm.resolve_method(sm.Auto(), 61, 70) == "objects-first"
+    assert sm.Auto().resolve(201, 15, True) == sm.PosesFirst()
+    with pytest.raises(ValueError, match="method"):
+        sm.as_elimination("cholmod")  # type: ignore[arg-type]
+
+
+def test_the_termination_config_is_what_the_keywords_were():
+    graph = _graph(np.random.default_rng(4))
+    start = (jnp.zeros((P, 3)), jnp.zeros((N, 3)))
+    by_keywords = sm.solve(graph, *start, max_steps=30, cost_rtol=1e-10, lambda_init=1e-3)
+    config = sm.TerminationConfig(cost_rtol=1e-10, lambda_init=1e-3)
+    by_config = sm.levenberg_marquardt(graph, *start, config, max_steps=30, method=sm.Auto())
+    np.testing.assert_allclose(np.asarray(by_config.poses), np.asarray(by_keywords.poses), rtol=0, atol=1e-12)
+    assert int(by_config.steps) == int(by_keywords.steps)
