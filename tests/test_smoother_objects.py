@@ -65,3 +65,16 @@ def test_the_termination_config_is_what_the_keywords_were():
     by_config = sm.levenberg_marquardt(graph, *start, config, max_steps=30, method=sm.Auto())
     np.testing.assert_allclose(np.asarray(by_config.poses), np.asarray(by_keywords.poses), rtol=0, atol=1e-12)
     assert int(by_config.steps) == int(by_keywords.steps)
+
+
+@pytest.mark.parametrize("text, smoother", [("full", Full()), ("filter", Filter()), ("lag:7", Lag(7))])
+def test_the_command_line_parses_the_smoother_once_into_the_object(text, smoother):
+    """``--smoother`` is parsed at the boundary: the namespace holds the smoother object, which
+    ``make_estimator`` takes as it is; a bad text is argparse's one-line error."""
+    from hybridslam import cli
+
+    args = cli.build_parser().parse_args(["run", "s.json", "-o", "r.json", "--smoother", text])
+    assert isinstance(args.smoother, AbstractSmoother) and args.smoother == smoother
+    assert hs.make_estimator("ml", smoother=args.smoother).smoother == smoother
+    with pytest.raises(cli.CLIError, match="--smoother: expected filter, full or lag:L"):
+        cli.build_parser().parse_args(["run", "s.json", "-o", "r.json", "--smoother", "lag:0"])

@@ -104,12 +104,6 @@ def clutter_density(text: str) -> float | str:
     return value
 
 
-def smoother_text(text: str) -> str:
-    """``--smoother``'s value, checked (``make_estimator`` turns it into the smoother)."""
-    parse_smoother(text)
-    return text
-
-
 def new_landmark_text(text: str) -> str:
     """``--new-landmark``'s value, checked (:func:`.novelty.parse_new_landmark`)."""
     novelty.parse_new_landmark("--new-landmark", text)
@@ -123,6 +117,7 @@ def _new_landmark_shown(estimator: Any) -> str:
 
 
 def _smoother(value: Any) -> Any:
+    """``make_estimator``'s smoother: a text parsed here, a smoother (what ``--smoother`` parsed) as it is."""
     return parse_smoother(value) if isinstance(value, str) else value
 
 
@@ -141,7 +136,7 @@ SMOOTHER = Option(
     "smoother", "full: every component keeps its trajectory and relinearizes it at every step, as the papers' "
                 "smoothers do; lag:L: only the last L steps and the map, older poses marginalized (bounded cost "
                 "per step); filter: the joint Gaussian over the current pose and the map only",
-    parse=smoother_text, metavar="{full,lag:L,filter}", convert=_smoother)
+    parse=parse_smoother, metavar="{full,lag:L,filter}", convert=_smoother)
 MAX_DETECTIONS = Option("max_detections", "detection slots per step; a shared value lets files share one compiled "
                                           "step", none="the largest step", described=False)
 MAX_STEPS = Option("max_steps", "history length; a shared value lets files share one compiled step",
