@@ -43,6 +43,7 @@ import time
 import numpy as np
 from matplotlib.figure import Figure
 
+import hybridslam as hs
 from hybridslam import driver
 from hybridslam.analysis import trajectory
 from hybridslam.analysis.map_error import map_error
@@ -445,6 +446,7 @@ def main(argv: list[str] | None = None) -> int:
         if n not in ESTIMATORS:
             p.error(f"--estimators: unknown {n!r} (known: {', '.join(ESTIMATORS)})")
     os.makedirs(a.output, exist_ok=True)
+    hs.setup()  # float64, before any array
     cache.enable()  # a rerun reads the compiled steps from disk
     models: dict[str, str] = {}
     if not a.report_only:
