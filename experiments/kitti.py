@@ -22,12 +22,19 @@ docs/studies/kitti.md). The map is known (the static labelled objects as priors)
    unassociated; over all detections of the final best component's history) and the accuracy on
    static objects' detections alone, the mean association entropy, and the median ms per step.
 
-Writes ``OUTPUT/cells.jsonl`` (one record per cell; a rerun skips the cells present),
-``OUTPUT/results/ESTIMATOR/NNNN-MAP.json`` (result files), ``OUTPUT/kitti.csv``, prints the table as markdown and draws ``OUTPUT/kitti_NNNN.png``.
+3. **Seeds** (``--seeds 0,1,2,3,4``): each cell runs once per draw of the noisy-truth odometry
+   (the importer's ``seed``; detections and map are the same in every draw). Cells are keyed by
+   seed; records without one (written before ``--seeds``) are seed 0.
+
+Writes ``OUTPUT/cells.jsonl`` (one record per cell and seed; a rerun skips the cells present),
+``OUTPUT/results/ESTIMATOR/NNNN-MAP[-seedS].json`` (result files), ``OUTPUT/kitti.csv`` (one row
+per cell and seed), ``OUTPUT/kitti_summary.csv`` (per sequence, map and estimator: mean, sd, min
+and max over the seeds), ``OUTPUT/kitti_goals.csv`` (issue 45's KITTI goals counted seed by seed:
+:func:`goal_wins`), prints the tables as markdown and draws ``OUTPUT/kitti_NNNN.png`` (seed 0).
 
     python experiments/kitti.py --data /work/data/kitti -o runs/kitti [--sequences 6,8,10]
         [--train 0,1,2,3,4,5] [--every 2] [--max-range 30] [--maps known,unknown]
-        [--estimators hybrid:learned,...] [--figure-sequence 10] [--redo] [--report-only]
+        [--estimators hybrid:learned,...] [--seeds 0,1,2] [--figure-sequence 10] [--redo] [--report-only]
 """
 
 from __future__ import annotations
