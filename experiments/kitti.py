@@ -22,12 +22,19 @@ docs/studies/kitti.md). The map is known (the static labelled objects as priors)
    unassociated; over all detections of the final best component's history) and the accuracy on
    static objects' detections alone, the mean association entropy, and the median ms per step.
 
-Writes ``OUTPUT/cells.jsonl`` (one record per cell; a rerun skips the cells present),
-``OUTPUT/results/ESTIMATOR/NNNN-MAP.json`` (result files), ``OUTPUT/kitti.csv``, prints the table as markdown and draws ``OUTPUT/kitti_NNNN.png``.
+3. **Seeds** (``--seeds 0,1,2,3,4``): each cell runs once per draw of the noisy-truth odometry
+   (the importer's ``seed``; detections and map are the same in every draw). Cells are keyed by
+   seed; records without one (written before ``--seeds``) are seed 0.
+
+Writes ``OUTPUT/cells.jsonl`` (one record per cell and seed; a rerun skips the cells present),
+``OUTPUT/results/ESTIMATOR/NNNN-MAP[-seedS].json`` (result files), ``OUTPUT/kitti.csv`` (one row
+per cell and seed), ``OUTPUT/kitti_summary.csv`` (per sequence, map and estimator: mean, sd, min
+and max over the seeds), ``OUTPUT/kitti_goals.csv`` (issue 45's KITTI goals counted seed by seed:
+:func:`goal_wins`), prints the tables as markdown and draws ``OUTPUT/kitti_NNNN.png`` (seed 0).
 
     python experiments/kitti.py --data /work/data/kitti -o runs/kitti [--sequences 6,8,10]
         [--train 0,1,2,3,4,5] [--every 2] [--max-range 30] [--maps known,unknown]
-        [--estimators hybrid:learned,...] [--figure-sequence 10] [--redo] [--report-only]
+        [--estimators hybrid:learned,...] [--seeds 0,1,2] [--figure-sequence 10] [--redo] [--report-only]
 """
 
 from __future__ import annotations
@@ -43,6 +50,7 @@ import time
 import numpy as np
 from matplotlib.figure import Figure
 
+import hybridslam as hs
 from hybridslam import driver
 from hybridslam.analysis import trajectory
 from hybridslam.analysis.map_error import map_error
@@ -100,9 +108,17 @@ def fit_models(data: str, train, study, folder: str) -> dict[str, str]:
     return paths
 
 
-def scenario_for(data: str, folder: str, sequence: int, map_: str, every: int, max_range: float) -> Scenario:
-    path = os.path.join(folder, "scenarios", f"{sequence:04d}-{map_}.json")
-    s = kitti.import_kitti(data, sequence, unknown_map=map_ == "unknown", every=every, max_range=max_range)
+def _tag(sequence: int, map_: str, seed: int) -> str:
+    """File stem of a cell's scenario and result: seed 0 keeps the stem of single-seed runs."""
+    return f"{sequence:04d}-{map_}" + (f"-seed{seed}" if seed else "")
+
+
+def scenario_for(data: str, folder: str, sequence: int, map_: str, every: int, max_range: float,
+                 seed: int = 0) -> Scenario:
+    """Import one sequence with the odometry noise of ``seed``; write it to ``folder/scenarios``."""
+    path = os.path.join(folder, "scenarios", f"{_tag(sequence, map_, seed)}.json")
+    s = kitti.import_kitti(data, sequence, unknown_map=map_ == "unknown", every=every, max_range=max_range,
+                           seed=seed)
     os.makedirs(os.path.dirname(path), exist_ok=True)
     save_scenario(s, path)
     return s
@@ -189,7 +205,8 @@ def _stat(d: dict, *keys, default=math.nan):
 
 def row(r: dict) -> dict:
     m = r.get("metrics", {})
-    return {"sequence": r["sequence"], "map": r["map"], "estimator": r["estimator"], "error": r.get("error", ""),
+    return {"sequence": r["sequence"], "map": r["map"], "estimator": r["estimator"], "seed": r.get("seed", 0),
+            "error": r.get("error", ""),
             "ape_online_m": _stat(m, "online", "ape_translation", "mean"),
             "ape_smoothed_m": _stat(m, "smoothed", "ape_translation", "mean"),
             "rpe_online_m": _stat(m, "online", "rpe_translation", "mean"),
@@ -211,6 +228,148 @@ def markdown(rows: list[dict]) -> str:
     for r in rows:
         lines.append("| " + " | ".join(_fmt(r[c]) if not r["error"] or c in cols[:3] else "error" for c in cols) + " |")
     return "\n".join(lines)
+
+
+METRICS = ("ape_online_m", "ape_smoothed_m", "rpe_online_m", "map_error_m", "right_assoc", "static_assoc",
+           "entropy", "step_ms_median")
+SPREAD = ("ape_online_m", "ape_smoothed_m", "right_assoc", "static_assoc")  # shown as mean [min, max]
+
+
+def cell_key(r: dict) -> tuple:
+    """A cell's identity in cells.jsonl; records written before ``--seeds`` existed are seed 0."""
+    return (r["sequence"], r["map"], r["estimator"], r["every"], r["max_range"], r.get("seed", 0))
+
+
+def read_cells(path: str) -> dict[tuple, dict]:
+    """The records of cells.jsonl by :func:`cell_key`; the last record of a cell counts."""
+    done: dict[tuple, dict] = {}
+    with open(path) as f:
+        for n, line in enumerate(f, 1):
+            if not line.strip():
+                continue
+            try:
+                r = json.loads(line)
+                done[cell_key(r)] = r
+            except (json.JSONDecodeError, KeyError, TypeError) as e:
+                raise SystemExit(f"{path}:{n}: not a cell record ({type(e).__name__}: {e})") from None
+    return done
+
+
+def summarize(rows: list[dict]) -> list[dict]:
+    """Per (sequence, map, estimator): each metric's mean, min and max over the seeds without error.
+
+    A metric that is nan in a seed (e.g. no smoothed trajectory) is left out of that metric's
+    statistics; ``seeds`` counts the seeds with a result, ``errors`` those that failed.
+    """
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["sequence"], r["map"], r["estimator"]), []).append(r)
+    out = []
+    for (seq, map_, est), rs in groups.items():
+        ok = [r for r in rs if not r["error"]]
+        summary: dict = {"sequence": seq, "map": map_, "estimator": est, "seeds": len(ok),
+                         "errors": len(rs) - len(ok), "seed_list": " ".join(str(r["seed"]) for r in sorted(rs, key=lambda r: r["seed"]))}
+        for m in METRICS:
+            v = np.array([r[m] for r in ok], dtype=float)
+            v = v[np.isfinite(v)]
+            summary[m] = float(v.mean()) if len(v) else math.nan
+            summary[m + "_sd"] = float(v.std(ddof=1)) if len(v) > 1 else math.nan
+            summary[m + "_min"] = float(v.min()) if len(v) else math.nan
+            summary[m + "_max"] = float(v.max()) if len(v) else math.nan
+        out.append(summary)
+    return out
+
+
+def goal_wins(rows: list[dict], model: str = "hybrid:learned") -> list[dict]:
+    """Issue 45's three KITTI goals counted seed by seed, per (sequence, map).
+
+    Over the seeds where ``model``, ``isam2``, ``hybrid:none`` and ``oracle`` all have a result:
+    ``ape30_online`` / ``ape30_smoothed``: the model's APE at most 0.7 x iSAM2's (30% below);
+    ``assoc_above_none``: its right associations strictly above ``hybrid:none``'s;
+    ``limit15_online`` / ``limit15_smoothed``: its APE at most 1.5 x the true-association limit's.
+    Each is a count of seeds; ``seeds`` is how many were compared.
+    """
+    by: dict[tuple, dict[str, dict]] = {}
+    for r in rows:
+        if not r["error"]:
+            by.setdefault((r["sequence"], r["map"], r["seed"]), {})[r["estimator"]] = r
+    out: dict[tuple, dict] = {}
+    for (seq, map_, seed), cells in sorted(by.items()):
+        if not all(n in cells for n in (model, "isam2", "hybrid:none", "oracle")):
+            continue
+        h, i, n, o = cells[model], cells["isam2"], cells["hybrid:none"], cells["oracle"]
+        w = out.setdefault((seq, map_), {"sequence": seq, "map": map_, "estimator": model, "seeds": 0,
+                                         "ape30_online": 0, "ape30_smoothed": 0, "assoc_above_none": 0,
+                                         "limit15_online": 0, "limit15_smoothed": 0})
+        w["seeds"] += 1
+        w["ape30_online"] += h["ape_online_m"] <= 0.7 * i["ape_online_m"]
+        w["ape30_smoothed"] += h["ape_smoothed_m"] <= 0.7 * i["ape_smoothed_m"]
+        w["assoc_above_none"] += h["right_assoc"] > n["right_assoc"]
+        w["limit15_online"] += h["ape_online_m"] <= 1.5 * o["ape_online_m"]
+        w["limit15_smoothed"] += h["ape_smoothed_m"] <= 1.5 * o["ape_smoothed_m"]
+    return [{k: int(v) if isinstance(v, (bool, np.bool_)) else v for k, v in w.items()} for w in out.values()]
+
+
+def _spread(s: dict, m: str) -> str:
+    if s["seeds"] > 1 and m in SPREAD and math.isfinite(s[m]):
+        return f"{s[m]:.3f} [{s[m + '_min']:.3f}, {s[m + '_max']:.3f}]"
+    return _fmt(s[m])
+
+
+def markdown_summary(summary: list[dict]) -> str:
+    """The table over seeds: mean, and [min, max] for the APE and association columns."""
+    cols = ["sequence", "map", "estimator", "seeds", *METRICS]
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for s in summary:
+        cells = [str(s[c]) + (f" ({s['errors']} failed)" if c == "seeds" and s["errors"] else "")
+                 for c in cols[:4]]
+        lines.append("| " + " | ".join(cells + [_spread(s, m) for m in METRICS]) + " |")
+    return "\n".join(lines)
+
+
+def markdown_goals(wins: list[dict]) -> str:
+    cols = ["sequence", "map", "estimator", "seeds", "ape30_online", "ape30_smoothed", "assoc_above_none",
+            "limit15_online", "limit15_smoothed"]
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for w in wins:
+        lines.append("| " + " | ".join(str(w[c]) if c in cols[:4] else f"{w[c]}/{w['seeds']}" for c in cols) + " |")
+    return "\n".join(lines)
+
+
+def run_sequence(a: argparse.Namespace, seq: int, map_: str, seed: int, names: list[str], models: dict[str, str],
+                 done: dict[tuple, dict], cells_path: str, figure_seq: int) -> None:
+    """Run the missing cells of one (sequence, map, seed); append each to cells.jsonl."""
+    s = scenario_for(a.data, a.output, seq, map_, a.every, a.max_range, seed)
+    results: dict[str, Result] = {}
+    tag = _tag(seq, map_, seed)
+    for name in names:
+        record: dict = {"sequence": seq, "map": map_, "estimator": name, "every": a.every,
+                        "max_range": a.max_range, "seed": seed}
+        key = cell_key(record)
+        if key in done and not a.redo:
+            continue
+        t0 = time.perf_counter()
+        try:
+            record["metrics"], result = run_cell(s, name, models)
+            if result is not None:
+                results[name] = result
+                path = os.path.join(a.output, "results", name.replace(":", "-"), f"{tag}.json")
+                os.makedirs(os.path.dirname(path), exist_ok=True)
+                save_result(result, path)
+        except Exception as e:  # noqa: BLE001 - a failing cell is a result, not a crash
+            record["error"] = f"{type(e).__name__}: {e}".splitlines()[0][:300]
+        record["wall_s"] = time.perf_counter() - t0
+        print(json.dumps(row(record)), flush=True)
+        with open(cells_path, "a") as f:  # the last record of a cell counts
+            f.write(json.dumps(record) + "\n")
+        done[key] = record
+    if seq == figure_seq and map_ == "known" and seed == 0:
+        for name in ("hybrid:learned", "hybrid:none", "isam2", "oracle"):
+            path = os.path.join(a.output, "results", name.replace(":", "-"), f"{tag}.json")
+            if name not in results and os.path.exists(path):
+                results[name] = load_result(path)
+        if "hybrid:learned" in results:
+            figure(s, results, os.path.join(a.output, f"kitti_{seq:04d}.png"), f"KITTI {seq:04d}, known map")
 
 
 def figure(s: Scenario, results: dict[str, Result], path: str, title: str) -> None:
@@ -276,6 +435,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-range", type=float, default=30.0)
     p.add_argument("--maps", default="known,unknown")
     p.add_argument("--estimators", default=",".join(MAIN))
+    p.add_argument("--seeds", default="0", help="odometry noise draws, comma-separated (e.g. 0,1,2,3,4): "
+                   "the table gives each cell's mean and spread over them")
     p.add_argument("--figure-sequence", type=int, default=None)
     p.add_argument("--report-only", action="store_true", help="print and write the table of cells.jsonl; run nothing")
     p.add_argument("--redo", action="store_true", help="run the cells again even where cells.jsonl has them")
@@ -283,64 +444,55 @@ def main(argv: list[str] | None = None) -> int:
     sequences = [int(x) for x in a.sequences.split(",")]
     train = [int(x) for x in a.train.split(",")]
     names = a.estimators.split(",")
+    maps = a.maps.split(",")
+    try:
+        seeds = [int(x) for x in a.seeds.split(",")]
+    except ValueError:
+        p.error(f"--seeds: expected comma-separated integers, got {a.seeds!r}")
     for n in names:
         if n not in ESTIMATORS:
             p.error(f"--estimators: unknown {n!r} (known: {', '.join(ESTIMATORS)})")
     os.makedirs(a.output, exist_ok=True)
+    hs.setup()  # float64, before any array
     cache.enable()  # a rerun reads the compiled steps from disk
+    models: dict[str, str] = {}
     if not a.report_only:
         models = fit_models(a.data, train, sequences, a.output)
         for path in models.values():
             load_classifier(path)  # fails here, not in every cell, if a file is broken
     cells_path = os.path.join(a.output, "cells.jsonl")
-    done: dict[tuple, dict] = {}
-    if os.path.exists(cells_path):
-        with open(cells_path) as f:
-            for line in f:
-                r = json.loads(line)
-                done[(r["sequence"], r["map"], r["estimator"], r["every"], r["max_range"])] = r
+    done = read_cells(cells_path) if os.path.exists(cells_path) else {}
     figure_seq = a.figure_sequence if a.figure_sequence is not None else sequences[-1]
-    for seq in sequences if not a.report_only else ():
-        for map_ in a.maps.split(","):
-            s = scenario_for(a.data, a.output, seq, map_, a.every, a.max_range)
-            results: dict[str, Result] = {}
-            for name in names:
-                key = (seq, map_, name, a.every, a.max_range)
-                if key in done and not a.redo:
-                    continue
-                t0 = time.perf_counter()
-                record: dict = {"sequence": seq, "map": map_, "estimator": name, "every": a.every,
-                                "max_range": a.max_range}
-                try:
-                    record["metrics"], result = run_cell(s, name, models)
-                    if result is not None:
-                        results[name] = result
-                        path = os.path.join(a.output, "results", name.replace(":", "-"), f"{seq:04d}-{map_}.json")
-                        os.makedirs(os.path.dirname(path), exist_ok=True)
-                        save_result(result, path)
-                except Exception as e:  # noqa: BLE001 - a failing cell is a result, not a crash
-                    record["error"] = f"{type(e).__name__}: {e}".splitlines()[0][:300]
-                record["wall_s"] = time.perf_counter() - t0
-                print(json.dumps(row(record)), flush=True)
-                if key not in done or a.redo:  # the last record of a cell counts
-                    with open(cells_path, "a") as f:
-                        f.write(json.dumps(record) + "\n")
-                done[key] = record
-            if seq == figure_seq and map_ == "known":
-                for name in ("hybrid:learned", "hybrid:none", "isam2", "oracle"):
-                    path = os.path.join(a.output, "results", name.replace(":", "-"), f"{seq:04d}-{map_}.json")
-                    if name not in results and os.path.exists(path):
-                        results[name] = load_result(path)
-            if seq == figure_seq and map_ == "known" and "hybrid:learned" in results:
-                figure(s, results, os.path.join(a.output, f"kitti_{seq:04d}.png"), f"KITTI {seq:04d}, known map")
-    rows = [row(r) for r in done.values() if r["sequence"] in sequences and r["map"] in a.maps.split(",")]
-    rows.sort(key=lambda r: (r["sequence"], r["map"], ESTIMATORS.index(r["estimator"])))
-    with open(os.path.join(a.output, "kitti.csv"), "w", newline="") as f:
-        w = csv.DictWriter(f, list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    print(markdown(rows))
+    for seed in seeds if not a.report_only else ():
+        for seq in sequences:
+            for map_ in maps:
+                run_sequence(a, seq, map_, seed, names, models, done, cells_path, figure_seq)
+    rows = [row(r) for r in done.values()
+            if r["sequence"] in sequences and r["map"] in maps and r.get("seed", 0) in seeds]
+    if not rows:
+        print(f"no cells of sequences {sequences}, maps {maps}, seeds {seeds} in {cells_path}")
+        return 1
+    rows.sort(key=lambda r: (r["sequence"], r["map"], ESTIMATORS.index(r["estimator"]), r["seed"]))
+    write_tables(rows, a.output)
     return 0
+
+
+def write_tables(rows: list[dict], folder: str) -> None:
+    """kitti.csv (one row per cell and seed), kitti_summary.csv and kitti_goals.csv; print the tables."""
+    summary = summarize(rows)
+    wins = goal_wins(rows)
+    for name, table in (("kitti.csv", rows), ("kitti_summary.csv", summary), ("kitti_goals.csv", wins)):
+        if table:
+            with open(os.path.join(folder, name), "w", newline="") as f:
+                w = csv.DictWriter(f, list(table[0]))
+                w.writeheader()
+                w.writerows(table)
+    if len({r["seed"] for r in rows}) == 1:
+        print(markdown(rows))
+    print(markdown_summary(summary))
+    if wins:
+        print()
+        print(markdown_goals(wins))
 
 
 if __name__ == "__main__":

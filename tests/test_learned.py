@@ -205,3 +205,23 @@ def test_scenario_path_errors(two_steps, tmp_path):
         hs.model_from_scenario(scenario)
     with pytest.raises(ValueError, match=r"classifier 'learned' needs a model file, but the scenario's model is 'mirror'"):
         hs.model_from_scenario(two_steps, "learned")
+
+
+@pytest.mark.parametrize("num_classes", [1, 3, 4])
+def test_learned_residuals_match_the_base_formula(num_classes):
+    """Learned.residuals (one network pass, no matrix) equals ClassifierModel's R_c (z - h_c) and log|R_c|,
+    and so does its derivative in the viewpoint (the step differentiates it)."""
+    from hybridslam.models.classifier import ClassifierModel
+
+    model = hs.Learned(num_classes, (5,), key=jax.random.PRNGKey(num_classes))
+    # Larger output weights than the initialization's, so the upper entries and scales matter.
+    model = eqx.tree_at(lambda m: m.layers[-1].weight, model, 3.0 * model.layers[-1].weight)
+    rng = np.random.default_rng(num_classes)
+    for _ in range(3):
+        z = jnp.asarray(rng.uniform(-1, 2, num_classes))
+        v = jnp.asarray([np.cos(a := rng.uniform(-np.pi, np.pi)), np.sin(a)])
+        for got, want in zip(model.residuals(z, v), ClassifierModel.residuals(model, z, v)):
+            np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+        jac = jax.jacfwd(lambda vv: model.residuals(z, vv)[0])(v)
+        jac_base = jax.jacfwd(lambda vv: ClassifierModel.residuals(model, z, vv)[0])(v)
+        np.testing.assert_allclose(jac, jac_base, rtol=1e-12, atol=1e-12)

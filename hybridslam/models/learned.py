@@ -86,6 +86,27 @@ class Learned(ClassifierModel):
         r = jnp.exp(log_diag)[:, :, None] * eye[None]
         return r.at[:, rows, cols].set(upper)
 
+    def residuals(self, scores, viewpoint):
+        """:meth:`ClassifierModel.residuals` (Eq. 2) from one evaluation of the network.
+
+        ``R_c (z − h_c)`` row by row straight from the heads, ``exp(d_ci) e_ci + Σ_{j>i} U_cij e_cj``
+        with ``e_c = z − h_c``, and ``log|R_c| = Σ_i d_ci``: no ``M × M × M`` matrix, no scatter and
+        no second network pass (the step evaluates this for every component, detection slot and
+        candidate object, and differentiates it). Equal to the base class's formula up to rounding.
+        """
+        h, log_diag, upper = self._heads(viewpoint)
+        m = self.num_classes
+        e = jnp.asarray(scores)[None, :] - h  # (classes, M)
+        position = {(int(i), int(j)): p for p, (i, j) in enumerate(zip(*np.triu_indices(m, k=1)))}
+        rows = []
+        for i in range(m):
+            acc = jnp.exp(log_diag[:, i]) * e[:, i]
+            for j in range(i + 1, m):  # the base class's order of summation over j
+                acc = acc + upper[:, position[i, j]] * e[:, j]
+            rows.append(acc)
+        log_norm = jnp.sum(log_diag, axis=-1) - 0.5 * m * math.log(2 * math.pi)
+        return jnp.stack(rows, axis=-1), log_norm
+
 
 # --------------------------------------------------------------------------- #
 # Fitting
