@@ -13,13 +13,7 @@ generative model) → ``inference`` (Gauss-Newton, gating, ...) → ``estimators
 (metrics, marginals, errors, plots) → ``driver`` → ``studies``, ``sim``, ``planning`` → ``cli``.
 """
 
-from importlib.metadata import PackageNotFoundError as _PackageNotFoundError
-from importlib.metadata import version as _version
-
-try:
-    __version__ = _version("hybridslam")  # pyproject.toml's, the one version source
-except _PackageNotFoundError:  # a source tree that was never installed
-    __version__ = "0+unknown"
+from .version import __version__ as __version__
 
 from .config import setup as setup
 from .config import require_x64 as require_x64

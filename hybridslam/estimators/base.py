@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 
-from .. import __version__
+from ..version import __version__
 from ..config import require_x64
 from ..io.scenario import Scenario
 from ..models.measurement import Detections

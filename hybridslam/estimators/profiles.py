@@ -31,7 +31,7 @@ file from a new source (KITTI, another simulator) gets the settings of the files
   which re-solves the whole trajectory at every step (README, Real data, "Whole logs": the same
   errors at a bounded 25 ms per step, against up to 550 ms).
 
-Explicit settings always win: :meth:`Profile.make` and ``hybridslam run`` fill only the options
+Explicit settings always win: ``make_estimator(name, scenario=...)`` and ``hybridslam run`` fill only the options
 they are not given.
 """
 
@@ -113,12 +113,6 @@ class Profile:
         if gap is None or not (isinstance(estimator, Hybrid) and estimator.smoother.whole_trajectory):
             return None
         return OnlineLoopClosure(estimator, scenario, LoopClosureSettings(gap=gap))
-
-    def make(self, **explicit: Any):
-        """The estimator with the chosen settings under ``explicit`` ones (``make_estimator`` keywords)."""
-        from .registry import make_estimator
-
-        return make_estimator(self.estimator, **self.merged(**explicit))
 
 
 def file_summary(scenario: Scenario) -> str:
