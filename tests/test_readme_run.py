@@ -100,7 +100,7 @@ EXPECT: dict[str, tuple[list[str], object]] = {
         lambda: Path("result.png").stat()),
     "hybridslam import mrclam MRCLAM_Dataset7 --robot 1 --start 20 --duration 100 -o robot1.json": (
         [r"^wrote robot1.json: MRCLAM_Dataset7 robot 1, .* known map of 15 landmarks$",
-         r"^motion_cov \(calibrated\): sd", r"^geometric_cov \(calibrated from the detections as written\): sd"],
+         r"^motion_cov \(calibrated(, from the 5 s drift)?\): sd", r"^geometric_cov \(calibrated from the detections as written\): sd"],
         lambda: _scenario("robot1.json", num_objects=15)),
     "hybridslam import mrclam MRCLAM_Dataset7 --robot 1 --start 20 --duration 100 --unknown-map -o robot1-slam.json": (
         [r"^wrote robot1-slam.json: .* unknown map of 15 landmarks \(\d+ object slots: --object-slots\)$"],
