@@ -247,12 +247,22 @@ class SmootherState(eqx.Module):
             return self.poses
         return self.poses[component]
 
-    def components(self, index: Int[Array, " C"]) -> SmootherState:
+    def components(self, index: Int[Array, " C"] | slice) -> SmootherState:
         """The per-component fields (``poses``, ``window``) of components ``index`` (the data log,
         shared, unchanged): the parents' smoothing state of a step's children."""
         return SmootherState(None if self.poses is None else self.poses[index], self.log,
                              None if self.window is None else jax.tree.map(lambda a: a[index], self.window),
                              self.factors)
+
+    def where(self, keep: Bool[Array, "*K"], other: SmootherState) -> SmootherState:
+        """The per-component fields of this state where ``keep`` (per component, or one flag for
+        all), else ``other``'s (components of the same number, or one broadcast to all); the data
+        log is this state's."""
+        pick = lambda a, b: jnp.where(keep.reshape(keep.shape + (1,) * (a.ndim - keep.ndim)), a, b)  # noqa: E731
+        return SmootherState(
+            None if self.poses is None or other.poses is None else pick(self.poses, other.poses), self.log,
+            None if self.window is None or other.window is None else jax.tree.map(pick, self.window, other.window),
+            self.factors)
 
     def record(self, k: Int[Array, ""], odometry: Float[Array, "3"], detections: Detections) -> SmootherState:
         """This state with step ``k + 1``'s inputs written to its log (:meth:`DataLog.record`)."""

@@ -330,10 +330,7 @@ def hybrid_step(
     # Empty slots copy the best component so later batched math on them stays finite.
     new_mean = jnp.where(alive[:, None], new_mean, new_mean[:1])
     new_cov = jnp.where(alive[:, None, None], new_cov, new_cov[:1])
-    if kept.poses is not None:
-        first = lambda a: jnp.where(alive.reshape((-1,) + (1,) * (a.ndim - 1)), a, a[:1])  # noqa: E731
-        kept = dataclasses.replace(kept, poses=first(kept.poses),
-                                   window=None if kept.window is None else jax.tree.map(first, kept.window))
+    kept = kept.where(alive, kept.components(slice(0, 1)))
 
     new_belief = Belief(
         log_weights=new_log_w,

@@ -146,8 +146,6 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
         history=keep(c_hist[centres], state.history.at[:, state.k].set(-1)),
         k=state.k + 1,
         # Without an explanation the components stay, and so do their trajectories (the log records the step).
-        smoothing=kept if kept.poses is None else dataclasses.replace(
-            kept, poses=keep(kept.poses, state.smoothing.poses),
-            window=None if kept.window is None else jax.tree.map(keep, kept.window, state.smoothing.window)),
+        smoothing=kept.where(explained, state.smoothing),
     )
     return new_state, info
