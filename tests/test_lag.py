@@ -36,7 +36,7 @@ def test_the_mixtures_run_with_a_window(name, options, scenario):
     assert np.max(np.linalg.norm(run.result.trajectory[:, :2] - truth[:, :2], axis=1)) < 1.0
     # The window prior carries only its information Λ (handed on by the marginalization): symmetric
     # and positive semidefinite in every live component.
-    info = np.asarray(run.state.window.info)[np.isfinite(np.asarray(run.state.log_weights))]
+    info = np.asarray(run.state.smoothing.window.info)[np.isfinite(np.asarray(run.state.log_weights))]
     np.testing.assert_allclose(info, np.swapaxes(info, -1, -2), atol=1e-9 * np.abs(info).max())
     assert np.min(np.linalg.eigvalsh(info)) > -1e-9 * np.abs(info).max()
 

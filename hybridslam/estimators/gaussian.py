@@ -73,8 +73,8 @@ from . import novelty
 from .base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, detection_slots,
                    history_length, lacks_object_slots, object_slots, resolve_clutter)
 from .options import GATE, MAX_CHILDREN, Option, setting
-from .smoothing import (DataLog, Factors, Full, Smoother, WindowPrior, active_history, check_smoother,
-                        data_log, factor_budget, initial_trajectory, new_overflow, smooth_step)
+from .smoothing import (Factors, Full, Smoother, SmootherState, active_history, check_smoother, new_overflow,
+                        smooth_step)
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -113,11 +113,9 @@ class GaussianState(eqx.Module):
     model: Model
     params: Params
     structure: Structure = eqx.field(static=True)
-    # Smoothing (smoother=Full() or Lag(L)): the trajectory x_0..x_T, the data so far, the measurement factors.
-    poses: Float[Array, "T1 3"] | None = None
-    log: DataLog | None = None
-    factors: Factors | None = None
-    window: WindowPrior | None = None  # smoother=Lag(L): the window's prior on [x_s, objects]
+    # What the smoother keeps (smoother=Full() or Lag(L)): the trajectory x_0..x_T, the data so far,
+    # the measurement factors, with Lag(L) the window's prior; empty under Filter().
+    smoothing: SmootherState = SmootherState()
 
     @property
     def max_objects(self) -> int:
@@ -264,9 +262,8 @@ class SingleGaussian(AbstractEstimator):
             return state
         none = Factors(put(np.zeros((steps, slots, g), np.int32)), put(np.full((steps, slots, g), -np.inf)),
                        put(np.full((steps, slots), -np.inf)), put(np.zeros((steps, slots, g), np.int32)))
-        log = data_log(scenario, steps, slots, n_max, factor_budget(scenario, self.max_steps, slots))
-        return dataclasses.replace(state, poses=initial_trajectory(scenario, steps), log=log, factors=none,
-                                   window=self.smoother.init_window(log))
+        smoothing = self.smoother.init(scenario, steps, slots, n_max, self.max_steps)
+        return dataclasses.replace(state, smoothing=dataclasses.replace(smoothing, factors=none))
 
     def _clutter(self, scenario: Scenario) -> float | None:
         """The clutter log density used on ``scenario`` (a known map's only; ``None``: none)."""
@@ -280,11 +277,11 @@ class SingleGaussian(AbstractEstimator):
 
     def trajectory(self, state: GaussianState):
         """The smoothed ``x_0..x_T`` (``None`` without smoothing)."""
-        return state.poses
+        return state.smoothing.trajectory()
 
     def objects(self, state: GaussianState):
         """The smoothed objects and how many exist (``None`` without smoothing)."""
-        return None if state.poses is None else (state.mean[3:].reshape(-1, 3), state.num_created)
+        return None if not state.smoothing.smooths else (state.mean[3:].reshape(-1, 3), state.num_created)
 
     def view(self, state: GaussianState) -> Mixture:
         """A one-component :class:`~.base.Mixture` (classes: MAP of Eq. 4.17, -1 if unobserved)."""
@@ -538,30 +535,31 @@ def commit(est: SingleGaussian, state: GaussianState, mean, cov, class_log_post,
     observed = state.observed | jnp.any(hit, axis=0)
     num_created = (state.num_created + num_new).astype(jnp.int32)
     result = info["solver_result"]
-    poses, log, stored, window = state.poses, state.log, state.factors, state.window
+    kept = state.smoothing
     if est.smoother.smooths:
         # The whole trajectory and map relinearized with every factor so far (smoothing.py); the
         # associations stay as decided online, except a max-mixture's under Full (below).
-        assert state.log is not None and state.factors is not None and state.poses is not None  # Full keeps them
-        log = state.log.record(state.k, odometry, detections)
+        before = kept.factors
+        kept = kept.record(state.k, odometry, detections)
+        assert before is not None and kept.poses is not None and kept.log is not None  # the smoother's init keeps them
         objs, log_w, null = factors
-        stored = Factors(state.factors.objects.at[state.k].set(objs.astype(jnp.int32)),
-                         state.factors.log_weight.at[state.k].set(log_w),
-                         state.factors.null_log_weight.at[state.k].set(null), state.factors.classes)
-        out = smooth_step(est.smoother, log, stored, state.k + 1, num_created, state.model.sensor,
-                          state.model.motion_cov, False, est.factor_mode, state.poses, mean, cov, state.window)
-        mean, cov, result, poses, window = out.mean, out.cov, out.result, out.poses, out.window
+        stored = Factors(before.objects.at[state.k].set(objs.astype(jnp.int32)),
+                         before.log_weight.at[state.k].set(log_w),
+                         before.null_log_weight.at[state.k].set(null), before.classes)
+        out = smooth_step(est.smoother, kept.log, stored, state.k + 1, num_created, state.model.sensor,
+                          state.model.motion_cov, False, est.factor_mode, kept.poses, mean, cov, kept.window)
+        mean, cov, result = out.mean, out.cov, out.result
+        kept = SmootherState(out.poses, kept.log, out.window, stored)
     history = state.history.at[state.k].set(assigned)
     if est.factor_mode == "max" and est.smoother.whole_trajectory:
         # A max-mixture's associations are the components active at the solution the file reports
         # (re-chosen over the whole trajectory at every relinearization), not those chosen online.
-        assert log is not None and stored is not None and out.active is not None
-        rewritten = active_history(log, stored, state.k + 1, out.active, history)
+        assert kept.log is not None and kept.factors is not None and out.active is not None
+        rewritten = active_history(kept.log, kept.factors, state.k + 1, out.active, history)
         history = jnp.where(result == optx.RESULTS.nonfinite, history, rewritten)  # a failed solve: kept
     new_state = dataclasses.replace(
         state, mean=mean, cov=0.5 * (cov + cov.T), num_created=num_created, class_log_post=class_log_post,
-        observed=observed, history=history, k=state.k + 1, poses=poses, log=log,
-        factors=stored, window=window,
+        observed=observed, history=history, k=state.k + 1, smoothing=kept,
     )
     zero = jnp.zeros((), jnp.int32)
     skipped = info.get("skipped", zero).astype(jnp.int32)
@@ -573,7 +571,7 @@ def commit(est: SingleGaussian, state: GaussianState, mean, cov, class_log_post,
         inconsistent=2 * skipped > jnp.sum(detections.mask),
         dropped_budget=info.get("dropped", zero).astype(jnp.int32),
         solver_failures=(result != optx.RESULTS.successful).astype(jnp.int32),
-        log_overflow=new_overflow(state.log, log),
+        log_overflow=new_overflow(state.smoothing.log, kept.log),
         # Before the step: with no free slot, a new landmark's detection is unmapped (gaussian.fits).
         object_overflow=(lacks_object_slots(detections.mask, state.num_created, state.max_objects)
                          if state.structure.discovery else jnp.zeros((), bool)),

@@ -89,6 +89,22 @@ class AbstractSmoother(eqx.Module):
         del log, components
         return None
 
+    def init(self, scenario: Scenario, steps: int, slots: int, max_objects: int, max_steps: int | None,
+             components: int | None = None) -> SmootherState:
+        """What this smoother keeps before the first step of a state sized for ``scenario``
+        (``steps`` history rows, ``slots`` detection slots, ``max_objects`` object slots; ``max_steps``:
+        the estimator's option, which fixes the factor budget, :func:`factor_budget`): every
+        component's trajectory at the prior mean, an empty :class:`DataLog`, the window priors
+        (``components``: a leading axis of that size on the per-component fields). Empty
+        (:class:`SmootherState` ``()``) where the smoother does not smooth."""
+        if not self.smooths:
+            return SmootherState()
+        log = data_log(scenario, steps, slots, max_objects, factor_budget(scenario, max_steps, slots))
+        poses = np.asarray(initial_trajectory(scenario, steps))
+        if components is not None:
+            poses = np.broadcast_to(poses, (components,) + poses.shape)
+        return SmootherState(jax.device_put(poses), log, self.init_window(log, components))
+
     def smooth(
         self, log: DataLog, factors: Factors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
         sensor: SensorModel, motion_cov: Float[Array, "3 3"], semantic: bool, mode: sm.Mode,
@@ -202,6 +218,58 @@ def parse_smoother(text: str) -> Smoother:
     if text.startswith("lag:") and text[4:].isdigit() and int(text[4:]) >= 1:
         return Lag(int(text[4:]))
     raise ValueError(f"--smoother: expected filter, full or lag:L (L a positive number of steps), got {text!r}")
+
+
+class SmootherState(eqx.Module):
+    """What a smoother keeps between steps: one field of every estimator state (``smoothing``),
+    made by :meth:`AbstractSmoother.init`. Empty (every field ``None``) under :class:`Filter`.
+
+    ``poses``: each component's trajectory ``x_0..x_T`` (``*K``: the estimator's component axis,
+    none for a single Gaussian); ``log``: the data so far, shared by the components; ``window``:
+    with :class:`Lag`, each component's window prior on ``[x_s, objects]``; ``factors``: the
+    single-Gaussian estimators' measurement factors as decided online (a mixture's estimators
+    rebuild theirs from each component's association history, :func:`history_factors`)."""
+
+    poses: Float[Array, "*K T1 3"] | None = None
+    log: DataLog | None = None
+    window: WindowPrior | None = None
+    factors: Factors | None = None
+
+    @property
+    def smooths(self) -> bool:
+        """Whether this state carries a trajectory (``Full`` or ``Lag``)."""
+        return self.poses is not None
+
+    def trajectory(self, component: Int[Array, ""] | int | None = None) -> Float[Array, "*K T1 3"] | None:
+        """The smoothed ``x_0..x_T`` of ``component`` (every component's if ``None``), ``None``
+        without smoothing."""
+        if self.poses is None or component is None:
+            return self.poses
+        return self.poses[component]
+
+    def components(self, index: Int[Array, " C"] | slice) -> SmootherState:
+        """The per-component fields (``poses``, ``window``) of components ``index`` (the data log,
+        shared, unchanged): the parents' smoothing state of a step's children."""
+        return SmootherState(None if self.poses is None else self.poses[index], self.log,
+                             None if self.window is None else jax.tree.map(lambda a: a[index], self.window),
+                             self.factors)
+
+    def where(self, keep: Bool[Array, "*K"], other: SmootherState) -> SmootherState:
+        """The per-component fields of this state where ``keep`` (per component, or one flag for
+        all), else ``other``'s (components of the same number, or one broadcast to all); the data
+        log is this state's."""
+        pick = lambda a, b: jnp.where(keep.reshape(keep.shape + (1,) * (a.ndim - keep.ndim)), a, b)  # noqa: E731
+        return SmootherState(
+            None if self.poses is None or other.poses is None else pick(self.poses, other.poses), self.log,
+            None if self.window is None or other.window is None else jax.tree.map(pick, self.window, other.window),
+            self.factors)
+
+    def record(self, k: Int[Array, ""], odometry: Float[Array, "3"], detections: Detections) -> SmootherState:
+        """This state with step ``k + 1``'s inputs written to its log (:meth:`DataLog.record`)."""
+        if self.log is None:
+            raise ValueError("smoothing: this state carries no data log (built by init_belief or without the "
+                             "estimator's init); build it with the estimator's init(scenario) or use smoother=Filter()")
+        return eqx.tree_at(lambda s: s.log, self, self.log.record(k, odometry, detections))
 
 
 class DataLog(eqx.Module):

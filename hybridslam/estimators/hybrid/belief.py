@@ -28,7 +28,8 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ...io.scenario import Scenario
 from ...models.model import Model
-from ..smoothing import DataLog, WindowPrior
+from ..smoothing import SmootherState
+
 
 class Priors(eqx.Module):
     """Gaussian priors of Eq. 3 (the class prior lives in :class:`Model`)."""
@@ -52,11 +53,9 @@ class Belief(eqx.Module):
     k: Int[Array, ""]  # steps taken so far
     model: Model
     num_created: Int[Array, " K"] | None = None  # objects that exist per component (unknown maps only)
-    # Smoothing (Hybrid(smoother=Full() or Lag(L))): each component's trajectory x_0..x_T, the data
-    # so far, and with Lag(L) each component's window prior on [x_s, objects].
-    poses: Float[Array, "K T1 3"] | None = None
-    log: DataLog | None = None
-    window: WindowPrior | None = None
+    # What the smoother keeps (Hybrid(smoother=Full() or Lag(L))): each component's trajectory
+    # x_0..x_T, the data so far, with Lag(L) each component's window prior; empty under Filter().
+    smoothing: SmootherState = SmootherState()
 
     @property
     def alive(self) -> Bool[Array, " K"]:

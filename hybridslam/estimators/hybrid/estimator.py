@@ -17,7 +17,7 @@ from ...models.measurement import Detections
 from ...models.model import NewObjects, model_from_scenario
 from .. import novelty
 from ..options import GATE, MAX_CHILDREN, SAMPLES, Option, setting
-from ..smoothing import (Full, Smoother, check_smoother, data_log, factor_budget, initial_trajectory)
+from ..smoothing import Full, Smoother, check_smoother
 from ..base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, detection_slots,
                     history_length, object_slots, resolve_clutter)
 from ...inference.ties import best_slot
@@ -166,13 +166,8 @@ class Hybrid(AbstractEstimator):
         slots = detection_slots(self.max_detections, scenario)
         steps = history_length(self.max_steps, scenario)
         belief = init_belief(priors_from_scenario(scenario), model, self.capacity, steps, slots)
-        if not self.smoother.smooths:
-            return belief
-        log = data_log(scenario, steps, slots, belief.num_objects, factor_budget(scenario, self.max_steps, slots))
-        poses = jnp.broadcast_to(initial_trajectory(scenario, steps), (self.capacity, steps + 1, 3))
-        window = self.smoother.init_window(log, self.capacity)
-        return eqx.tree_at(lambda b: (b.poses, b.log, b.window), belief, (poses, log, window),
-                           is_leaf=lambda x: x is None)
+        return dataclasses.replace(belief, smoothing=self.smoother.init(scenario, steps, slots, belief.num_objects,
+                                                                        self.max_steps, self.capacity))
 
     def step(
         self, state: Belief, odometry: Float[Array, "3"], detections: Detections, key: PRNGKeyArray
@@ -186,13 +181,13 @@ class Hybrid(AbstractEstimator):
 
     def trajectory(self, state: Belief):
         """The smoothed ``x_0..x_T`` of the best component (``None`` without smoothing)."""
-        if state.poses is None:
+        if not state.smoothing.smooths:
             return None
-        return state.poses[best_slot(state.log_weights)]
+        return state.smoothing.trajectory(best_slot(state.log_weights))
 
     def objects(self, state: Belief):
         """The best component's smoothed objects and their count (``None`` without smoothing)."""
-        if state.poses is None:
+        if not state.smoothing.smooths:
             return None
         best = best_slot(state.log_weights)
         count = jnp.asarray(state.num_objects) if state.num_created is None else state.num_created[best]

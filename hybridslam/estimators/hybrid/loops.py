@@ -156,16 +156,17 @@ class OnlineLoopClosure:
         i = int(np.argmax(log_w))
         settings = self.settings.for_scenario(self.scenario)
         history, classes, num = np.asarray(b.history[i]), np.asarray(b.classes[i]), int(b.num_created[i])
-        mean, poses = np.asarray(b.mean[i]), np.asarray(b.poses[i])
-        geo = np.asarray(b.log.geo)
+        mean, poses = np.asarray(b.mean[i]), np.asarray(b.smoothing.poses)[i]
+        geo = np.asarray(b.smoothing.log.geo)
         realize = bool(b.model.sensor.classifier.uses_scores)
         assert self.scenario.discovery is not None  # checked on construction
         density = self.scenario.discovery.new_object_log_density
         max_steps = cast(Hybrid, self.estimator).gn_max_steps
 
         def solve(h, c, n, p, objects):
-            out = _solve(belief.log, belief.model, jnp.asarray(h), jnp.asarray(c), jnp.asarray(n, jnp.int32),
-                         jnp.asarray(p), jnp.asarray(objects), jnp.asarray(k), realize, max_steps)
+            out = _solve(belief.smoothing.log, belief.model, jnp.asarray(h), jnp.asarray(c),
+                         jnp.asarray(n, jnp.int32), jnp.asarray(p), jnp.asarray(objects), jnp.asarray(k), realize,
+                         max_steps)
             p2, m2, c2, cost, ok = jax.device_get(out)
             objects2 = np.asarray(m2)[3:].reshape(-1, 3)
             missed = lc.misses(self.scenario, np.asarray(p2)[: k + 1], objects2, h[:k], n, settings)
@@ -225,12 +226,12 @@ class OnlineLoopClosure:
         log_w[j] = log_weight
         log_w = log_w - np.logaddexp.reduce(log_w[log_w > -np.inf])
         # On the host: a device-side .at[j].set would compile a program per field on first use.
-        host = jax.device_get((belief.history, belief.classes, belief.num_created, belief.poses, belief.mean,
-                               belief.cov))
+        host = jax.device_get((belief.history, belief.classes, belief.num_created, belief.smoothing.poses,
+                               belief.mean, belief.cov))
         fields = []
         for array, value in zip(host, (history, classes, num, poses, mean, cov)):
             array = np.array(array)
             array[j] = value
             fields.append(jnp.asarray(array))
-        return eqx.tree_at(lambda x: (x.log_weights, x.history, x.classes, x.num_created, x.poses, x.mean, x.cov),
-                           belief, (jnp.asarray(log_w), *fields))
+        return eqx.tree_at(lambda x: (x.log_weights, x.history, x.classes, x.num_created, x.smoothing.poses,
+                                      x.mean, x.cov), belief, (jnp.asarray(log_w), *fields))

@@ -17,6 +17,7 @@ loss of information: the weight integrates them over the unknown viewpoint inste
 
 from __future__ import annotations
 
+import dataclasses
 from functools import partial
 from typing import NamedTuple, Protocol, runtime_checkable
 
@@ -287,16 +288,18 @@ def hybrid_step(
     classes = jax.vmap(_realize)(belief.classes[parent], assign, slot_class, new)
     history = belief.history[parent].at[:, k, :].set(assign)
     num_created = None if not discovery else belief.num_created[parent] + jnp.sum(creates, axis=-1, dtype=jnp.int32)
-    poses, log, window = belief.poses, belief.log, belief.window
+    kept = belief.smoothing
     num_smoothed = jnp.zeros((), jnp.int32)
     if smoothing:
-        if belief.log is None:
+        if kept.log is None:
             raise ValueError(f"Hybrid(smoother={settings.smoother!r}): this belief carries no data log (built by "
                              "init_belief, not Hybrid.init); build it with Hybrid.init(scenario) or use smoother=Filter()")
         # Relinearize each kept component's whole trajectory and map (smoothing.py), warm-started
         # from its parent's trajectory and its prediction; its marginal over [x_k, objects]
         # becomes the component's Gaussian.
-        log = belief.log.record(k, odometry, detections)
+        kept = kept.record(k, odometry, detections)
+        log = kept.log
+        assert log is not None  # record writes one
         created = num_created if discovery else jnp.full((belief.capacity,), belief.num_objects, jnp.int32)
 
         # Children with the same associations (and, where the classifier sees the viewpoint, the
@@ -309,7 +312,9 @@ def hybrid_step(
         # sweep's smoothing cost fell from 0.31 s to nothing measurable (batched work 1.24 s with
         # chunks of four, 1.05 s of two, 0.92 s one by one, the filter 0.90-0.94 s). Only long pose
         # chains (MRCLAM: a 201-step scan, latency-bound) batch better by four.
-        poses_, objects_ = belief.poses.shape[-2], belief.num_objects
+        parents = kept.components(parent)
+        assert parents.poses is not None  # a smoother's init gives every component a trajectory
+        poses_, objects_ = parents.poses.shape[-2], belief.num_objects
         chunk = smoothing_chunk(poses_, objects_)
 
         def smoothed(poses_i, mean_i, cov_i, history_i, classes_i, created_i, window_i):
@@ -317,18 +322,15 @@ def hybrid_step(
             return smooth_step(settings.smoother, log, factors, k + 1, created_i, model.sensor, model.motion_cov,
                                True, "sum", poses_i, mean_i, cov_i, window_i)
 
-        parent_window = None if belief.window is None else jax.tree.map(lambda a: a[parent], belief.window)
         out, num_smoothed = map_distinct(smoothed, alive, _same_graph(history, created, classes, by_class),
-                                         belief.poses[parent], new_mean, new_cov, history, classes, created,
-                                         parent_window, chunk=chunk, axis_name=settings.batch_axis)
-        new_mean, new_cov, result, poses, window = out.mean, out.cov, out.result, out.poses, out.window
+                                         parents.poses, new_mean, new_cov, history, classes, created,
+                                         parents.window, chunk=chunk, axis_name=settings.batch_axis)
+        new_mean, new_cov, result = out.mean, out.cov, out.result
+        kept = dataclasses.replace(kept, poses=out.poses, window=out.window)
     # Empty slots copy the best component so later batched math on them stays finite.
     new_mean = jnp.where(alive[:, None], new_mean, new_mean[:1])
     new_cov = jnp.where(alive[:, None, None], new_cov, new_cov[:1])
-    if poses is not None:
-        poses = jnp.where(alive[:, None, None], poses, poses[:1])
-    if window is not None:
-        window = jax.tree.map(lambda a: jnp.where(alive.reshape((-1,) + (1,) * (a.ndim - 1)), a, a[:1]), window)
+    kept = kept.where(alive, kept.components(slice(0, 1)))
 
     new_belief = Belief(
         log_weights=new_log_w,
@@ -339,9 +341,7 @@ def hybrid_step(
         k=k + 1,
         model=model,
         num_created=num_created,
-        poses=poses,
-        log=log,
-        window=window,
+        smoothing=kept,
     )
     kept_ess = jnp.where(alive, ess, jnp.nan)
     best = best_slot(new_log_w)
@@ -371,7 +371,7 @@ def hybrid_step(
         is_failures=jnp.sum(alive & ~converged, dtype=jnp.int32),
         # The ESS of a visibility-ignored step is that of an estimate the step did not use.
         min_ess=jnp.where(visibility_ignored | ~jnp.any(alive), jnp.nan, jnp.min(jnp.where(alive, kept_ess, jnp.inf))),
-        log_overflow=new_overflow(belief.log, log),
+        log_overflow=new_overflow(belief.smoothing.log, kept.log),
         object_overflow=_lacks_object_slots(belief, detections) if discovery else jnp.zeros((), bool),
         details=HybridDetails(stats, parent, result, kept_ess, num_smoothed),
     )

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -20,7 +20,7 @@ from .. import novelty
 from ..base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, detection_slots,
                     history_length, object_slots, resolve_clutter)
 from ..options import GATE, MAX_CHILDREN, Option, setting
-from ..smoothing import Full, Smoother, check_smoother, data_log, factor_budget, initial_trajectory
+from ..smoothing import Full, Smoother, check_smoother
 from .state import (ASSOCIATION_PRIORS, DEFAULT_CANDIDATES, DEFAULT_MERGE_THRESHOLD, DEFAULT_SAMPLES,
                     PROPOSALS, Params, State, Structure)
 from .step import _step
@@ -146,12 +146,6 @@ class Multimodal(AbstractEstimator):
         # The class prior padded to Nmax rows: runs with the same capacities share one compiled step.
         model = eqx.tree_at(lambda mo: mo.class_prior, model, put(np.exp(class_lp)))
         k = cfg.capacity
-        smoothing: dict[str, Any] = {} if not self.smoother.smooths else dict(
-            poses=put(np.broadcast_to(np.asarray(initial_trajectory(scenario, cfg.max_steps)), (k, cfg.max_steps + 1, 3))),
-            log=data_log(scenario, cfg.max_steps, cfg.max_detections, n_max,
-                         factor_budget(scenario, self.max_steps, cfg.max_detections)))
-        if self.smoother.smooths:
-            smoothing["window"] = self.smoother.init_window(smoothing["log"], k)
         return State(
             log_weights=put(np.concatenate([[0.0], np.full(k - 1, -np.inf)])),
             mean=put(np.broadcast_to(mean, (k, dim))),
@@ -164,16 +158,16 @@ class Multimodal(AbstractEstimator):
             model=model,
             params=params,
             config=cfg,
-            **smoothing,
+            smoothing=self.smoother.init(scenario, cfg.max_steps, cfg.max_detections, n_max, self.max_steps, k),
         )
 
     def trajectory(self, state: State):
         """The smoothed ``x_0..x_T`` of the best component (``None`` without smoothing)."""
-        return None if state.poses is None else state.poses[best_slot(state.log_weights)]
+        return state.smoothing.trajectory(best_slot(state.log_weights)) if state.smoothing.smooths else None
 
     def objects(self, state: State):
         """The best component's smoothed objects and their count (``None`` without smoothing)."""
-        if state.poses is None:
+        if not state.smoothing.smooths:
             return None
         best = best_slot(state.log_weights)
         return state.mean[best, 3:].reshape(-1, 3), state.num_created[best]

@@ -10,7 +10,7 @@ import jax
 from jaxtyping import Array, Bool, Float, Int
 
 from ...models.model import Model
-from ..smoothing import DataLog, WindowPrior
+from ..smoothing import SmootherState
 
 NAME = "multimodal"
 
@@ -77,11 +77,9 @@ class State(eqx.Module):
     model: Model
     params: Params
     config: Structure = eqx.field(static=True)
-    # Smoothing (smoother=Full() or Lag(L)): each component's trajectory x_0..x_T, the data so far,
-    # and with Lag(L) each component's window prior on [x_s, objects].
-    poses: Float[Array, "K T1 3"] | None = None
-    log: DataLog | None = None
-    window: WindowPrior | None = None
+    # What the smoother keeps (smoother=Full() or Lag(L)): each component's trajectory x_0..x_T, the
+    # data so far, with Lag(L) each component's window prior; empty under Filter().
+    smoothing: SmootherState = SmootherState()
 
 
 class Details(eqx.Module):

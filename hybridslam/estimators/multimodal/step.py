@@ -65,16 +65,16 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
         ch.log_weight, c_mean, (lambda c: c_cov[c]) if filtering else child_full_cov, pose_cov, c_created,
         state.params.merge_threshold, cfg.capacity, centre_ok)
     shift, scatter = spread(wn, c_mean[centres], c_mean)
-    poses, log, smooth_failed = state.poses, state.log, jnp.zeros(cfg.capacity, bool)
-    window = state.window
+    kept, smooth_failed = state.smoothing, jnp.zeros(cfg.capacity, bool)
     if filtering:  # each cluster moment-matched from its members' own Gaussians
         m_mean = jax.vmap(wrap_angles)(c_mean[centres] + shift)
         m_cov = jnp.einsum("kc,cde->kde", wn, c_cov) + scatter
     else:
         # Each merged component's centre has its whole trajectory and map relinearized with every
         # factor of its history (smoothing.py): K smoothings per step rather than one per child.
-        assert state.log is not None and state.poses is not None  # Full keeps them
-        log = state.log.record(state.k, odometry, detections)
+        kept = kept.record(state.k, odometry, detections)
+        log = kept.log
+        assert log is not None  # record writes one
 
         def smoothed(poses_i, mean_i, cov_i, history_i, created_i, window_i):
             return smooth_step(smoother, log, history_factors(history_i), state.k + 1, created_i, state.model.sensor,
@@ -84,16 +84,17 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
         # chunks after it; an unused slot gets slot 0's values so that later math on it stays finite.
         used = log_w > -jnp.inf
         parent = ch.parent[centres]
-        parent_window = None if state.window is None else jax.tree.map(lambda a: a[parent], state.window)
-        out = map_live(smoothed, used, state.poses[parent], c_mean[centres], centre_cov, c_hist[centres],
-                       c_created[centres], parent_window,
-                       chunk=smoothing_chunk(state.poses.shape[-2], (c_mean.shape[-1] - 3) // 3))
+        parents = kept.components(parent)
+        assert parents.poses is not None  # a smoother's init gives every component a trajectory
+        out = map_live(smoothed, used, parents.poses, c_mean[centres], centre_cov, c_hist[centres],
+                       c_created[centres], parents.window,
+                       chunk=smoothing_chunk(parents.poses.shape[-2], (c_mean.shape[-1] - 3) // 3))
         out = jax.tree.map(lambda a: jnp.where(used.reshape((-1,) + (1,) * (a.ndim - 1)), a, a[:1]), out)
         # Members keep their (filter) offsets from the centre and take its smoothed covariance: the
         # cluster moment-matched about the centre's smoothed estimate.
         m_mean = jax.vmap(wrap_angles)(out.mean + shift)
         m_cov = out.cov + scatter
-        poses, window = out.poses, out.window
+        kept = dataclasses.replace(kept, poses=out.poses, window=out.window)
         smooth_failed = used & (out.result != optx.RESULTS.successful)
     m_cov = 0.5 * (m_cov + jnp.swapaxes(m_cov, 1, 2))
     # Warnings concern hypotheses within RELEVANT_NATS of the best; the rest carry no visible mass.
@@ -128,7 +129,7 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
         rejected=jnp.where(explained & cfg.clutter, unassociated, 0),
         unmapped=jnp.where(explained, jnp.sum(unmapped, dtype=jnp.int32), 0),
         object_overflow=no_room,
-        log_overflow=new_overflow(state.log, log),
+        log_overflow=new_overflow(state.smoothing.log, kept.log),
         inconsistent=inconsistent,
         details=Details(ch.parent, ch.objects, ch.log_prob),
     )
@@ -144,8 +145,7 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
         num_created=keep(c_created[centres], state.num_created),
         history=keep(c_hist[centres], state.history.at[:, state.k].set(-1)),
         k=state.k + 1,
-        poses=poses if poses is None else keep(poses, state.poses),
-        log=log,
-        window=window if window is None else jax.tree.map(keep, window, state.window),
+        # Without an explanation the components stay, and so do their trajectories (the log records the step).
+        smoothing=kept.where(explained, state.smoothing),
     )
     return new_state, info
