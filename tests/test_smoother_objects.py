@@ -78,3 +78,13 @@ def test_the_command_line_parses_the_smoother_once_into_the_object(text, smoothe
     assert hs.make_estimator("ml", smoother=args.smoother).smoother == smoother
     with pytest.raises(cli.CLIError, match="--smoother: expected filter, full or lag:L"):
         cli.build_parser().parse_args(["run", "s.json", "-o", "r.json", "--smoother", "lag:0"])
+
+
+def test_a_smoother_without_its_option_text_cannot_be_made():
+    """``name`` (the ``--smoother`` text) is abstract: a new smoother that forgets it fails at construction."""
+
+    class Nameless(AbstractSmoother):
+        pass
+
+    with pytest.raises(TypeError, match="abstract"):
+        Nameless()

@@ -37,6 +37,8 @@ standard fixed-lag approximation otherwise; ``Lag(L)`` with ``L`` at least the r
 
 from __future__ import annotations
 
+import abc
+
 import math
 from typing import ClassVar
 
@@ -76,9 +78,9 @@ class AbstractSmoother(eqx.Module):
     whole_trajectory: ClassVar[bool] = False
 
     @property
+    @abc.abstractmethod
     def name(self) -> str:
         """The ``--smoother`` text: ``filter``, ``full`` or ``lag:L``."""
-        raise NotImplementedError
 
     def __str__(self) -> str:
         return self.name
