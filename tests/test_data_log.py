@@ -1,4 +1,4 @@
-"""The smoother's data log (``estimators.smoothing.DataLog``): one measurement factor per detection.
+"""The smoother's data log (``estimators.smoothing_graph.DataLog``): one measurement factor per detection.
 
 The full smoother's graph lists the detections received, not the padded ``(steps, slots)`` grid:
 the same graph with fewer rows. Checked here against the padded layout at the level that matters,
@@ -18,8 +18,8 @@ import pytest
 import hybridslam as hs
 from hybridslam.driver import inputs_from_scenario
 from hybridslam.estimators.base import StepInfo, _totals, messages
-from hybridslam.estimators.smoothing import (data_log, factor_budget, graph, history_factors, new_overflow,
-                                             scenario_log)
+from hybridslam.estimators.smoothing_graph import (data_log, factor_budget, graph, history_factors, new_overflow,
+                                                   scenario_log)
 from hybridslam.inference import smoother as sm
 
 STEPS = 6

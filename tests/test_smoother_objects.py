@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 import hybridslam as hs
-from hybridslam.estimators.smoothing import AbstractSmoother, Filter, Full, Lag, data_log, parse_smoother
+from hybridslam.estimators.smoothing import AbstractSmoother, Filter, Full, Lag, parse_smoother
+from hybridslam.estimators.smoothing_graph import data_log
 from hybridslam.inference import smoother as sm
 from tests.test_smoother import N, P, _graph
 

@@ -73,8 +73,8 @@ from . import novelty
 from .base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, detection_slots,
                    history_length, lacks_object_slots, object_slots, resolve_clutter)
 from .options import GATE, MAX_CHILDREN, Option, setting
-from .smoothing import (Factors, Full, Smoother, SmootherState, active_history, check_smoother, new_overflow,
-                        smooth_step)
+from .smoothing import Full, Smoother, SmootherState, check_smoother, smooth_step
+from .smoothing_graph import Factors, active_history, new_overflow
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -528,7 +528,7 @@ def commit(est: SingleGaussian, state: GaussianState, mean, cov, class_log_post,
     result file (SCENARIO_FORMAT: "-1 marks a detection that the component left unassociated"),
     not a guess at its object. ``factors``: the step's measurement
     factors for the smoother, per detection slot its candidate objects, their log weights (``-inf``:
-    none) and the null component's (:class:`~.smoothing.Factors`).
+    none) and the null component's (:class:`~.smoothing_graph.Factors`).
     """
     assigned = jnp.where(detections.mask & used, assigned, -1).astype(jnp.int32)
     hit = (assigned[:, None] == jnp.arange(state.max_objects)[None, :]) & (used & detections.mask)[:, None]

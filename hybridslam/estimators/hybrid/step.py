@@ -37,7 +37,8 @@ from ...models.measurement import Detections
 from ...models.motion import propagate
 from .. import novelty
 from ..base import StepInfo, lacks_object_slots, relevant_children
-from ..smoothing import Smoother, history_factors, new_overflow, smooth_step
+from ..smoothing import Smoother, smooth_step
+from ..smoothing_graph import history_factors, new_overflow
 from .belief import Belief
 from .branching import Beam, Branching, beam_children
 from .hypotheses import Children, children, hypothesis_table

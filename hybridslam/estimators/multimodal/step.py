@@ -16,7 +16,8 @@ from ...inference.update import downdate, wrap_angles
 from ...models import motion
 from ...models.measurement import Detections
 from ..base import StepInfo, lacks_object_slots, relevant_children
-from ..smoothing import Smoother, history_factors, new_overflow, smooth_step
+from ..smoothing import Smoother, smooth_step
+from ..smoothing_graph import history_factors, new_overflow
 from .children import finish_child, hypotheses
 from .clustering import clustered, spread
 from .likelihood import draws
