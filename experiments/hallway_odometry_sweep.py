@@ -52,7 +52,7 @@ from hybridslam.analysis.recall import closure_recall
 from hybridslam.analysis.plot import plot_trajectory
 from hybridslam.estimators import ESTIMATORS, AbstractEstimator, make_estimator
 from hybridslam.estimators.hybrid.loops import OnlineLoopClosure
-from hybridslam.estimators.loop_closure import LoopClosureSettings
+from hybridslam.estimators.loop_settings import LoopClosureSettings
 from hybridslam.io.result import load_result, save_result
 from hybridslam.io.scenario import load_scenario, save_scenario
 from hybridslam.sim import hallway

@@ -32,7 +32,8 @@ import numpy as np
 from hybridslam.analysis import consistency
 from hybridslam.analysis.map_error import map_error, object_landmarks
 from hybridslam.analysis.trajectory import error_summary
-from hybridslam.estimators.loop_closure import LoopClosureSettings, close_loops, score_merges
+from hybridslam.estimators.loop_closure import close_loops, score_merges
+from hybridslam.estimators.loop_settings import LoopClosureSettings
 from hybridslam.io.result import load_result
 from hybridslam.io.scenario import load_scenario
 from hybridslam.config import setup

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from hybridslam.estimators import loop_closure as lc
+from hybridslam.estimators import loop_settings, loop_verify
 from hybridslam.io.scenario import ScenarioError, parse_scenario, scenario_to_json
 from hybridslam.sim.hallway import hallway
 
@@ -45,33 +45,33 @@ def test_the_hallway_detects_every_landmark_in_view():
 def test_the_loop_closure_search_takes_the_files_probability_else_0_9():
     with_field = hallway(0, steps=6)
     without = with_field.replace(detection_probability=None)
-    default = lc.LoopClosureSettings()
+    default = loop_settings.LoopClosureSettings()
     assert default.for_scenario(with_field).detection_probability == 1.0
-    assert default.for_scenario(without).detection_probability == lc.DEFAULT_DETECTION_PROBABILITY == 0.9
-    given_p = lc.LoopClosureSettings(detection_probability=0.5)
+    assert default.for_scenario(without).detection_probability == loop_settings.DEFAULT_DETECTION_PROBABILITY == 0.9
+    given_p = loop_settings.LoopClosureSettings(detection_probability=0.5)
     assert given_p.for_scenario(with_field).detection_probability == 0.5  # the setting overrides the file
     # a file without the field keeps the old term: log(0.1) per miss
-    assert lc.negative_information(3, default.for_scenario(without)) == pytest.approx(3 * math.log(0.1))
+    assert loop_verify.negative_information(3, default.for_scenario(without)) == pytest.approx(3 * math.log(0.1))
     # a sensor that never misses: each miss costs log(min_miss_probability), finite
-    assert lc.negative_information(2, default.for_scenario(with_field)) == pytest.approx(2 * math.log(0.1))
-    sharp = lc.LoopClosureSettings(min_miss_probability=0.01)
-    assert lc.negative_information(2, sharp.for_scenario(with_field)) == pytest.approx(2 * math.log(0.01))
+    assert loop_verify.negative_information(2, default.for_scenario(with_field)) == pytest.approx(2 * math.log(0.1))
+    sharp = loop_settings.LoopClosureSettings(min_miss_probability=0.01)
+    assert loop_verify.negative_information(2, sharp.for_scenario(with_field)) == pytest.approx(2 * math.log(0.01))
     # a sensor that misses often charges a miss less than the floor
     half = without.replace(detection_probability=0.5)
-    assert lc.negative_information(1, default.for_scenario(half)) == pytest.approx(math.log(0.5))
-    assert lc.negative_information(5, lc.LoopClosureSettings(detection_probability=0.0)) == 0.0
+    assert loop_verify.negative_information(1, default.for_scenario(half)) == pytest.approx(math.log(0.5))
+    assert loop_verify.negative_information(5, loop_settings.LoopClosureSettings(detection_probability=0.0)) == 0.0
 
 
 @given(st.floats(0.0, 1.0), st.integers(-20, 20), st.floats(1e-6, 1.0))
 def test_negative_information_is_linear_in_the_misses_and_penalizes_them(p, extra, floor):
-    settings = lc.LoopClosureSettings(detection_probability=p, min_miss_probability=floor)
-    one = lc.negative_information(1, settings)
+    settings = loop_settings.LoopClosureSettings(detection_probability=p, min_miss_probability=floor)
+    one = loop_verify.negative_information(1, settings)
     assert one <= 0.0 and math.isfinite(one)
-    assert lc.negative_information(extra, settings) == pytest.approx(extra * one, abs=1e-9)
+    assert loop_verify.negative_information(extra, settings) == pytest.approx(extra * one, abs=1e-9)
 
 
 @pytest.mark.parametrize("bad", [dict(detection_probability=1.2), dict(detection_probability=-0.1),
                                  dict(min_miss_probability=0.0), dict(min_miss_probability=2.0)])
 def test_bad_settings_name_the_setting(bad):
     with pytest.raises(ValueError, match=f"LoopClosureSettings.{next(iter(bad))}"):
-        lc.LoopClosureSettings(**bad)
+        loop_settings.LoopClosureSettings(**bad)

@@ -12,6 +12,7 @@ import pytest
 
 from hybridslam.analysis import consistency
 from hybridslam.estimators import loop_closure as lc
+from hybridslam.estimators import loop_merge, loop_search, loop_settings
 from hybridslam.io.result import Result, load_result, save_result
 from hybridslam.sim.hallway import HallwaySetup, hallway
 
@@ -35,10 +36,10 @@ def test_the_bayes_factor_is_the_ratio_of_the_two_models_evidence(seed):
     t = np.eye(12)[:, [c for c in range(12) if c not in (9, 10)]]
     t[9, 3], t[10, 4] = 1.0, 1.0
     expected = _log_gaussian_integral(t.T @ h @ t, t.T @ g) - _log_gaussian_integral(h, g)
-    got = lc.log_bayes_factor(mean, cov, [(2, 0)], new_log_density=0.0, ranges=np.ones(3))
+    got = loop_search.log_bayes_factor(mean, cov, [(2, 0)], new_log_density=0.0, ranges=np.ones(3))
     assert got == pytest.approx(expected, abs=1e-9)
     # the new-object density and the creating range enter per merge
-    shifted = lc.log_bayes_factor(mean, cov, [(2, 0)], new_log_density=-2.0, ranges=np.full(3, 3.0))
+    shifted = loop_search.log_bayes_factor(mean, cov, [(2, 0)], new_log_density=-2.0, ranges=np.full(3, 3.0))
     assert shifted == pytest.approx(got + 2.0 + math.log(3.0), abs=1e-9)
 
 
@@ -49,17 +50,17 @@ def test_the_beam_search_with_room_for_everything_is_the_brute_force_maximum():
     cov = np.linalg.inv(j.T @ j)
     mean = rng.standard_normal(3 + 3 * n)
     cands = {3: [0, 1], 4: [0, 2], 5: [1, 2]}
-    ranked, dropped = lc.search(mean, cov, cands, -1.0, np.full(n, 2.0), beam=1000, log_odds=0.5)
+    ranked, dropped = loop_search.search(mean, cov, cands, -1.0, np.full(n, 2.0), beam=1000, log_odds=0.5)
     assert dropped == 0
     best = max(
         (sum(([(a, b)] if b is not None else [] for a, b in zip(cands, choice)), []) for choice in
          itertools.product(*[c + [None] for c in cands.values()])
          if len({b for b in choice if b is not None}) == sum(b is not None for b in choice)),
-        key=lambda m: lc.log_bayes_factor(mean, cov, m, -1.0, np.full(n, 2.0)) + 0.5 * len(m))
+        key=lambda m: loop_search.log_bayes_factor(mean, cov, m, -1.0, np.full(n, 2.0)) + 0.5 * len(m))
     assert set(ranked[0][0]) == set(best)
-    assert ranked[0][1] == pytest.approx(lc.log_bayes_factor(mean, cov, best, -1.0, np.full(n, 2.0)) + 0.5 * len(best))
+    assert ranked[0][1] == pytest.approx(loop_search.log_bayes_factor(mean, cov, best, -1.0, np.full(n, 2.0)) + 0.5 * len(best))
     assert [lbf for _, lbf in ranked] == sorted((lbf for _, lbf in ranked), reverse=True)
-    _, dropped = lc.search(mean, cov, cands, -1.0, np.full(n, 2.0), beam=2)
+    _, dropped = loop_search.search(mean, cov, cands, -1.0, np.full(n, 2.0), beam=2)
     assert dropped > 0
 
 
@@ -73,7 +74,7 @@ def test_candidates_are_the_gated_pairs_of_a_direct_loop():
     j = rng.standard_normal((60, 3 + 3 * n))
     cov, mean = 5.0 * np.linalg.inv(j.T @ j), 2.0 * rng.standard_normal(3 + 3 * n)
     classes = rng.integers(-1, 2, size=n)
-    settings = lc.LoopClosureSettings(gap=5, gate=30.0)
+    settings = loop_settings.LoopClosureSettings(gap=5, gate=30.0)
     steps = [np.flatnonzero((history == o).any(axis=1)) for o in range(num)]
     expected = {}
     for a in range(num):
@@ -90,7 +91,7 @@ def test_candidates_are_the_gated_pairs_of_a_direct_loop():
                 near.append((d @ np.linalg.solve(s, d), b))
         if near:
             expected[a] = [b for _, b in sorted(near)][: settings.candidates]
-    assert expected and lc.candidates(mean, cov, history, classes, num, settings) == expected
+    assert expected and loop_search.candidates(mean, cov, history, classes, num, settings) == expected
 
 
 GAP = 10
@@ -109,7 +110,7 @@ def small_loop():
 def test_a_small_loop_is_closed_onto_the_right_landmarks(small_loop, tmp_path):
     scenario, result, truth_of, late = small_loop
     assert len(late) >= 2  # the scenario has a loop to close
-    closed, report = lc.close_loops(scenario, result, lc.LoopClosureSettings(gap=GAP))
+    closed, report = lc.close_loops(scenario, result, loop_settings.LoopClosureSettings(gap=GAP))
     merges = [m for c in report.closures for m in c.merges]
     assert {a for a, _ in merges} == set(late)
     assert all(truth_of[a] == truth_of[b] for a, b in merges)
@@ -125,7 +126,7 @@ def test_a_small_loop_is_closed_onto_the_right_landmarks(small_loop, tmp_path):
 
 def test_score_merges_gives_the_first_rounds_score_and_cost(small_loop):
     scenario, result, truth_of, _ = small_loop
-    settings = lc.LoopClosureSettings(gap=GAP)
+    settings = loop_settings.LoopClosureSettings(gap=GAP)
     _, report = lc.close_loops(scenario, result, settings)
     first = report.closures[0]
     score = lc.score_merges(scenario, result, first.merges, settings)
@@ -149,7 +150,7 @@ def test_bad_inputs_name_what_is_wrong(small_loop):
     with pytest.raises(ValueError, match="steps"):
         lc.close_loops(scenario, Result("test", result.steps[:-1]))
     with pytest.raises(ValueError, match="LoopClosureSettings.gate"):
-        lc.LoopClosureSettings(gate=-1.0)
+        loop_settings.LoopClosureSettings(gate=-1.0)
 
 
 def test_the_command_line_closes_the_loop_and_reports_bad_files(small_loop, tmp_path, capsys):
@@ -183,13 +184,13 @@ def test_the_runs_own_closures_are_reopened_at_each_pause_longer_than_the_gap():
     history[0:3, 0] = 0  # object 0: steps 0-2, then again 30-32 (a closure of the run's own)
     history[30:33, 0] = 0
     history[5:35, 1] = 1  # object 1: never pauses
-    h, cls, origin, added = lc.reopen(history, np.array([1, 0, -1, -1]), gap=20)
+    h, cls, origin, added = loop_merge.reopen(history, np.array([1, 0, -1, -1]), gap=20)
     assert added == 1
     assert (h[0:3, 0] == 0).all() and (h[30:33, 0] == 2).all() and (h[5:35, 1] == 1).all()
     assert cls.tolist() == [1, 0, 1, -1] and origin.tolist()[:3] == [0, 1, 0]
-    same, _, _, none = lc.reopen(history, np.array([1, 0]), gap=20)  # no free slot: left as it is
+    same, _, _, none = loop_merge.reopen(history, np.array([1, 0]), gap=20)  # no free slot: left as it is
     assert none == 0 and (same == history).all()
-    assert lc.pauses(history, gap=20) == 1 and lc.pauses(history, gap=30) == 0  # what was left closed
+    assert loop_merge.pauses(history, gap=20) == 1 and loop_merge.pauses(history, gap=30) == 0  # what was left closed
 
 
 
@@ -204,14 +205,14 @@ def test_a_run_whose_object_slots_are_full_still_has_its_closures_reopened_and_m
     for j, a in enumerate(top.associations):
         history[j, : len(a)] = a
     old_of = {a: min(t for t in truth_of if truth_of[t] == truth_of[a]) for a in late}
-    h, cls, used = lc.compact(history, np.asarray(top.classes), old_of)  # the run's own closures
+    h, cls, used = loop_merge.compact(history, np.asarray(top.classes), old_of)  # the run's own closures
     full = dataclasses.replace(top, associations=[r[: len(a)].tolist() for r, a in zip(h, top.associations)],
                                classes=list(cls[: len(used)]))  # no free slot
     run = dataclasses.replace(result, steps=[*result.steps[:-1],
                                              dataclasses.replace(result.steps[-1], components=[full])])
-    assert lc.reopen(h, cls[: len(used)], GAP)[3] == 0 < lc.pauses(h, GAP)  # the run's slots cannot hold them
-    closed, report = lc.close_loops(scenario, run, lc.LoopClosureSettings(gap=GAP))
-    assert report.reopened == lc.pauses(h, GAP) and not report.failed
+    assert loop_merge.reopen(h, cls[: len(used)], GAP)[3] == 0 < loop_merge.pauses(h, GAP)  # the run's slots cannot hold them
+    closed, report = lc.close_loops(scenario, run, loop_settings.LoopClosureSettings(gap=GAP))
+    assert report.reopened == loop_merge.pauses(h, GAP) and not report.failed
     merges = [m for c in report.closures for m in c.merges]
     assert merges and all(a == b for a, b in merges)  # each stretch back onto its own object
     final = closed.steps[-1].components[0]

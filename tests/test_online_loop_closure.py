@@ -9,7 +9,7 @@ import pytest
 
 import hybridslam as hs
 from hybridslam.analysis.trajectory import error_summary
-from hybridslam.estimators import loop_closure as lc
+from hybridslam.estimators import loop_settings
 from hybridslam.estimators.hybrid.loops import OnlineLoopClosure, _renumbered
 from hybridslam.sim.hallway import HallwaySetup, hallway
 
@@ -42,7 +42,7 @@ def drifted_loop():
 
 def test_merge_hypotheses_close_a_loop_the_belief_misses(drifted_loop):
     scenario, estimator, plain = drifted_loop
-    hook = OnlineLoopClosure(estimator, scenario, lc.LoopClosureSettings(gap=10))
+    hook = OnlineLoopClosure(estimator, scenario, loop_settings.LoopClosureSettings(gap=10))
     run = hs.run(estimator, scenario, between_steps=hook)
     before, after = error_summary(plain, scenario), error_summary(run.result, scenario)
     assert before["final_smoothed"] > 1.5 and after["final_smoothed"] < 0.5

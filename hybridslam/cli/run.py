@@ -135,7 +135,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     print(settings_note(scenario, profile, chosen, loops))
     if args.close_loops is not None:
         from ..estimators.hybrid.loops import OnlineLoopClosure
-        from ..estimators.loop_closure import LoopClosureSettings
+        from ..estimators.loop_settings import LoopClosureSettings
 
         try:
             hook = OnlineLoopClosure(estimator, scenario, LoopClosureSettings(gap=args.close_loops))

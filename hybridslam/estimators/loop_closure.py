@@ -42,147 +42,31 @@ run it is not bound by the run's static shapes.
 What it does not do: it runs once, after the run, so the online estimates (``pose_mean``) keep the
 estimator's associations; only the final step's top component (its associations, classes,
 ``trajectory`` and ``objects``) is rewritten.
+
+The pass is split by idea: settings and report in :mod:`.loop_settings`, the candidate search and
+its Bayes factor in :mod:`.loop_search`, the re-solve and verification in :mod:`.loop_verify`, the
+object bookkeeping (merges, re-opening) in :mod:`.loop_merge`; this module runs them.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Sequence
-from statistics import NormalDist
 
-import equinox as eqx
-import jax
-import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
-from ..inference import smoother as sm
 from ..io.result import ComponentRecord, Result
 from ..io.scenario import Scenario
-from ..models.model import model_from_scenario
-from . import smoothing
-from .gaussian import chi2_gate
+from . import smoothing_graph
+from .loop_merge import compact, pauses, reopen, used_slots
+from .loop_search import candidates, creating_ranges, log_bayes_factor, object_spans, search
+from .loop_settings import Closure
+from .loop_verify import Solver, judge, misses
 
-
-@dataclasses.dataclass(frozen=True)
-class LoopClosureSettings:
-    """``gap``: steps between an old object's last detection and a late object's first (default
-    20); ``gate``: squared Mahalanobis distance of a candidate pair's position difference (default
-    25, wide: the pass is about drift of several sd); ``candidates``: old objects kept per late object
-    (default 8); ``beam``: partial joint assignments kept (default 256); ``threshold``: the least log
-    posterior odds to accept (default 0: more likely closed than not); ``revisit_log_odds``: the
-    prior log odds, per merge, that a late object is an old one rather than new (default 0: the
-    estimators' own model, in which a detection is a new object or a known one with no prior
-    preference; a positive value says the robot expects to revisit, e.g. once the map is complete);
-    ``verify_probability`` (default 0.999) and ``tries`` (default 8): the sets re-solved and
-    verified per round; ``reopen`` (default True): first undo the run's own loop closures, so that
-    the search decides them jointly with the rest (module docstring); ``detection_probability``
-    (``None``, the default: the scenario's ``sensor.detection_probability``, 0.9 where the file has
-    none; 0 leaves negative information out), ``min_miss_probability`` (default 0.1: the least
-    probability a miss is given, so a miss costs at most ``log 0.1``. The footprint test is on the
-    solved estimate, not on the truth, so an object the estimate puts just inside may be truly
-    outside; a sensor that never misses, detection probability 1 (the hallway simulator's), would
-    otherwise rule out every merge that adds one miss. Measured: with 0.01 the small hallway loop of
-    ``tests/test_online_loop_closure.py`` is no longer closed during the run, 1.76 m off at the end
-    against 0.5 m) and ``fov_margin`` (default 0.5 m, 0.2 rad) of the
-    negative-information term; ``max_rounds`` (default 5; 0: only re-solve the graph); ``max_steps``: Levenberg-Marquardt
-    iterations per solve (default 100)."""
-
-    gap: int = 20
-    gate: float = 25.0
-    candidates: int = 8
-    beam: int = 256
-    threshold: float = 0.0
-    revisit_log_odds: float = 0.0
-    verify_probability: float = 0.999
-    max_rounds: int = 5
-    tries: int = 8
-    reopen: bool = True
-    detection_probability: float | None = None
-    min_miss_probability: float = 0.1
-    fov_margin: tuple[float, float] = (0.5, 0.2)
-    max_steps: int = 100
-
-    def __post_init__(self):
-        for name in ("gap", "candidates", "beam", "max_rounds", "tries", "max_steps"):
-            v, least = getattr(self, name), 0 if name in ("gap", "max_rounds") else 1
-            if not (isinstance(v, int) and not isinstance(v, bool) and v >= least):
-                raise ValueError(f"LoopClosureSettings.{name}: expected a {'non-negative' if least == 0 else 'positive'}"
-                                 f" int, got {v!r}")
-        if not math.isfinite(self.revisit_log_odds):
-            raise ValueError(f"LoopClosureSettings.revisit_log_odds: expected a finite number, got {self.revisit_log_odds!r}")
-        if not (math.isfinite(self.gate) and self.gate > 0):
-            raise ValueError(f"LoopClosureSettings.gate: expected a positive number, got {self.gate!r}")
-        if not math.isfinite(self.threshold):
-            raise ValueError(f"LoopClosureSettings.threshold: expected a finite number, got {self.threshold!r}")
-        chi2_gate(self.verify_probability)  # raises on a probability outside (0, 1)
-        if self.detection_probability is not None and not 0.0 <= self.detection_probability <= 1.0:
-            raise ValueError("LoopClosureSettings.detection_probability: expected a number in [0, 1] or None, got "
-                             f"{self.detection_probability!r}")
-        if not 0.0 < self.min_miss_probability <= 1.0:
-            raise ValueError("LoopClosureSettings.min_miss_probability: expected a number in (0, 1], got "
-                             f"{self.min_miss_probability!r}")
-        if len(self.fov_margin) != 2 or not all(math.isfinite(m) and m >= 0 for m in self.fov_margin):
-            raise ValueError(f"LoopClosureSettings.fov_margin: expected two non-negative numbers, got {self.fov_margin!r}")
-
-
-    def for_scenario(self, scenario: Scenario) -> LoopClosureSettings:
-        """These settings with ``detection_probability`` decided: its own value, else the scenario's
-        ``sensor.detection_probability``, else :data:`DEFAULT_DETECTION_PROBABILITY`."""
-        if self.detection_probability is not None:
-            return self
-        p = scenario.detection_probability
-        return dataclasses.replace(self, detection_probability=DEFAULT_DETECTION_PROBABILITY if p is None else p)
-
-
-DEFAULT_DETECTION_PROBABILITY = 0.9  # a file without sensor.detection_probability
-
-
-@dataclasses.dataclass(frozen=True)
-class Closure:
-    """One accepted round: ``merges`` ``(late, old)`` object pairs (indices of the run's final
-    component before the pass), its score (``log_bayes_factor``: log posterior odds against no
-    merge, the negative-information term included) and the smoother cost before and after."""
-
-    merges: tuple[tuple[int, int], ...]
-    log_bayes_factor: float
-    cost_before: float
-    cost_after: float
-
-
-@dataclasses.dataclass(frozen=True)
-class LoopClosureReport:
-    """What :func:`close_loops` did: the accepted rounds; ``considered``: late objects with at least one
-    gated candidate, summed over rounds; ``beam_dropped``: partial assignments the beam dropped
-    (0: the search was exhaustive); ``rejected``: merge sets whose re-solved graph failed verification (each undone);
-    ``failed``: whether a solve did not converge (the last good solution is kept); ``reopened``: the
-    run's own loop closures re-opened (``reopen``), each a later stretch of an object's detections
-    made a late object of its own (a merge back onto the same object confirms it)."""
-
-    closures: tuple[Closure, ...]
-    considered: int
-    beam_dropped: int
-    rejected: int
-    failed: bool
-    reopened: int = 0
-
-    @property
-    def merged(self) -> int:
-        return sum(len(c.merges) for c in self.closures)
-
-    def summary(self) -> str:
-        pairs = ", ".join(f"{a}->{b}" for c in self.closures for a, b in c.merges) or "none"
-        lines = [f"loop closure: {self.merged} objects merged ({pairs}) in {len(self.closures)} round(s); "
-                 f"{self.considered} late objects had candidates; {self.reopened} of the run's own closures re-opened"]
-        if self.beam_dropped:
-            lines.append(f"warning: the beam dropped {self.beam_dropped} partial assignments (raise the beam: "
-                         "LoopClosureSettings.beam, close-loops --beam)")
-        if self.rejected:
-            lines.append(f"warning: {self.rejected} merge set(s) failed verification and were undone")
-        if self.failed:
-            lines.append("warning: a smoother solve did not converge; the last converged solution is kept")
-        return "\n".join(lines)
+# The pass's settings and outcomes, documented (docs/api.md) as importable from here:
+from .loop_settings import LoopClosureReport as LoopClosureReport
+from .loop_settings import LoopClosureSettings as LoopClosureSettings
+from .loop_settings import MergeScore as MergeScore
 
 
 @dataclasses.dataclass(frozen=True)
@@ -190,7 +74,7 @@ class _Problem:
     """The data of a run as arrays, and the slot history of its final top component."""
 
     scenario: Scenario
-    log: smoothing.DataLog
+    log: smoothing_graph.DataLog
     history: np.ndarray  # (T, Dmax) object per detection, -1 none / padding
     classes: np.ndarray  # (N,) class realization, -1 open
     geo: np.ndarray  # (T, Dmax, 2)
@@ -198,7 +82,7 @@ class _Problem:
 
 def _problem(scenario: Scenario, component: ComponentRecord) -> _Problem:
     classes = np.asarray(component.classes, dtype=np.int64)
-    log = smoothing.scenario_log(scenario, len(classes))
+    log = smoothing_graph.scenario_log(scenario, len(classes))
     history = np.full(log.mask.shape, -1, dtype=np.int32)
     for j, step in enumerate(scenario.steps):
         assoc = np.asarray(component.associations[j], dtype=np.int64)
@@ -212,70 +96,10 @@ def _problem(scenario: Scenario, component: ComponentRecord) -> _Problem:
     return _Problem(scenario, log, history, classes, np.asarray(log.geo))
 
 
-def compact(history: np.ndarray, classes: np.ndarray, merges: dict[int, int],
-            num: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Apply ``merges`` (late -> old; the old object takes the late one's class where its own is
-    open) and renumber the objects in order of first detection (with ``num``, the objects below it
-    that no detection names come first, in index order: a prior map's undetected objects, kept):
-    the new history, classes (padded with -1 to the same length) and the old index of each new one."""
-    h, cls = history.copy(), classes.copy()
-    for a, b in merges.items():
-        h[history == a] = b
-        if cls[b] < 0:
-            cls[b] = classes[a]
-    detected = list(dict.fromkeys(int(s) for s in h.ravel() if s >= 0))  # row-major: order of first detection
-    named = set(detected)
-    used = [s for s in range(num or 0) if s not in named and s not in merges] + detected
-    new_of = np.full(len(classes), -1, dtype=np.int64)
-    new_of[used] = np.arange(len(used))
-    out = np.where(h >= 0, new_of[np.maximum(h, 0)], -1).astype(np.int32)
-    out_cls = np.full(len(classes), -1, dtype=np.int64)
-    out_cls[: len(used)] = cls[used]
-    return out, out_cls, np.asarray(used, dtype=np.int64)
-
-
-@eqx.filter_jit
-def _solve_graph(log: smoothing.DataLog, model, history, poses, objects, num_created, max_steps: int):
-    """Solve the whole graph of ``history`` and take the marginal of ``[x_T, objects]`` (one compile per shape)."""
-    t = log.mask.shape[0]
-    g = smoothing.graph(log, smoothing.history_factors(history), jnp.asarray(t), num_created, model.sensor,
-                        model.motion_cov, semantic=False)
-    sol = sm.solve(g, poses, objects, max_steps=max_steps)
-    mean, cov = sm.marginal(sol, t)
-    return sol.poses, sol.objects, sol.cost, mean, cov, sol.result == optx.RESULTS.successful
-
-
-class _Solver:
-    """:func:`_solve_graph` for one run (the history is an argument: merges do not recompile)."""
-
-    def __init__(self, problem: _Problem, max_steps: int):
-        self._model = model_from_scenario(problem.scenario.replace(discovery=None))
-        self._log, self._max_steps = problem.log, max_steps
-
-    def __call__(self, history, poses, objects, num_created):
-        out = jax.device_get(_solve_graph(self._log, self._model, jnp.asarray(history), jnp.asarray(poses),
-                                          jnp.asarray(objects), jnp.asarray(num_created), self._max_steps))
-        return tuple(np.asarray(x) for x in out[:5]) + (bool(out[5]),)
-
-
-def _span(history: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per object (``n``): the step of its first and of its last detection (-1: none), and the flat
-    index ``j * Dmax + i`` of its first detection (-1: none)."""
-    flat = history.ravel()
-    seen = np.flatnonzero(flat >= 0)  # row-major: in time order
-    objects, at = np.unique(flat[seen], return_index=True)
-    creating = np.full(n, -1)
-    creating[objects] = seen[at]
-    last = np.full(n, -1)
-    np.maximum.at(last, flat[seen], seen // history.shape[1])
-    first = np.where(creating >= 0, creating // history.shape[1], -1)
-    return first, last, creating
-
-
 def _initial_objects(problem: _Problem, history: np.ndarray, poses: np.ndarray) -> np.ndarray:
     """Each object back-projected from its first detection at ``poses`` (``x_{j+1}`` for step ``j``)."""
     n = len(problem.classes)
-    _, _, creating = _span(history, n)
+    _, _, creating = object_spans(history, n)
     has = creating >= 0
     j = creating[has] // history.shape[1]
     r, b = problem.geo.reshape(-1, 2)[creating[has]].T
@@ -284,147 +108,6 @@ def _initial_objects(problem: _Problem, history: np.ndarray, poses: np.ndarray) 
     objects[has, 0] = x[:, 0] + r * np.cos(x[:, 2] + b)
     objects[has, 1] = x[:, 1] + r * np.sin(x[:, 2] + b)
     return objects
-
-
-def creating_ranges(geo: np.ndarray, history: np.ndarray, n: int) -> np.ndarray:
-    """Per object, the range (m) of the detection that created it (1 where none)."""
-    _, _, creating = _span(history, n)
-    return np.where(creating >= 0, geo[..., 0].ravel()[np.maximum(creating, 0)], 1.0)
-
-
-def candidates(
-    mean: np.ndarray, cov: np.ndarray, history: np.ndarray, classes: np.ndarray, num: int, settings: LoopClosureSettings,
-) -> dict[int, list[int]]:
-    """Per late object, its gated old objects, nearest first (module docstring; ``num`` objects in use)."""
-    first, last, _ = _span(history, num)
-    idx = 3 + 3 * np.arange(num)[:, None] + np.arange(2)  # (num, 2): each object's x, y in [x_T, objects]
-    p = mean[idx]
-    c = cov[idx[:, :, None, None], idx[None, None]]  # (a, 2, b, 2)
-    block = np.einsum("aiaj->aij", c)
-    cross = c.transpose(0, 2, 1, 3)  # (a, b, 2, 2): Cov(p_a, p_b)
-    s = block[:, None] + block[None, :] - cross - cross.transpose(1, 0, 2, 3)  # ... − Cov(p_b, p_a)
-    d = p[:, None] - p[None, :]
-    ok = (last[None, :] >= 0) & (first[:, None] - last[None, :] > settings.gap) & (first[None, :] < first[:, None])
-    ok &= (classes[:num, None] < 0) | (classes[None, :num] < 0) | (classes[:num, None] == classes[None, :num])
-    s = np.where(ok[..., None, None], s, np.eye(2))  # pairs left out: any invertible matrix
-    d2 = np.einsum("abi,abi->ab", d, np.linalg.solve(s, d[..., None])[..., 0])
-    ok &= d2 < settings.gate
-    out: dict[int, list[int]] = {}
-    for a in np.flatnonzero(ok.any(axis=1)):
-        near = np.flatnonzero(ok[a])
-        out[int(a)] = [int(b) for b in near[np.argsort(d2[a, near], kind="stable")][: settings.candidates]]
-    return out
-
-
-def log_bayes_factor(mean: np.ndarray, cov: np.ndarray, merges: Sequence[tuple[int, int]],
-                     new_log_density: float, ranges: np.ndarray) -> float:
-    """``log BF`` of the merges against none (module docstring): ``ranges[a]``, the range (m) of the
-    detection that created late object ``a``; ``new_log_density`` in log (1 / (m rad))."""
-    if not merges:
-        return 0.0
-    rows = np.array([3 + 3 * s + c for a, _ in merges for s, c in ((a, 0), (a, 1))])
-    cols = np.array([3 + 3 * s + c for _, b in merges for s, c in ((b, 0), (b, 1))])
-    d = mean[rows] - mean[cols]
-    s = cov[np.ix_(rows, rows)] + cov[np.ix_(cols, cols)] - cov[np.ix_(rows, cols)] - cov[np.ix_(cols, rows)]
-    chol = np.linalg.cholesky(s)
-    z = np.linalg.solve(chol, d)
-    log_n = -0.5 * z @ z - np.sum(np.log(np.diag(chol))) - 0.5 * len(d) * math.log(2 * math.pi)
-    return float(log_n - sum(new_log_density - math.log(max(ranges[a], 1e-9)) for a, _ in merges))
-
-
-def search(mean: np.ndarray, cov: np.ndarray, cands: dict[int, list[int]], new_log_density: float,
-           ranges: np.ndarray, beam: int, log_odds: float = 0.0) -> tuple[list[tuple[tuple[tuple[int, int], ...], float]], int]:
-    """The best injective merge set (each late object: a candidate or new) by :func:`log_bayes_factor`
-    plus ``log_odds`` per merge (the prior), a beam over the late objects in order; returns the kept
-    sets, best first, each with its log posterior odds against no merge, and how many partial sets
-    the beam dropped.
-
-    Each partial set carries the Cholesky factor ``L`` of its stacked differences' covariance and
-    ``z = L⁻¹ A μ``, so that adding a merge is one 2-row extension of the factor (the conditional
-    Gaussian of the new difference given the set's): the same score as :func:`log_bayes_factor`, to
-    rounding. Every extension of every partial set by every candidate of a late object is one batched
-    computation (sets of fewer merges padded with identity rows)."""
-    n_obj = (len(mean) - 3) // 3
-    # The beam: scores (B,), factors (B, M, M), z (B, M), the stacked rows of each set's late and old
-    # objects (B, M; padding: row 0, masked), the objects each set has taken (B, N), the sets.
-    score = np.zeros(1)
-    chol, z = np.zeros((1, 0, 0)), np.zeros((1, 0))
-    late, old, used = np.zeros((1, 0), int), np.zeros((1, 0), int), np.zeros((1, 0), bool)
-    taken = np.zeros((1, n_obj), bool)
-    sets: list[tuple[tuple[int, int], ...]] = [()]
-    dropped = 0
-    for a in sorted(cands):
-        ia = np.array([3 + 3 * a, 4 + 3 * a])
-        bs = np.array(cands[a], dtype=int)
-        ib = np.stack([3 + 3 * bs, 4 + 3 * bs], axis=-1)  # (G, 2)
-        d = mean[ia][None] - mean[ib]  # (G, 2)
-        s_ee = (cov[np.ix_(ia, ia)][None] + cov[ib[:, :, None], ib[:, None, :]] - cov[ia[None, :, None], ib[:, None, :]]
-                - cov[ib[:, :, None], ia[None, None, :]])  # (G, 2, 2)
-        v = cov[:, ia][None] - cov[:, ib].transpose(1, 0, 2)  # (G, D, 2): Cov(·, p_a − p_b)
-        c = (v[:, late] - v[:, old]) * used[None, :, :, None]  # (G, B, M, 2): Cov(set, new)
-        if chol.shape[-1]:  # one factorization per set for every candidate: (B, M, G·2)
-            rhs = c.transpose(1, 2, 0, 3).reshape(c.shape[1], c.shape[2], -1)
-            lc = np.linalg.solve(chol, rhs).reshape(c.shape[1], c.shape[2], c.shape[0], 2).transpose(2, 0, 1, 3)
-        else:
-            lc = c  # (G, B, M, 2)
-        schur = s_ee[:, None] - np.swapaxes(lc, -1, -2) @ lc  # (G, B, 2, 2)
-        r = d[:, None] - np.einsum("gbmi,bm->gbi", lc, z)
-        ok = ~taken[:, bs].T  # (G, B): injective
-        ok &= (schur[..., 0, 0] > 0) & (schur[..., 0, 0] * schur[..., 1, 1] - schur[..., 0, 1] * schur[..., 1, 0] > 0)
-        ls = np.linalg.cholesky(np.where(ok[..., None, None], schur, np.eye(2)))
-        ze = np.linalg.solve(ls, r[..., None])[..., 0]
-        per_merge = log_odds - (new_log_density - math.log(max(ranges[a], 1e-9)))
-        inc = (-0.5 * np.sum(ze * ze, -1) - np.log(ls[..., 0, 0]) - np.log(ls[..., 1, 1]) - math.log(2 * math.pi)
-               + per_merge)
-        grown = np.concatenate([score, np.where(ok & np.isfinite(inc), score[None] + inc, -np.inf).ravel()])
-        order = np.argsort(-grown, kind="stable")
-        order = order[np.isfinite(grown[order])]
-        dropped += max(len(order) - beam, 0)
-        order = order[:beam]
-        keep, ext = order[order < len(score)], order[order >= len(score)] - len(score)
-        g, bi = np.divmod(ext, len(score))
-        m = chol.shape[-1]
-        grow = len(ext) > 0
-        size = m + 2 if grow else m
-        new_chol = np.broadcast_to(np.eye(size), (len(order), size, size)).copy()
-        new_z, new_late = np.zeros((len(order), size)), np.zeros((len(order), size), int)
-        new_old, new_used = np.zeros((len(order), size), int), np.zeros((len(order), size), bool)
-        src = np.concatenate([keep, bi])
-        new_chol[:, :m, :m], new_z[:, :m] = chol[src], z[src]
-        new_late[:, :m], new_old[:, :m], new_used[:, :m] = late[src], old[src], used[src]
-        if grow:
-            e = slice(len(keep), None)
-            new_chol[e, m:, :m] = np.swapaxes(lc[g, bi], -1, -2)
-            new_chol[e, m:, m:] = ls[g, bi]
-            new_z[e, m:] = ze[g, bi]
-            new_late[e, m:], new_old[e, m:], new_used[e, m:] = ia, ib[g], True
-        new_taken = taken[src].copy()
-        new_taken[np.arange(len(keep), len(order)), bs[g]] = True
-        score = np.concatenate([score[keep], grown[len(score):][ext]])
-        sets = [sets[i] for i in keep] + [sets[i] + ((a, int(bs[j])),) for j, i in zip(g, bi)]
-        chol, z, late, old, used, taken = new_chol, new_z, new_late, new_old, new_used, new_taken
-    ranked = sorted(zip(score, range(len(sets))), key=lambda x: -x[0])
-    return [(sets[i], float(sc)) for sc, i in ranked], dropped
-
-
-@dataclasses.dataclass(frozen=True)
-class MergeScore:
-    """How the pass judges one merge set (:func:`score_merges`): ``log_bayes_factor`` against no
-    merge (Laplace, from the unmerged graph; ``revisit_log_odds`` per merge included), the
-    ``negative_information`` term of the re-solved graph (log-likelihood change of the misses),
-    ``log_odds``, their sum (what :func:`close_loops` compares with ``threshold``), ``cost_rise``
-    (smoother cost after the merge minus before, re-solved) and whether it passes verification
-    (``verified``: converged, and ``2 · cost_rise`` within the chi-square ``verify_probability``
-    quantile)."""
-
-    log_bayes_factor: float
-    negative_information: float
-    cost_rise: float
-    verified: bool
-
-    @property
-    def log_odds(self) -> float:
-        return self.log_bayes_factor + self.negative_information
 
 
 @dataclasses.dataclass
@@ -454,11 +137,11 @@ def _start(scenario: Scenario, result: Result, settings: LoopClosureSettings, re
         # After the run the pass is not bound by the run's object slots: with the slots full (a
         # whole log: 209 stretches for 60 slots) it re-opens into new ones (a multiple of 8, so that
         # a few more or fewer share a compile).
-        short = pauses(problem.history, settings.gap) - (len(problem.classes) - _used(problem.history))
+        short = pauses(problem.history, settings.gap) - (len(problem.classes) - used_slots(problem.history))
         if short > 0:
             extra = -(-short // 8) * 8
             problem = _problem(scenario, dataclasses.replace(top, classes=[*top.classes, *[-1] * extra]))
-    solver = _Solver(problem, settings.max_steps)
+    solver = Solver(problem.scenario, problem.log, settings.max_steps)
     history, classes = problem.history, problem.classes
     origin = np.arange(len(classes))  # each current object's index in the run's own numbering
     reopened = 0
@@ -471,7 +154,7 @@ def _start(scenario: Scenario, result: Result, settings: LoopClosureSettings, re
     return problem, solver, _Solved(history, classes, num, p, o, float(cost), mean, cov), origin, reopened, ok
 
 
-def _merged(problem: _Problem, solver: _Solver, g: _Solved, merges: Sequence[tuple[int, int]], lbf: float,
+def _merged(problem: _Problem, solver: Solver, g: _Solved, merges: Sequence[tuple[int, int]], lbf: float,
             settings: LoopClosureSettings, base_misses: int) -> tuple[MergeScore, _Solved, np.ndarray, bool]:
     """``merges`` applied to ``g`` and re-solved (warm-started): the score, the solved graph, the
     old index of each object, and convergence."""
@@ -480,25 +163,6 @@ def _merged(problem: _Problem, solver: _Solver, g: _Solved, merges: Sequence[tup
     extra = misses(problem.scenario, p2, o2, h2, len(used), settings) - base_misses
     return (judge(lbf, float(cost2 - g.cost), ok, extra, len(merges), settings),
             _Solved(h2, c2, len(used), p2, o2, float(cost2), mean2, cov2), used, ok)
-
-
-def negative_information(extra_misses: int, settings: LoopClosureSettings) -> float:
-    """The log-likelihood of ``extra_misses`` more (step, object) pairs in view yet undetected
-    (fewer: negative), ``log(max(1 − detection_probability, min_miss_probability))`` each (module
-    docstring; ``detection_probability`` ``None`` counts as :data:`DEFAULT_DETECTION_PROBABILITY`)."""
-    p = DEFAULT_DETECTION_PROBABILITY if settings.detection_probability is None else settings.detection_probability
-    if not p:
-        return 0.0
-    return extra_misses * math.log(max(1.0 - p, settings.min_miss_probability))
-
-
-def judge(log_bayes_factor: float, cost_rise: float, converged: bool, extra_misses: int, merged: int,
-          settings: LoopClosureSettings) -> MergeScore:
-    """A merge set's :class:`MergeScore` from its parts: verified when its re-solve converged and
-    ``2 · cost_rise`` lies within the chi-square ``verify_probability`` quantile of its ``2 · merged``
-    constraints (2 at least), and :func:`negative_information` of its extra misses."""
-    verified = converged and 2.0 * cost_rise <= chi2_quantile(max(2 * merged, 2), settings.verify_probability)
-    return MergeScore(log_bayes_factor, negative_information(extra_misses, settings), cost_rise, bool(verified))
 
 
 def _base_misses(problem: _Problem, g: _Solved, settings: LoopClosureSettings) -> int:
@@ -578,58 +242,6 @@ def close_loops(scenario: Scenario, result: Result, settings: LoopClosureSetting
     return _rewrite(result, g.history, g.classes, g.poses, g.objects, g.num, report), report
 
 
-def reopen(history: np.ndarray, classes: np.ndarray, gap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """Split every object at each pause of more than ``gap`` steps between its detections (module
-    docstring): the new history, classes, each object's original index, and how many objects were
-    added. Unchanged (0 added) if the objects would not fit in ``len(classes)`` slots
-    (:func:`pauses` counts the objects it would add)."""
-    h, cls, origin, added = _split(history, classes, gap)
-    if _used(history) + added > len(classes):
-        return history, classes, np.arange(len(classes)), 0
-    return h, cls, origin, added
-
-
-def pauses(history: np.ndarray, gap: int) -> int:
-    """How many stretches of an object's detections follow a pause of more than ``gap`` steps: the
-    objects :func:`reopen` adds, given the slots."""
-    return _split(history, np.full(_used(history), -1), gap)[3]
-
-
-def _used(history: np.ndarray) -> int:
-    """The object slots a history names (objects are numbered from 0 in order of creation)."""
-    return int(history.max(initial=-1)) + 1
-
-
-def _split(history: np.ndarray, classes: np.ndarray, gap: int
-           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """:func:`reopen`'s split, with the stretches past ``len(classes)`` numbered but not recorded."""
-    n = len(classes)
-    h = history.copy()
-    origin, cls = list(range(n)), list(classes)
-    last: dict[int, int] = {}
-    current: dict[int, int] = {}
-    slot = int(history.max(initial=-1)) + 1
-    added = 0
-    for j, i in zip(*np.nonzero(history >= 0)):
-        s = int(history[j, i])
-        if s in last and j - last[s] > gap:
-            current[s] = slot
-            if slot < n:
-                origin[slot], cls[slot] = s, classes[s]
-            slot, added = slot + 1, added + 1
-        last[s] = int(j)
-        h[j, i] = current.get(s, s)
-    return h, np.asarray(cls), np.asarray(origin), added
-
-
-def chi2_quantile(dof: int, probability: float) -> float:
-    """The chi-square ``probability`` quantile with ``dof`` degrees of freedom (Wilson-Hilferty; exact for 2)."""
-    if dof == 2:
-        return chi2_gate(probability)
-    z = NormalDist().inv_cdf(probability)
-    return dof * (1.0 - 2.0 / (9.0 * dof) + z * math.sqrt(2.0 / (9.0 * dof))) ** 3
-
-
 def _pad(objects: np.ndarray, n: int) -> np.ndarray:
     out = np.zeros((n, 3))
     out[: len(objects)] = objects
@@ -661,19 +273,3 @@ def _rewrite(result: Result, history: np.ndarray, classes: np.ndarray, poses: np
     return dataclasses.replace(
         result, steps=steps, trajectory=np.asarray(poses, float), objects=np.asarray(objects, float)[:keep],
         estimator=f"{result.estimator}, loop closure ({report.merged} merged)")
-
-
-def misses(scenario: Scenario, poses: np.ndarray, objects: np.ndarray, history: np.ndarray, num: int,
-            settings: LoopClosureSettings) -> int:
-    """Negative information: (step, object) pairs where the solved object lies inside the sensor's
-    footprint from the solved pose, by ``fov_margin`` (m, rad) at least, yet no detection of that step
-    was associated with it."""
-    t = history.shape[0]
-    d = objects[None, :num, :2] - poses[1: t + 1, None, :2]  # (T, N, 2)
-    rng = np.hypot(d[..., 0], d[..., 1])
-    bearing = np.angle(np.exp(1j * (np.arctan2(d[..., 1], d[..., 0]) - poses[1: t + 1, None, 2])))
-    inside = (rng < scenario.max_range - settings.fov_margin[0]) & (np.abs(bearing) < scenario.fov / 2 - settings.fov_margin[1])
-    seen = np.zeros((t, num), bool)
-    rows, cols = np.nonzero(history >= 0)
-    seen[rows, history[rows, cols]] = True
-    return int(np.sum(inside & ~seen))

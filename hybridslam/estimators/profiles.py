@@ -107,7 +107,7 @@ class Profile:
         belief with the full smoother)."""
         from .hybrid.estimator import Hybrid
         from .hybrid.loops import OnlineLoopClosure
-        from .loop_closure import LoopClosureSettings
+        from .loop_settings import LoopClosureSettings
 
         gap = self.close_loops if gap is None else gap
         if gap is None or not (isinstance(estimator, Hybrid) and estimator.smoother.whole_trajectory):

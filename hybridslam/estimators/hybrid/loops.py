@@ -40,9 +40,13 @@ import optimistix as optx
 
 from ...inference import smoother as sm
 from ...io.scenario import Scenario
-from .. import loop_closure as lc
 from ..base import AbstractEstimator
-from ..smoothing import FINAL_ATOL, DataLog, graph, history_factors
+from ..loop_merge import compact, reopen
+from ..loop_search import candidates, creating_ranges, log_bayes_factor, search
+from ..loop_settings import LoopClosureSettings
+from ..loop_verify import judge, misses, negative_information
+from ..smoothing import FINAL_ATOL
+from ..smoothing_graph import DataLog, graph, history_factors
 from .belief import Belief
 from .estimator import Hybrid
 
@@ -64,10 +68,10 @@ def _solve(log: DataLog, model, history, classes, num_created, poses, objects, k
 def _renumbered(history: np.ndarray, classes: np.ndarray, objects: np.ndarray, num: int,
                 merges: dict[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """``merges`` (late -> old) applied to a component's first ``num`` object slots by
-    :func:`~..loop_closure.compact` (creation order, as the step keeps them: a prior map's undetected
+    :func:`~..loop_merge.compact` (creation order, as the step keeps them: a prior map's undetected
     objects first, then by first detection): the history, classes, object poses ``(N, 3)`` (freed
     slots: placeholders at 0) and how many objects remain."""
-    h, cls, used = lc.compact(history, classes, merges, num)
+    h, cls, used = compact(history, classes, merges, num)
     out = np.zeros((len(classes), 3))
     out[: len(used)] = objects[used]
     return h.astype(history.dtype), cls.astype(classes.dtype), out, len(used)
@@ -122,7 +126,7 @@ class OnlineLoopClosure:
 
     estimator: AbstractEstimator  # Hybrid(smoother=Full()): checked on construction
     scenario: Scenario
-    settings: lc.LoopClosureSettings = lc.LoopClosureSettings()
+    settings: LoopClosureSettings = LoopClosureSettings()
     every: int = 1
     closures: list[ClosureHypothesis] = dataclasses.field(default_factory=list)
     replaced: int = 0
@@ -169,28 +173,28 @@ class OnlineLoopClosure:
                          max_steps)
             p2, m2, c2, cost, ok = jax.device_get(out)
             objects2 = np.asarray(m2)[3:].reshape(-1, 3)
-            missed = lc.misses(self.scenario, np.asarray(p2)[: k + 1], objects2, h[:k], n, settings)
+            missed = misses(self.scenario, np.asarray(p2)[: k + 1], objects2, h[:k], n, settings)
             return np.asarray(p2), np.asarray(m2), np.asarray(c2), float(cost), bool(ok), missed
 
         # The component's own closures re-opened (the pass's reopen): each stretch of an object's
         # detections after a pause longer than the gap becomes an object of its own.
-        h_r, c_r, origin, added = lc.reopen(history, classes, settings.gap)
+        h_r, c_r, origin, added = reopen(history, classes, settings.gap)
         num_r = num + added
         objects_r = _back_projected(h_r, geo, poses, mean[3:].reshape(-1, 3), range(num, num_r))
         p_r, mean_r, cov_r, cost_r, ok_r, misses_r = solve(h_r, c_r, num_r, poses, objects_r)
         if not ok_r:
             return belief
-        ranges = lc.creating_ranges(geo[:k], h_r[:k], num_r)
-        cands = lc.candidates(mean_r, cov_r, h_r[:k], c_r, num_r, settings)
-        ranked, _ = lc.search(mean_r, cov_r, cands, density, ranges, settings.beam, settings.revisit_log_odds)
+        ranges = creating_ranges(geo[:k], h_r[:k], num_r)
+        cands = candidates(mean_r, cov_r, h_r[:k], c_r, num_r, settings)
+        ranked, _ = search(mean_r, cov_r, cands, density, ranges, settings.beam, settings.revisit_log_odds)
         # The parent is the re-opened graph with every stretch merged back: its log odds against it.
         back = tuple((s, int(origin[s])) for s in range(num, num_r))
         parent_odds = 0.0
         if back:
             *_, misses_0 = solve(history, classes, num, poses, mean[3:].reshape(-1, 3))
-            parent_odds = (lc.log_bayes_factor(mean_r, cov_r, back, density, ranges)
+            parent_odds = (log_bayes_factor(mean_r, cov_r, back, density, ranges)
                            + settings.revisit_log_odds * len(back)
-                           + lc.negative_information(misses_0 - misses_r, settings))
+                           + negative_information(misses_0 - misses_r, settings))
         alive = np.flatnonzero(log_w > -np.inf)
         best = None
         for merges, lbf in ranked[: settings.tries]:
@@ -200,7 +204,7 @@ class OnlineLoopClosure:
             if any(np.array_equal(h2, np.asarray(b.history[j])) for j in alive):
                 continue  # an alive component already holds these associations
             p2, mean2, cov2, cost2, ok2, misses2 = solve(h2, c2, n2, p_r, o2)
-            score = lc.judge(lbf, cost2 - cost_r, ok2, misses2 - misses_r, len(merges), settings)
+            score = judge(lbf, cost2 - cost_r, ok2, misses2 - misses_r, len(merges), settings)
             if not score.verified:
                 continue
             odds = score.log_odds - parent_odds
