@@ -82,7 +82,9 @@ from hybridslam.analysis.map_error import map_error, majority
 from hybridslam.analysis.plot import plot_trajectory
 from hybridslam.estimators import ESTIMATORS, AbstractEstimator, make_estimator
 from hybridslam.estimators.smoothing import Lag, parse_smoother
-from hybridslam.datasets.mrclam import MRCLAMError, compose, import_mrclam
+from hybridslam.datasets.mrclam import import_mrclam
+from hybridslam.datasets.mrclam_calibration import compose
+from hybridslam.datasets.mrclam_files import MRCLAMError
 from hybridslam.io.result import Result, ResultWriter, StepRecord, load_result
 from hybridslam.io.scenario import Scenario, load_scenario, save_scenario
 from hybridslam.studies.study import Records

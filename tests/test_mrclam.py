@@ -15,8 +15,9 @@ import pytest
 
 import hybridslam as hs
 from hybridslam import cli
-from hybridslam.datasets import mrclam
-from hybridslam.datasets.mrclam import MRCLAMError, import_mrclam
+from hybridslam.datasets import mrclam, mrclam_calibration, mrclam_detections, mrclam_files, mrclam_track
+from hybridslam.datasets.mrclam import import_mrclam
+from hybridslam.datasets.mrclam_files import MRCLAMError
 
 DATA = os.path.join(os.path.dirname(__file__), "data", "mrclam")
 CHI2_3_999 = 16.266  # 99.9% quantile of chi-square with 3 degrees of freedom
@@ -56,10 +57,10 @@ def test_excerpt_keeps_the_original_format():
         lines = f.read().split(b"\r\n")
     assert lines[0].startswith(b"# UTIAS Multi-Robot") and sum(x.startswith(b"#") for x in lines) == 4
     assert b"\t" in lines[4]  # tab-and-space separated columns, CRLF line ends
-    log = mrclam.read_robot(DATA, 1)
+    log = mrclam_files.read_robot(DATA, 1)
     assert log.odometry.rows.shape[1] == 3 and log.measurements.rows.shape[1] == 4
     assert log.odometry.lines[0] == 5  # 1-based file lines, after the 4 comment lines
-    assert mrclam.read_barcodes(DATA)[5] == 1 and len(mrclam.read_landmarks(DATA).rows) == 15
+    assert mrclam_files.read_barcodes(DATA)[5] == 1 and len(mrclam_files.read_landmarks(DATA).rows) == 15
 
 
 # --------------------------------------------------------------------------- #
@@ -76,7 +77,7 @@ def _euler(times, v, omega, query, h):
     xy = np.concatenate([np.zeros((1, 2)), np.cumsum(
         (v[active] * h)[:, None] * np.column_stack([np.cos(heading[:-1]), np.sin(heading[:-1])]), axis=0)])
     at = np.round((query - query[0]) / h).astype(int)
-    return np.column_stack([xy[at], mrclam.wrap(heading[at])])
+    return np.column_stack([xy[at], mrclam_calibration.wrap(heading[at])])
 
 
 def test_exact_integrator_matches_fine_euler():
@@ -86,7 +87,7 @@ def test_exact_integrator_matches_fine_euler():
     v = np.array([0.086, 0.05, 0.9, 0.07, 0.0, 0.086, 0.03, 0.08])
     omega = np.array([-0.398, 0.0, 5.0, 0.561, 0.4, 1e-7, -0.2, 0.3])
     query = np.array([0.05, 0.2, 0.3, 0.65, 0.9, 1.2, 1.5, 1.9])
-    exact = mrclam.integrate_odometry(times, v, omega, query)
+    exact = mrclam_calibration.integrate_odometry(times, v, omega, query)
     np.testing.assert_allclose(exact, _euler(times, v, omega, query, 1e-6), atol=1e-6, rtol=0)
     np.testing.assert_array_equal(exact[0], np.zeros(3))
 
@@ -95,14 +96,14 @@ def test_integrator_is_exact_on_one_arc():
     """Constant (v, ω) for 2 s from a query point: the closed-form circle, and composing the steps."""
     v, w = 0.08, 0.5
     query = np.linspace(0.5, 2.5, 9)
-    poses = mrclam.integrate_odometry(np.array([0.0]), np.array([v]), np.array([w]), query)
+    poses = mrclam_calibration.integrate_odometry(np.array([0.0]), np.array([v]), np.array([w]), query)
     t = query - query[0]
     expected = np.column_stack([v / w * np.sin(w * t), v / w * (1 - np.cos(w * t)), w * t])
     np.testing.assert_allclose(poses, expected, atol=1e-14)
-    steps = mrclam.between(poses[:-1], poses[1:])
+    steps = mrclam_calibration.between(poses[:-1], poses[1:])
     composed = poses[0]
     for u in steps:
-        composed = mrclam.compose(composed, u)
+        composed = mrclam_calibration.compose(composed, u)
     np.testing.assert_allclose(composed, poses[-1], atol=1e-14)
 
 
@@ -112,7 +113,7 @@ def _propagate(s: hs.Scenario) -> tuple[np.ndarray, np.ndarray]:
     for step in s.steps:
         u, (c, sn) = step.odometry, (math.cos(x[2]), math.sin(x[2]))
         f = np.array([[1, 0, -sn * u[0] - c * u[1]], [0, 1, c * u[0] - sn * u[1]], [0, 0, 1]])
-        x = mrclam.compose(x, u)
+        x = mrclam_calibration.compose(x, u)
         g = np.eye(3)
         g[:2, :2] = [[math.cos(x[2]), -math.sin(x[2])], [math.sin(x[2]), math.cos(x[2])]]
         cov = f @ cov @ f.T + g @ s.motion_cov @ g.T
@@ -127,13 +128,13 @@ def test_odometry_follows_the_ground_truth(known):
     frame error gives ≤ 0). Composed over the window: the final dead-reckoning error inside the
     99.9% chi-square bound of the covariance that the calibrated motion_cov propagates."""
     u = np.array([step.odometry for step in known.steps])
-    truth = mrclam.between(known.true_robot_poses[:-1], known.true_robot_poses[1:])
+    truth = mrclam_calibration.between(known.true_robot_poses[:-1], known.true_robot_poses[1:])
     ratio = np.hypot(u[:, 0], u[:, 1]).sum() / np.hypot(truth[:, 0], truth[:, 1]).sum()
     assert 0.85 < ratio < 1.15
     assert np.corrcoef(u[:, 2], truth[:, 2])[0, 1] > 0.6
     x, cov = _propagate(known)
     e = x - known.true_robot_poses[-1]
-    e[2] = mrclam.wrap(e[2])
+    e[2] = mrclam_calibration.wrap(e[2])
     assert e @ np.linalg.solve(cov, e) < CHI2_3_999
     dr = known.metadata["generator"]["dead_reckoning"]
     assert dr["final_position_error_m"] == pytest.approx(np.hypot(e[0], e[1]), abs=1e-8)
@@ -141,22 +142,22 @@ def test_odometry_follows_the_ground_truth(known):
 
 def test_steps_and_true_poses(known):
     g = known.metadata["generator"]
-    log = mrclam.read_robot(DATA, 1)
+    log = mrclam_files.read_robot(DATA, 1)
     origin = log.odometry.rows[0, 0]
     last = min(log.odometry.rows[-1, 0], log.groundtruth.rows[-1, 0])
     assert g["time_origin_unix_s"] == origin == g["t0_unix_s"]
     assert known.num_steps == math.floor((last - origin) / 0.5) == 90
     times = origin + 0.5 * np.arange(known.num_steps + 1)
-    expected = mrclam.interpolate_groundtruth(log.groundtruth.rows, times)
+    expected = mrclam_calibration.interpolate_groundtruth(log.groundtruth.rows, times)
     np.testing.assert_allclose(known.true_robot_poses, expected)
     np.testing.assert_array_equal(known.robot_prior_mean, known.true_robot_poses[0])
     # Linear in the unwrapped heading: across the ±π seam it stays between its neighbours.
     gt = np.array([[0.0, 0, 0, math.pi - 0.1], [1.0, 0, 0, -math.pi + 0.1]])
-    assert mrclam.interpolate_groundtruth(gt, np.array([0.5]))[0, 2] == pytest.approx(math.pi)
+    assert mrclam_calibration.interpolate_groundtruth(gt, np.array([0.5]))[0, 2] == pytest.approx(math.pi)
     later = import_mrclam(DATA, 1, identity_filter=True, start=10.25, duration=20, dt=0.25)
     assert later.num_steps == 80
     np.testing.assert_allclose(later.true_robot_poses[0],
-                               mrclam.interpolate_groundtruth(log.groundtruth.rows, [origin + 10.25])[0])
+                               mrclam_calibration.interpolate_groundtruth(log.groundtruth.rows, [origin + 10.25])[0])
 
 
 # --------------------------------------------------------------------------- #
@@ -168,8 +169,8 @@ def test_detections_are_the_closest_landmark_measurements_of_each_step():
     """Without motion compensation every detection is a line of the measurement file: a landmark's
     barcode, within dt/2 of its step's time, the closest such line of that landmark."""
     s = import_mrclam(DATA, 1, identity_filter=True, motion_compensation=False)
-    rows = mrclam.read_robot(DATA, 1).measurements.rows
-    barcodes = mrclam.read_barcodes(DATA)
+    rows = mrclam_files.read_robot(DATA, 1).measurements.rows
+    barcodes = mrclam_files.read_barcodes(DATA)
     subject = np.array([barcodes[int(b)] for b in rows[:, 1]])
     t0 = s.metadata["generator"]["t0_unix_s"]
     for k, step in enumerate(s.steps, 1):
@@ -212,14 +213,14 @@ def test_association_truth_against_the_geometry(known):
 def test_motion_compensation_moves_the_point_into_the_step_frame():
     """A robot that turned by +0.1 rad and moved 0.02 m forward between the measurement and t_k sees
     the same point from the step's pose: the compensated detection is the point re-expressed."""
-    m = mrclam.Measurements(time=np.array([0.0]), step=np.array([1]), landmark=np.array([0]),
+    m = mrclam_detections.Measurements(time=np.array([0.0]), step=np.array([1]), landmark=np.array([0]),
                             raw=np.array([[2.0, 0.3]]), counts={})
     at_steps = np.array([[0.0, 0.0, 0.0], [0.02, 0.0, 0.1]])
-    out = mrclam.compensate(m, at_steps, np.zeros((1, 3)))
+    out = mrclam_detections.compensate(m, at_steps, np.zeros((1, 3)))
     point = 2.0 * np.array([math.cos(0.3), math.sin(0.3)])
-    expected = mrclam.range_bearing(at_steps[1:], point[None])
+    expected = mrclam_calibration.range_bearing(at_steps[1:], point[None])
     np.testing.assert_allclose(out, expected, atol=1e-14)
-    same = mrclam.compensate(m, at_steps, at_steps[1:])  # measured at t_k: unchanged
+    same = mrclam_detections.compensate(m, at_steps, at_steps[1:])  # measured at t_k: unchanged
     np.testing.assert_allclose(same, m.raw, atol=1e-14)
 
 
@@ -246,19 +247,19 @@ def test_max_range_and_fov_drop_detections(known):
 def test_robust_scale_ignores_outliers():
     rng = np.random.default_rng(0)
     r = np.concatenate([0.1 * rng.standard_normal((4000, 2)) + [0.05, 0.0], np.full((200, 2), 10.0)])
-    median, scale = mrclam.robust_location_scale(r)
+    median, scale = mrclam_calibration.robust_location_scale(r)
     np.testing.assert_allclose(scale, 0.1, rtol=0.1)
     np.testing.assert_allclose(median, [0.05, 0.0], atol=0.01)
-    np.testing.assert_allclose(mrclam.robust_variance(r, 1e-3), scale**2 + median**2)
-    np.testing.assert_allclose(mrclam.robust_variance(np.zeros((5, 3)), 1e-3), 1e-6)
+    np.testing.assert_allclose(mrclam_calibration.robust_variance(r, 1e-3), scale**2 + median**2)
+    np.testing.assert_allclose(mrclam_calibration.robust_variance(np.zeros((5, 3)), 1e-3), 1e-6)
 
 
 def test_noise_is_calibrated_from_the_ground_truth(known):
     cal = known.metadata["generator"]["calibration"]
-    log = mrclam.read_robot(DATA, 1)
+    log = mrclam_files.read_robot(DATA, 1)
     u = np.array([step.odometry for step in known.steps])
-    res = mrclam.odometry_residuals(u, known.true_robot_poses)
-    np.testing.assert_allclose(np.diag(known.motion_cov), mrclam.robust_variance(res, mrclam.MOTION_SD_FLOOR))
+    res = mrclam_calibration.odometry_residuals(u, known.true_robot_poses)
+    np.testing.assert_allclose(np.diag(known.motion_cov), mrclam_calibration.robust_variance(res, mrclam_track.MOTION_SD_FLOOR))
     assert cal["odometry_residuals"]["count"] == 90 and cal["measurement_residuals"]["count"] == 197
     median, scale = (np.array(cal["measurement_residuals"][k]) for k in ("median", "scale"))
     np.testing.assert_allclose(np.diag(known.geometric_cov), scale**2 + median**2, rtol=1e-6)
@@ -275,13 +276,13 @@ def test_noise_is_calibrated_from_the_ground_truth(known):
 def test_measurement_noise_is_what_the_written_detections_show(known):
     """geometric_cov is the robust mean square of the detections as written against the true pose
     at their step (default), or of the raw measurements at their own times ("raw")."""
-    landmarks = mrclam.read_landmarks(DATA).rows
+    landmarks = mrclam_files.read_landmarks(DATA).rows
     rows = [(det.range, det.bearing, *landmarks[det.true_object, 1:3], *pose)
             for pose, step in zip(known.true_robot_poses[1:], known.steps) for det in step.detections]
     a = np.array(rows)
-    residuals = mrclam.measurement_residuals(a[:, :2], a[:, 4:7], a[:, 2:4])
+    residuals = mrclam_calibration.measurement_residuals(a[:, :2], a[:, 4:7], a[:, 2:4])
     np.testing.assert_allclose(np.diag(known.geometric_cov),
-                               mrclam.robust_variance(residuals, mrclam.GEOMETRIC_SD_FLOOR), rtol=1e-9)
+                               mrclam_calibration.robust_variance(residuals, mrclam_track.GEOMETRIC_SD_FLOOR), rtol=1e-9)
     cal = known.metadata["generator"]["calibration"]
     assert cal["measurement_noise_from"] == "written"
     assert cal["measurement_residuals"] == cal["written_detection_residuals"]
@@ -345,7 +346,7 @@ def test_a_window_without_detections_needs_a_geometric_cov():
 
 def test_known_map(known):
     assert known.num_classes == 1 and known.classifier.model == "none" and known.num_objects == 15
-    lm = mrclam.read_landmarks(DATA).rows
+    lm = mrclam_files.read_landmarks(DATA).rows
     np.testing.assert_array_equal(known.object_prior_means[:, :2], lm[:, 1:3])
     np.testing.assert_array_equal(known.object_prior_means[:, 2], 0.0)
     np.testing.assert_array_equal(known.true_object_poses, known.object_prior_means)
@@ -546,7 +547,7 @@ def test_the_default_import_writes_every_reading_and_no_identity_it_lacks():
     file declares the clutter density ``log(0.5 / (max_range · fov))``. The oracle-assisted
     conversion (``identity_filter``) declares none."""
     s = import_mrclam(DATA, 1, merge_repeats=False, motion_compensation=False)
-    rows = mrclam.read_robot(DATA, 1).measurements.rows
+    rows = mrclam_files.read_robot(DATA, 1).measurements.rows
     t0 = s.metadata["generator"]["t0_unix_s"]
     for k, step in enumerate(s.steps, 1):
         tk = t0 + 0.5 * k
@@ -649,7 +650,7 @@ def test_a_file_with_clutter_gets_the_drift_calibrated_motion_noise_by_default()
     (True, 25, 1.0, "drift"), (True, 24, 1.0, "steps"),
 ])
 def test_default_motion_noise_rule(clutter, steps, dt, expected):
-    """Drift needs :data:`mrclam.MIN_BLOCKS` blocks of 5 s; only a file with clutter gets it by default."""
+    """Drift needs :data:`mrclam_calibration.MIN_BLOCKS` blocks of 5 s; only a file with clutter gets it by default."""
     assert mrclam.default_motion_noise(clutter, steps, dt) == expected
 
 

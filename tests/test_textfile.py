@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from hybridslam.datasets.kitti_files import KITTIError, read_tum
-from hybridslam.datasets.mrclam import MRCLAMError, read_table
+from hybridslam.datasets.mrclam_files import MRCLAMError, read_table
 
 
 def _kitti(path: str) -> None:

@@ -22,7 +22,8 @@ from typing import Any
 import numpy as np
 
 from ..datasets.kitti import ODOMETRY_SOURCES, KITTIError, import_kitti
-from ..datasets.mrclam import MOTION_NOISE_SOURCES, NOISE_SOURCES, MRCLAMError, import_mrclam
+from ..datasets.mrclam import MOTION_NOISE_SOURCES, NOISE_SOURCES, import_mrclam
+from ..datasets.mrclam_files import MRCLAMError
 from ..io.scenario import Scenario, save_scenario
 from .common import CLIError, check_writable, clutter_density
 

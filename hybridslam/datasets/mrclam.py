@@ -15,7 +15,7 @@ on top, CRLF line ends, times in Unix seconds; subjects 1-5 are robots, the rest
   min(last odometry, last ground truth)]``; a window outside that is an error.
 * **Odometry.** Each ``(v, ω)`` sample is held until the next one (a later sample with the same
   time replaces it) and integrated exactly, as SE(2) arcs ``Exp([v·τ, 0, ω·τ])`` including the
-  partial intervals at step boundaries (:func:`integrate_odometry`). ``u_k = between(P(t_{k-1}),
+  partial intervals at step boundaries (:func:`~.mrclam_calibration.integrate_odometry`). ``u_k = between(P(t_{k-1}),
   P(t_k))`` of the integrated path ``P``.
 * **Detections, without identities** (the default). A measurement at time ``t`` belongs to step
   ``k`` when ``t_k − dt/2 < t ≤ t_k + dt/2``. Every measurement of the robot's file in a step's
@@ -106,125 +106,25 @@ What the data hold (datasets 6 and 7, all robots), and what the import does abou
   0.006-0.018 rad, robot 4's biased by −0.01 to −0.02 rad. Landmarks stand in clusters
   0.18-0.33 m apart: ambiguous associations.
 """
-
 from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
-from ..io.scenario import Classifier, Detection, Discovery, Scenario, Step
-from .mrclam_calibration import (
-    DRIFT_BLOCK_S,
-    MAD_TO_SD,
-    MIN_BLOCKS,
-    _drift,
-    _drift_block,
-    _stats,
-    between,
-    compose,
-    drift_per_step,
-    integrate_odometry,
-    interpolate_groundtruth,
-    log,
-    measurement_residuals,
-    odometry_residuals,
-    range_bearing,
-    robust_location_scale,
-    robust_variance,
-    wrap,
-)
-from .mrclam_detections import (
-    FOV_STEP,
-    MERGE_GATE,
-    RANGE_STEP,
-    SAME_FRAME_S,
-    Measurements,
-    Window,
-    closest_per_landmark,
-    compensate,
-    data_span,
-    default_sensor,
-    landmark_measurements,
-    make_window,
-    merge_repeats_of,
-)
-from .mrclam_files import (
-    ROBOTS,
-    MRCLAMError,
-    RobotLog,
-    Table,
-    covariance,
-    finite,
-    read_barcodes,
-    read_landmarks,
-    read_robot,
-    read_table,
-)
-
-# The readers (mrclam_files), the numpy geometry and calibration (mrclam_calibration) and the
-# window and detections (mrclam_detections) are importable from here too.
-__all__ = [
-    "CLUTTER_FRACTION",
-    "DRIFT_BLOCK_S",
-    "FOV_STEP",
-    "GEOMETRIC_SD_FLOOR",
-    "MAD_TO_SD",
-    "MERGE_GATE",
-    "MIN_BLOCKS",
-    "MOTION_NOISE_SOURCES",
-    "MOTION_SD_FLOOR",
-    "NOISE_SOURCES",
-    "RANGE_STEP",
-    "ROBOTS",
-    "SAME_FRAME_S",
-    "MRCLAMError",
-    "Measurements",
-    "RobotLog",
-    "Table",
-    "Window",
-    "between",
-    "closest_per_landmark",
-    "compensate",
-    "compose",
-    "data_span",
-    "default_motion_noise",
-    "default_sensor",
-    "drift_per_step",
-    "import_mrclam",
-    "integrate_odometry",
-    "interpolate_groundtruth",
-    "landmark_covariances",
-    "landmark_measurements",
-    "log",
-    "make_window",
-    "measurement_residuals",
-    "merge_repeats_of",
-    "odometry_residuals",
-    "range_bearing",
-    "read_barcodes",
-    "read_landmarks",
-    "read_robot",
-    "read_table",
-    "robust_location_scale",
-    "robust_variance",
-    "wrap",
-]
+from ..io.scenario import Classifier, Discovery, Scenario
+from .mrclam_calibration import MIN_BLOCKS, _drift, _drift_block, _stats, compose, measurement_residuals, wrap
+from .mrclam_detections import Window, default_sensor, make_window, merge_repeats_of
+from .mrclam_files import MRCLAMError, RobotLog, covariance, finite, read_barcodes, read_landmarks, read_robot
+from .mrclam_track import Noise, Track, assemble_track, calibrate, scenario_steps
 
 NOISE_SOURCES = ("written", "raw")  # what geometric_cov is calibrated from (import_mrclam)
 MOTION_NOISE_SOURCES = ("steps", "drift")  # what motion_cov is calibrated from (import_mrclam)
 ROBOT_PRIOR_VAR = 1e-4  # x_0 is the ground truth: it anchors the world frame (m², m², rad²)
-MOTION_SD_FLOOR = 1e-4  # m, m, rad per step: keeps the calibrated covariance positive definite
-GEOMETRIC_SD_FLOOR = 1e-3  # m, rad
 CLUTTER_FRACTION = 0.5  # default prior probability that a reading is spurious (import_mrclam, Clutter)
-
-
-# --------------------------------------------------------------------------- #
-# The importer
-# --------------------------------------------------------------------------- #
 
 
 def _max_gap(times: np.ndarray, lo: float, hi: float) -> float:
@@ -343,12 +243,12 @@ def import_mrclam(
     landmarks = landmarks[np.argsort(landmarks[:, 0])]  # subject order: searchsorted needs it
     log_ = read_robot(folder, robot)
     window = make_window(log_, robot, start, duration, dt, odometry_delay)
-    track = _track(log_, barcodes, landmarks, window, odometry_delay, motion_compensation, max_range, fov,
-                   identity_filter)
+    track = assemble_track(log_, barcodes, landmarks, window, odometry_delay, motion_compensation, max_range,
+                           fov, identity_filter)
     motion_source = motion_noise_from or default_motion_noise(
         _declares_clutter(clutter_log_density, identity_filter), len(window.times) - 1, window.dt)
-    noise = _calibrate(track, log_, landmarks, given, robot, correct_range_bias, measurement_noise_from,
-                       motion_source, window.dt)
+    noise = calibrate(track, log_, landmarks, given, robot, correct_range_bias, measurement_noise_from,
+                      motion_source, window.dt)
     sd = np.sqrt(np.diag(noise.geometric))
     if merge_repeats and not identity_filter:
         merged = merge_repeats_of(track.measurements, track.written, window, track.kept, sd)
@@ -358,7 +258,7 @@ def import_mrclam(
     max_range = default[0] if max_range is None else float(max_range)
     fov = default[1] if fov is None else float(fov)
     clutter = _clutter_density(clutter_log_density, identity_filter, max_range, fov)
-    steps = _steps(track)
+    steps = scenario_steps(track)
     # The oracle-assisted conversion sizes an unknown map from the surveyed landmarks; otherwise from
     # the data alone: the busiest step's detections could all be new objects, plus the margin.
     slots = max_objects if max_objects is not None else len(landmarks) + discovery_margin if identity_filter \
@@ -442,93 +342,6 @@ def _clutter_density(value: float | str | None, identity_filter: bool, max_range
     return None if identity_filter else round(math.log(CLUTTER_FRACTION / (max_range * fov)), 9)
 
 
-@dataclass(frozen=True)
-class Track:
-    """The window's integrated odometry, ground truth and detections."""
-
-    path: np.ndarray  # (T + 1, 3) integrated odometry at t_0..t_T, identity at t_0
-    odometry: np.ndarray  # (T, 3) u_k
-    truth: np.ndarray  # (T + 1, 3) ground truth at t_0..t_T
-    measurements: Measurements
-    written: np.ndarray  # (n, 2) [range, bearing] as written (compensated or raw) for every measurement
-    kept: np.ndarray  # (m,) indices of the measurements written, in time order
-
-
-def _track(log: RobotLog, barcodes: dict[int, int], landmarks: np.ndarray, window: Window, delay: float,
-           motion_compensation: bool, max_range: float | None, fov: float | None,
-           identity_filter: bool = True) -> Track:
-    """Integrate the odometry at the step and measurement times, pick and compensate the detections
-    (``identity_filter``: landmark readings only, one per landmark and step; otherwise every reading)."""
-    meas = landmark_measurements(log, barcodes, landmarks[:, 0].astype(np.int64), window, identity_filter)
-    # One integration serves the step times and the measurement times (motion compensation). Times
-    # count from the origin: Unix seconds (~1.2e9) would leave float64 a resolution of only 2e-7 s.
-    query = np.concatenate([window.times, meas.time]) - window.origin
-    order = np.argsort(query, kind="stable")
-    odo = log.odometry.rows
-    path = np.empty((len(query), 3))
-    path[order] = integrate_odometry(odo[:, 0] - window.origin + delay, odo[:, 1], odo[:, 2], query[order])
-    at_steps, at_meas = path[: len(window.times)], path[len(window.times):]
-    written = compensate(meas, at_steps, at_meas) if motion_compensation else meas.raw.copy()
-    visible = np.ones(len(written), dtype=bool)
-    if max_range is not None:
-        visible &= written[:, 0] <= max_range
-    if fov is not None:
-        visible &= np.abs(written[:, 1]) <= fov / 2
-    kept = closest_per_landmark(meas, window, visible) if identity_filter else np.flatnonzero(visible)
-    meas.counts.update(beyond_sensor=int((~visible).sum()), superseded=int(visible.sum() - len(kept)),
-                       kept=len(kept))
-    truth = interpolate_groundtruth(log.groundtruth.rows, window.times)
-    return Track(at_steps, between(at_steps[:-1], at_steps[1:]), truth, meas, written, kept)
-
-
-@dataclass(frozen=True)
-class Noise:
-    """The covariances written and the residuals they came from."""
-
-    motion: np.ndarray  # (3, 3)
-    geometric: np.ndarray  # (2, 2)
-    odometry_residuals: np.ndarray  # (T, 3)
-    sensor_residuals: np.ndarray  # (m, 2) the residuals geometric is calibrated from (``source``)
-    raw_residuals: np.ndarray  # (m, 2) raw measurements against the ground truth at their times
-    range_bias: float  # m, the median range residual (of ``source``) before any correction
-    source: str  # "written" or "raw": which residuals ``sensor_residuals`` are
-    motion_source: str  # "steps" or "drift": what ``motion`` is calibrated from
-
-
-def _calibrate(track: Track, log: RobotLog, landmarks: np.ndarray, given: dict[str, np.ndarray | None],
-               robot: int, correct_range_bias: bool, source: str = "written", motion_source: str = "steps",
-               dt: float = 0.5) -> Noise:
-    """The robust covariances (module docstring); corrects ``track.written`` ranges if asked."""
-    meas = track.measurements
-    kept = track.kept[meas.landmark[track.kept] >= 0]  # the readings a barcode names a landmark of
-    if not len(kept) and (given["geometric_cov"] is None or correct_range_bias):
-        raise MRCLAMError(f"robot {robot}: no landmark measurement in the window to calibrate the "
-                          "measurement noise from; give geometric_cov (--geometric-cov)")
-    points = landmarks[meas.landmark[kept], 1:3]
-    raw = measurement_residuals(meas.raw[kept], interpolate_groundtruth(log.groundtruth.rows, meas.time[kept]),
-                                points)
-    sensor = (measurement_residuals(track.written[kept], track.truth[meas.step[kept]], points)
-              if source == "written" else raw.copy())
-    range_bias = float(np.median(sensor[:, 0])) if len(kept) else 0.0
-    if correct_range_bias:
-        track.written[:, 0] -= range_bias
-        sensor[:, 0] -= range_bias
-    odometry = odometry_residuals(track.odometry, track.truth)
-    motion, geometric = given["motion_cov"], given["geometric_cov"]
-    if motion is None:
-        motion = np.diag(robust_variance(odometry, MOTION_SD_FLOOR))
-        if motion_source == "drift":
-            drift = drift_per_step(odometry, _drift_block(dt))
-            if drift is None:
-                raise MRCLAMError(f"robot {robot}: motion_noise_from drift needs {MIN_BLOCKS} blocks of "
-                                  f"{DRIFT_BLOCK_S:g} s of odometry in the window; give a longer window (duration) "
-                                  "or motion_noise_from 'steps'")
-            motion = np.diag(np.maximum(np.diag(motion), drift**2))
-    if geometric is None:
-        geometric = np.diag(robust_variance(sensor, GEOMETRIC_SD_FLOOR))
-    return Noise(motion, geometric, odometry, sensor, raw, range_bias, source, motion_source)
-
-
 def _generator(folder: str, settings: dict[str, Any], window: Window, track: Track, noise: Noise,
                given: dict[str, np.ndarray | None], landmarks: np.ndarray, log: RobotLog) -> dict[str, Any]:
     """The ``generator`` metadata: settings, calibration, counts, dead reckoning, data gaps.
@@ -590,14 +403,3 @@ def landmark_covariances(sd: np.ndarray, floor: float, heading_var: float) -> np
     out = np.zeros((len(sd), 3, 3))
     out[:, 0, 0], out[:, 1, 1], out[:, 2, 2] = var[:, 0], var[:, 1], heading_var
     return out
-
-
-def _steps(track: Track) -> tuple[Step, ...]:
-    """The scenario's steps: ``u_k`` and the kept detections of step k, in time order."""
-    meas, written = track.measurements, track.written
-    per_step: list[list[Detection]] = [[] for _ in range(len(track.odometry))]
-    for i in track.kept:
-        per_step[meas.step[i] - 1].append(
-            Detection(float(written[i, 0]), float(written[i, 1]), np.ones(1),
-                      int(meas.landmark[i]) if meas.landmark[i] >= 0 else None))
-    return tuple(Step(u.copy(), tuple(d)) for u, d in zip(track.odometry, per_step))
