@@ -33,7 +33,7 @@ def test_what_the_estimators_ask_a_smoother(unchecked_types):
     assert window is not None and window.mean.shape == (5, log.prior_mean.shape[0])
     np.testing.assert_array_equal(np.asarray(window.info[2]), np.asarray(log.prior_info))
     with pytest.raises(ValueError, match="filter"):
-        Filter().smooth(*([None] * 11))  # type: ignore[arg-type]
+        Filter().smooth(*([None] * 10))  # type: ignore[arg-type]
 
 
 @pytest.mark.parametrize("make", [lambda s: hs.Hybrid(smoother=s), lambda s: hs.Multimodal(smoother=s),

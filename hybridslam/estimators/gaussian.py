@@ -73,7 +73,7 @@ from . import novelty
 from .base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, detection_slots,
                    history_length, lacks_object_slots, object_slots, resolve_clutter)
 from .options import GATE, MAX_CHILDREN, Option, setting
-from .smoothing import Full, Smoother, SmootherState, check_smoother, smooth_step
+from .smoothing import Full, Smoother, SmootherState, check_smoother
 from .smoothing_graph import Factors, active_history, new_overflow
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -546,8 +546,8 @@ def commit(est: SingleGaussian, state: GaussianState, mean, cov, class_log_post,
         stored = Factors(before.objects.at[state.k].set(objs.astype(jnp.int32)),
                          before.log_weight.at[state.k].set(log_w),
                          before.null_log_weight.at[state.k].set(null), before.classes)
-        out = smooth_step(est.smoother, kept.log, stored, state.k + 1, num_created, state.model.sensor,
-                          state.model.motion_cov, False, est.factor_mode, kept.poses, mean, cov, kept.window)
+        out = est.smoother.smooth(kept, stored, state.k + 1, num_created, state.model.sensor, state.model.motion_cov,
+                                  False, est.factor_mode, mean, cov)
         mean, cov, result = out.mean, out.cov, out.result
         kept = SmootherState(out.poses, kept.log, out.window, stored)
     history = state.history.at[state.k].set(assigned)

@@ -105,12 +105,16 @@ class AbstractSmoother(eqx.Module):
         return SmootherState(jax.device_put(poses), log, self.init_window(log, components))
 
     def smooth(
-        self, log: DataLog, factors: Factors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
+        self, state: SmootherState, factors: Factors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
         sensor: SensorModel, motion_cov: Float[Array, "3 3"], semantic: bool, mode: sm.Mode,
-        poses: Float[Array, "T1 3"], mean: Float[Array, " D0"], cov: Float[Array, "D0 D0"],
-        window: WindowPrior | None = None,
+        mean: Float[Array, " D0"], cov: Float[Array, "D0 D0"],
     ) -> Smoothed:
-        """A component's smoothing after ``k`` steps (:func:`smooth_step`)."""
+        """One component's smoothing after ``k`` steps, from what it keeps (``state``: one
+        component's :class:`SmootherState`, its ``poses`` ``(T1, 3)``, the shared data log and, with
+        :class:`Lag`, its ``window``), its measurement ``factors`` and the filter's ``mean`` and
+        ``cov`` over ``[x_k, objects]``: the whole graph (:class:`Full`,
+        :func:`~.smoothing_graph.graph` and :func:`smooth`) or a fixed-lag window (:class:`Lag`,
+        :func:`smooth_lag`)."""
         raise ValueError(f"smoother={self.name}: this smoother does not smooth")
 
 
@@ -159,12 +163,12 @@ class Full(AbstractSmoother):
         _check_atol("Full", self.step_atol)
 
     def smooth(
-        self, log: DataLog, factors: Factors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
+        self, state: SmootherState, factors: Factors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
         sensor: SensorModel, motion_cov: Float[Array, "3 3"], semantic: bool, mode: sm.Mode,
-        poses: Float[Array, "T1 3"], mean: Float[Array, " D0"], cov: Float[Array, "D0 D0"],
-        window: WindowPrior | None = None,
+        mean: Float[Array, " D0"], cov: Float[Array, "D0 D0"],
     ) -> Smoothed:
         """The whole graph (:func:`~.smoothing_graph.graph`) re-solved (:func:`smooth`)."""
+        log, poses = state.require(self)
         g = graph(log, factors, k, num_created, sensor, motion_cov, semantic, mode)
         return smooth(self, g, poses, mean, cov, k, step_tolerance(self, log, k))
 
@@ -193,16 +197,16 @@ class Lag(AbstractSmoother):
         return initial_window(log, components)
 
     def smooth(
-        self, log: DataLog, factors: Factors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
+        self, state: SmootherState, factors: Factors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
         sensor: SensorModel, motion_cov: Float[Array, "3 3"], semantic: bool, mode: sm.Mode,
-        poses: Float[Array, "T1 3"], mean: Float[Array, " D0"], cov: Float[Array, "D0 D0"],
-        window: WindowPrior | None = None,
+        mean: Float[Array, " D0"], cov: Float[Array, "D0 D0"],
     ) -> Smoothed:
-        """The fixed-lag window re-solved (:func:`smooth_lag`; ``window`` required)."""
-        if window is None:
+        """The fixed-lag window re-solved (:func:`smooth_lag`; the state's ``window`` required)."""
+        log, poses = state.require(self)
+        if state.window is None:
             raise ValueError("smoother=Lag(...): this state carries no window prior (build it with the estimator's init)")
         return smooth_lag(self, log, factors, k, num_created, sensor, motion_cov, semantic, mode, poses, mean,
-                          cov, window)
+                          cov, state.window)
 
 
 Smoother = AbstractSmoother
@@ -262,6 +266,14 @@ class SmootherState(eqx.Module):
             None if self.poses is None or other.poses is None else pick(self.poses, other.poses), self.log,
             None if self.window is None or other.window is None else jax.tree.map(pick, self.window, other.window),
             self.factors)
+
+    def require(self, smoother: AbstractSmoother) -> tuple[DataLog, Float[Array, "*K T1 3"]]:
+        """The data log and trajectory ``smoother`` smooths, or a ``ValueError`` where this state
+        has none (built without the smoother's :meth:`AbstractSmoother.init`)."""
+        if self.log is None or self.poses is None:
+            raise ValueError(f"smoother={smoother.name}: this state carries no trajectory or data log (build it "
+                             "with the estimator's init(scenario))")
+        return self.log, self.poses
 
     def record(self, k: Int[Array, ""], odometry: Float[Array, "3"], detections: Detections) -> SmootherState:
         """This state with step ``k + 1``'s inputs written to its log (:meth:`DataLog.record`)."""
@@ -344,19 +356,6 @@ def smooth_lag(
     prior = jax.tree.map(lambda a, b, c: jnp.where(ok, a, jnp.where(slide, b, c)), prior, fallback, window)
     trajectory = jax.lax.dynamic_update_slice_in_dim(start, sol.poses, new, axis=0)
     return Smoothed(jnp.where(ok, trajectory, start), jnp.where(ok, m, mean), jnp.where(ok, c, cov), result, prior)
-
-
-def smooth_step(
-    settings: AbstractSmoother, log: DataLog, factors: Factors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
-    sensor: SensorModel, motion_cov: Float[Array, "3 3"], semantic: bool, mode: sm.Mode,
-    poses: Float[Array, "T1 3"], mean: Float[Array, " D0"], cov: Float[Array, "D0 D0"],
-    window: WindowPrior | None = None,
-) -> Smoothed:
-    """A component's smoothing after ``k`` steps: the whole graph (:class:`Full`, :func:`~.smoothing_graph.graph` and
-    :func:`smooth`) or a fixed-lag window (:class:`Lag`, :func:`smooth_lag`; ``window`` required):
-    ``settings.smooth(...)``."""
-    return settings.smooth(log, factors, k, num_created, sensor, motion_cov, semantic, mode, poses, mean, cov,
-                           window)
 
 
 

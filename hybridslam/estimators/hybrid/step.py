@@ -37,7 +37,7 @@ from ...models.measurement import Detections
 from ...models.motion import propagate
 from .. import novelty
 from ..base import StepInfo, lacks_object_slots, relevant_children
-from ..smoothing import Smoother, smooth_step
+from ..smoothing import Smoother, SmootherState
 from ..smoothing_graph import history_factors, new_overflow
 from .belief import Belief
 from .branching import Beam, Branching, beam_children
@@ -320,8 +320,8 @@ def hybrid_step(
 
         def smoothed(poses_i, mean_i, cov_i, history_i, classes_i, created_i, window_i):
             factors = history_factors(history_i, classes_i if realize else None)
-            return smooth_step(settings.smoother, log, factors, k + 1, created_i, model.sensor, model.motion_cov,
-                               True, "sum", poses_i, mean_i, cov_i, window_i)
+            return settings.smoother.smooth(SmootherState(poses_i, log, window_i), factors, k + 1, created_i,
+                                            model.sensor, model.motion_cov, True, "sum", mean_i, cov_i)
 
         out, num_smoothed = map_distinct(smoothed, alive, _same_graph(history, created, classes, by_class),
                                          parents.poses, new_mean, new_cov, history, classes, created,

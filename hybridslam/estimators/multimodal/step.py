@@ -16,7 +16,7 @@ from ...inference.update import downdate, wrap_angles
 from ...models import motion
 from ...models.measurement import Detections
 from ..base import StepInfo, lacks_object_slots, relevant_children
-from ..smoothing import Smoother, smooth_step
+from ..smoothing import Smoother, SmootherState
 from ..smoothing_graph import history_factors, new_overflow
 from .children import finish_child, hypotheses
 from .clustering import clustered, spread
@@ -78,8 +78,8 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
         assert log is not None  # record writes one
 
         def smoothed(poses_i, mean_i, cov_i, history_i, created_i, window_i):
-            return smooth_step(smoother, log, history_factors(history_i), state.k + 1, created_i, state.model.sensor,
-                               state.model.motion_cov, False, "sum", poses_i, mean_i, cov_i, window_i)
+            return smoother.smooth(SmootherState(poses_i, log, window_i), history_factors(history_i), state.k + 1,
+                                   created_i, state.model.sensor, state.model.motion_cov, False, "sum", mean_i, cov_i)
 
         # The used centres form a prefix (cluster picks them by weight), so map_live skips the
         # chunks after it; an unused slot gets slot 0's values so that later math on it stays finite.
