@@ -28,8 +28,9 @@ folder. Beside the errors it prints, per estimator, the recall of the true loop 
 (:func:`hybridslam.analysis.recall.closure_recall`): the runs whose top component associates every
 loop-closing re-detection right, the runs where some kept component does, and their final-pose errors.
 
-``--estimators`` also takes ``hybrid+loops``: the hybrid belief with loop closure during the run
-(:class:`hybridslam.estimators.hybrid.loops.OnlineLoopClosure`, the pass's default settings).
+``--estimators`` also takes ``hybrid+loops`` and ``multimodal+loops``: the hybrid belief or
+``multimodal`` with loop closure during the run
+(:class:`hybridslam.estimators.loop_online.OnlineLoopClosure`, the pass's default settings).
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ from hybridslam.analysis.map_error import map_error
 from hybridslam.analysis.recall import closure_recall
 from hybridslam.analysis.plot import plot_trajectory
 from hybridslam.estimators import ESTIMATORS, AbstractEstimator, make_estimator
-from hybridslam.estimators.hybrid.loops import OnlineLoopClosure
+from hybridslam.estimators.loop_online import OnlineLoopClosure
 from hybridslam.estimators.loop_settings import LoopClosureSettings
 from hybridslam.io.result import load_result, save_result
 from hybridslam.io.scenario import load_scenario, save_scenario
@@ -77,15 +78,16 @@ SETTINGS: dict[str, dict] = {
 
 NEW_LANDMARK = "density"  # main(new_landmark=...): every estimator's rule for a new object (.novelty)
 SMOOTHER = "full"  # main(smoother=...): "full" (the papers' smoothers, the default) or "filter"
-# Not an estimator of its own: the hybrid belief with loop closure during the run (its merge
-# hypotheses added between steps, hybridslam.estimators.hybrid.loops; full smoother only).
-ONLINE = "hybrid+loops"
+# Not estimators of their own: the hybrid belief or multimodal with loop closure during the run
+# (merge hypotheses added between steps, hybridslam.estimators.loop_online; full smoother only).
+LOOPS_SUFFIX = "+loops"
+ONLINE_NAMES = ("hybrid+loops", "multimodal+loops")
 
 
 def estimator(name: str, max_detections: int | None = None) -> AbstractEstimator:
     """Estimator ``name`` with the study's :data:`SETTINGS` and :data:`SMOOTHER`; ``max_detections`` pads
     every step to that many detection slots (``None``: the scenario's largest step)."""
-    base = "hybrid" if name == ONLINE else name
+    base = name.removesuffix(LOOPS_SUFFIX) if name in ONLINE_NAMES else name
     return make_estimator(base, max_detections=max_detections, smoother=SMOOTHER, new_landmark=NEW_LANDMARK,
                           **SETTINGS.get(base, {}))
 
@@ -107,7 +109,7 @@ def run_cell(folder: str, name: str, trace: float, seed: int, steps: int | None,
     stem = os.path.splitext(os.path.basename(path))[0]
     warnings: list[str] = []
     est = estimator(name, max_detections)
-    hook = OnlineLoopClosure(est, scenario) if name == ONLINE else None
+    hook = OnlineLoopClosure(est, scenario) if name in ONLINE_NAMES else None
     run = driver.run(est, scenario, seed=seed, on_step=lambda r, info, s: warnings.extend(info.warnings()),
                      between_steps=hook)
     result_path = os.path.join(folder, "results", name, stem + ".json")
@@ -135,6 +137,8 @@ def run_cell(folder: str, name: str, trace: float, seed: int, steps: int | None,
         "num_warnings": len(warnings),
         "warnings": warnings[:5],
         "result": os.path.relpath(result_path, folder),
+        # Loop closure during the run: the hypotheses it added (ClosureHypothesis text each).
+        **({"closures": [str(c) for c in hook.closures]} if hook is not None else {}),
     }
 
 
@@ -146,7 +150,7 @@ def _cell(name: str, trace: float, seed: int) -> dict:
     levels does not rerun the finished cells.
     """
     settings = {k: v for k, v in estimator(name).settings().items() if k != "max_detections"}
-    if name == ONLINE:
+    if name in ONLINE_NAMES:
         settings["loop_closure"] = dataclasses.asdict(LoopClosureSettings())
     return {"estimator": name, "trace": trace, "seed": seed, "settings": settings}
 
@@ -306,9 +310,9 @@ def main(output: str = os.path.join("runs", "hallway"), seeds: int = 3, estimato
     global SMOOTHER, NEW_LANDMARK
     SMOOTHER, NEW_LANDMARK = smoother, new_landmark
     estimators, levels = list(estimators), [float(t) for t in levels]
-    unknown = [n for n in estimators if n not in ESTIMATORS and n != ONLINE]
+    unknown = [n for n in estimators if n not in ESTIMATORS and n not in ONLINE_NAMES]
     if unknown:
-        raise SystemExit(f"--estimators: unknown {', '.join(unknown)} (known: {', '.join([*ESTIMATORS, ONLINE])})")
+        raise SystemExit(f"--estimators: unknown {', '.join(unknown)} (known: {', '.join([*ESTIMATORS, *ONLINE_NAMES])})")
     os.makedirs(output, exist_ok=True)
     with Records(output, {"study": "hallway", "steps": steps}) as records:  # the folder is locked until the end
         cells = [(n, t, s) for t in levels for s in range(first_seed, first_seed + seeds) for n in estimators]

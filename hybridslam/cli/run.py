@@ -68,7 +68,7 @@ class WarningThrottle:
 
 def closure_summary(hook) -> str:
     """The line ``hybridslam run --close-loops`` prints after the run: each added hypothesis's
-    changes against its parent (:class:`~hybridslam.estimators.hybrid.loops.ClosureHypothesis`)."""
+    changes against its parent (:class:`~hybridslam.estimators.loop_online.ClosureHypothesis`)."""
     added = "; ".join(str(c) for c in hook.closures)
     return (f"loop closure during the run: {len(hook.closures)} hypotheses added"
             f"{': ' + added if added else ''}; its searches took {hook.seconds:.2f} s")
@@ -134,7 +134,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         loops = None if hook is None else loops
     print(settings_note(scenario, profile, chosen, loops))
     if args.close_loops is not None:
-        from ..estimators.hybrid.loops import OnlineLoopClosure
+        from ..estimators.loop_online import OnlineLoopClosure
         from ..estimators.loop_settings import LoopClosureSettings
 
         try:
@@ -204,9 +204,9 @@ def add_parser(sub) -> None:
     p.add_argument("--classifier", choices=CLASSIFIERS, default=None,
                    help="classifier model (default: the scenario's)")
     p.add_argument("--close-loops", type=int, nargs="?", const=20, default=None, metavar="GAP",
-                   help="hybrid, full smoother, unknown map: after each step search the best component's map for "
+                   help="hybrid or multimodal, full smoother, unknown map: after each step search the best component's map for "
                         "loop closures (an object first seen more than GAP steps, default 20, after another's last "
-                        "detection) and add what is found as a hypothesis (hybridslam.estimators.hybrid.loops); "
+                        "detection) and add what is found as a hypothesis (hybridslam.estimators.loop_online); "
                         "--profile auto adds it on larger unknown-map files with classes")
     p.add_argument("--no-close-loops", action="store_true",
                    help="no loop closure during the run, where the settings chosen for the file would add it")

@@ -25,7 +25,7 @@ from __future__ import annotations
 import abc
 import dataclasses
 import math
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -37,6 +37,9 @@ from ..config import require_x64
 from ..io.scenario import Scenario
 from ..models.measurement import Detections
 from .options import shown, value_text
+
+if TYPE_CHECKING:  # loop_online imports this module
+    from .loop_online import LoopClosureAccess
 
 LOW_ESS = 0.01  # below this a weight estimate rests on ~1% of its draws
 
@@ -326,6 +329,11 @@ class AbstractEstimator(eqx.Module):
         """The smoothed object poses of the component :meth:`trajectory` belongs to (every slot,
         indexed like its classes) and how many of the slots hold an object (the first ones);
         ``None`` for filters. The result file's optional ``objects`` (SCENARIO_FORMAT.md)."""
+        return None
+
+    def loop_closure_access(self) -> LoopClosureAccess | None:
+        """What loop closure during the run (:class:`~.loop_online.OnlineLoopClosure`) reads and
+        writes of this estimator's state; ``None``: the estimator has none."""
         return None
 
     def describe(self, scenario: Scenario | None = None) -> str:

@@ -23,7 +23,7 @@ file from a new source (KITTI, another simulator) gets the settings of the files
   defaults;
 * on an unknown map whose detections carry class scores (two classes or more and a classifier
   that is not ``none``), the hybrid belief with the full smoother also closes loops during the
-  run (:class:`~.hybrid.loops.OnlineLoopClosure`, gap 20): the merge search only pairs objects of
+  run (:class:`~.loop_online.OnlineLoopClosure`, gap 20): the merge search only pairs objects of
   one class, and the class pattern is what tells two places apart (README, The hallway). Where
   every landmark looks the same (MRCLAM's barcodes hidden) the merges it finds join landmarks of
   one cluster, it does not help and it doubles the run's time (README, Real data), so it is off;
@@ -102,15 +102,16 @@ class Profile:
 
     def between_steps(self, estimator, scenario: Scenario, gap: int | None = None):
         """Loop closure during the run for :func:`hybridslam.run`'s ``between_steps`` (an
-        :class:`~.hybrid.loops.OnlineLoopClosure`, gap ``gap`` or the chosen one), or ``None`` where
+        :class:`~.loop_online.OnlineLoopClosure`, gap ``gap`` or the chosen one), or ``None`` where
         none was chosen and ``gap`` is ``None`` or the estimator cannot close loops (not the hybrid
-        belief with the full smoother)."""
-        from .hybrid.estimator import Hybrid
-        from .hybrid.loops import OnlineLoopClosure
+        belief or ``multimodal`` with the full smoother)."""
+        from .loop_online import OnlineLoopClosure
         from .loop_settings import LoopClosureSettings
 
         gap = self.close_loops if gap is None else gap
-        if gap is None or not (isinstance(estimator, Hybrid) and estimator.smoother.whole_trajectory):
+        smoother = getattr(estimator, "smoother", None)
+        if (gap is None or estimator.loop_closure_access() is None or smoother is None
+                or not smoother.whole_trajectory):
             return None
         return OnlineLoopClosure(estimator, scenario, LoopClosureSettings(gap=gap))
 

@@ -193,5 +193,11 @@ class Hybrid(AbstractEstimator):
         count = jnp.asarray(state.num_objects) if state.num_created is None else state.num_created[best]
         return state.mean[best, 3:].reshape(-1, 3), count
 
+    def loop_closure_access(self):
+        """The belief's fields for loop closure during the run (:mod:`.loops`)."""
+        from .loops import HybridLoopAccess  # loops imports the belief, not the estimator
+
+        return HybridLoopAccess(self.gn_max_steps)
+
     def with_batch_axis(self, axis_name: str | None) -> Hybrid:
         return dataclasses.replace(self, batch_axis=axis_name)

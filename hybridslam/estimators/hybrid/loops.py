@@ -1,241 +1,41 @@
-"""Loop closure during the run: hypotheses added to the hybrid belief between steps.
+"""Loop closure during the run for the hybrid belief: its :class:`~..loop_online.LoopClosureAccess`.
 
-The back-end pass (:mod:`hybridslam.estimators.loop_closure`) searches a finished run's map for
-late objects that are old ones. :class:`OnlineLoopClosure` runs the same search after a step, on the
-highest-weight component, and adds what it finds to the belief as a hypothesis of its own, so that
-the next steps associate against the closed map:
-
-1. the component's own closures are re-opened (the pass's ``reopen``: each stretch of an object's
-   detections after a pause longer than ``gap`` becomes an object of its own), and that graph is
-   solved: the reference of every score below;
-2. the pass's beam search over merges (late object ``a`` declared to be old object ``b``), each set
-   scored by its log Bayes factor against the reference (Laplace, Eq. 4.13's new-object density)
-   plus the negative information of its re-solved graph, and verified by the re-solved cost's rise;
-3. the best set that differs from the component itself (which is the reference with every
-   stretch merged back) becomes a component: its associations with the objects renumbered in
-   creation order, re-solved by the belief's own smoother (its semantic factors included), of log
-   weight ``log w + (score of the set − score of the component)``.
-
-The component stays, with its weight: the belief carries both and later detections decide, as they
-decide every other association (Eq. 16). The new one takes an empty slot, else the lowest-weight
-component other than its parent (counted in :attr:`OnlineLoopClosure.replaced`). A set whose
-associations an alive component already has is not added again. The search runs on the host between
-two compiled steps (``hybridslam.run(..., between_steps=...)``); its solves compile once per run.
-
-Only the hybrid belief with the full smoother on an unknown map: the new component needs its whole
-trajectory re-solved, and only an unknown map has late objects.
+The search (:class:`~..loop_online.OnlineLoopClosure`) is shared with ``multimodal``. The hybrid
+belief holds each object's class realization (``classes``, -1 open: Sec. IV-D), so the merge search
+pairs objects of equal or open realizations, and a merged object takes the old one's realization
+(the late one's where it is open, :func:`~..loop_merge.compact`). The re-solved graph is the
+belief's own: its semantic factors, with the realizations where the classifier sees scores.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import time
-from typing import NamedTuple, cast
 
-import equinox as eqx
-import jax
-import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
-from ...inference import smoother as sm
-from ...io.scenario import Scenario
-from ..base import AbstractEstimator
-from ..loop_merge import compact, reopen
-from ..loop_search import candidates, creating_ranges, log_bayes_factor, search
-from ..loop_settings import LoopClosureSettings
-from ..loop_verify import judge, misses, negative_information
-from ..smoothing import FINAL_ATOL
-from ..smoothing_graph import DataLog, graph, history_factors
+from ..loop_online import ClosureHypothesis as ClosureHypothesis
+from ..loop_online import LoopClosureAccess, MergedComponent, whole, write_fields
+from ..loop_online import OnlineLoopClosure as OnlineLoopClosure
+from ..loop_online import _renumbered as _renumbered  # noqa: F401  (tests)
 from .belief import Belief
-from .estimator import Hybrid
 
 
-@eqx.filter_jit
-def _solve(log: DataLog, model, history, classes, num_created, poses, objects, k, realize: bool,
-           max_steps: int):
-    """A component's whole graph after ``k`` steps (the step's own: semantic factors, its class
-    realizations where the classifier sees them), solved to the final tolerance: the trajectory, the
-    marginal of ``[x_k, objects]``, the cost and whether it converged (one compile per run)."""
-    factors = history_factors(history, classes if realize else None)
-    g = graph(log, factors, k, num_created, model.sensor, model.motion_cov, True, "sum")
-    sol = sm.solve(g, poses, objects, max_steps=max_steps, cost_atol=FINAL_ATOL)
-    mean, cov = sm.marginal(sol, k)
-    ok = (sol.result == optx.RESULTS.successful) & jnp.all(jnp.isfinite(mean)) & jnp.all(jnp.isfinite(cov))
-    return sol.poses, mean, cov, sol.cost, ok
+@dataclasses.dataclass(frozen=True)
+class HybridLoopAccess(LoopClosureAccess):
+    """The hybrid belief's fields for :class:`~..loop_online.OnlineLoopClosure`."""
 
+    max_steps: int
 
-def _renumbered(history: np.ndarray, classes: np.ndarray, objects: np.ndarray, num: int,
-                merges: dict[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """``merges`` (late -> old) applied to a component's first ``num`` object slots by
-    :func:`~..loop_merge.compact` (creation order, as the step keeps them: a prior map's undetected
-    objects first, then by first detection): the history, classes, object poses ``(N, 3)`` (freed
-    slots: placeholders at 0) and how many objects remain."""
-    h, cls, used = compact(history, classes, merges, num)
-    out = np.zeros((len(classes), 3))
-    out[: len(used)] = objects[used]
-    return h.astype(history.dtype), cls.astype(classes.dtype), out, len(used)
+    def classes(self, state: Belief, i: int) -> np.ndarray:
+        return np.asarray(state.classes[i])
 
+    def factors(self, state: Belief) -> tuple[bool, bool]:
+        return True, bool(state.model.sensor.classifier.uses_scores)
 
-class ClosureHypothesis(NamedTuple):
-    """A hypothesis :class:`OnlineLoopClosure` added, against its parent component, in the parent's
-    object numbering (its own earlier closures not re-opened)."""
-
-    step: int  # after this step (1-based)
-    merges: tuple[tuple[int, int], ...]  # (a, b): object a's detections (or a re-opened stretch) are b's
-    splits: tuple[int, ...]  # objects whose detections after a pause longer than the gap became objects
-    log_odds: float  # against the parent: the new component's log weight is the parent's + this
-
-    def __str__(self) -> str:
-        changes = [f"{a}->{b}" for a, b in self.merges] + [f"{o} split" for o in self.splits]
-        return f"step {self.step}: {', '.join(changes)} (log odds {self.log_odds:.2f})"
-
-
-def _closure(k: int, merges, origin: np.ndarray, stretches: range, odds: float) -> ClosureHypothesis:
-    """What a merge set (in the re-opened numbering) changes against the parent: merges between
-    different objects, and the re-opened stretches it leaves as objects of their own (a stretch
-    merged back into its own object changes nothing)."""
-    merged = {a for a, _ in merges}
-    return ClosureHypothesis(step=k,
-                             merges=tuple((int(origin[a]), int(origin[b])) for a, b in merges
-                                          if origin[a] != origin[b]),
-                             splits=tuple(sorted({int(origin[s]) for s in stretches if s not in merged})),
-                             log_odds=float(odds))
-
-
-def _back_projected(history: np.ndarray, geo: np.ndarray, poses: np.ndarray, objects: np.ndarray,
-                    slots: range) -> np.ndarray:
-    """``objects`` with each of ``slots`` placed at its first detection seen from ``poses``
-    (``x_{j+1}`` for step ``j``): the warm start of objects a re-opening made."""
-    out = objects.copy()
-    for s in slots:
-        j, d = (int(x[0]) for x in np.nonzero(history == s))
-        r, bearing = geo[j, d]
-        x = poses[j + 1]
-        out[s, :2] = x[:2] + r * np.array([np.cos(x[2] + bearing), np.sin(x[2] + bearing)])
-    return out
-
-
-@dataclasses.dataclass
-class OnlineLoopClosure:
-    """``between_steps`` for :func:`hybridslam.run` (module docstring): after every step from
-    ``settings.gap + 1`` on, search the top component's map for loop closures and add the best
-    verified merge set as a hypothesis (every ``every`` steps). ``closures`` lists what was added
-    (:class:`ClosureHypothesis`: what it changes against its parent); ``replaced`` counts components
-    dropped to make room; ``seconds`` the time the searches took."""
-
-    estimator: AbstractEstimator  # Hybrid(smoother=Full()): checked on construction
-    scenario: Scenario
-    settings: LoopClosureSettings = LoopClosureSettings()
-    every: int = 1
-    closures: list[ClosureHypothesis] = dataclasses.field(default_factory=list)
-    replaced: int = 0
-    seconds: float = 0.0  # wall time spent searching, summed over the steps
-
-    def __post_init__(self):
-        if not isinstance(self.estimator, Hybrid) or not self.estimator.smoother.whole_trajectory:
-            raise ValueError("OnlineLoopClosure: needs the hybrid belief with the full smoother "
-                             "(Hybrid(smoother=Full()))")
-        if not (isinstance(self.every, int) and self.every >= 1):
-            raise ValueError(f"OnlineLoopClosure.every: expected a positive int, got {self.every!r}")
-        if self.scenario.discovery is None:
-            raise ValueError("OnlineLoopClosure: the scenario has a known map (no discovery); there are no new "
-                             "objects to merge")
-
-    def __call__(self, k: int, belief: Belief) -> Belief:
-        """The belief after step ``k`` (1-based), with a loop-closure hypothesis added if one is found."""
-        if k <= self.settings.gap or k % self.every:
-            return belief
-        t0 = time.perf_counter()
-        try:
-            return self._search(belief)
-        finally:
-            self.seconds += time.perf_counter() - t0
-
-    def _search(self, belief: Belief) -> Belief:
-        """:meth:`__call__`'s work (module docstring, steps 1-3)."""
-        b = jax.device_get(belief)
-        k = int(b.k)
-        log_w = np.asarray(b.log_weights)
-        i = int(np.argmax(log_w))
-        settings = self.settings.for_scenario(self.scenario)
-        history, classes, num = np.asarray(b.history[i]), np.asarray(b.classes[i]), int(b.num_created[i])
-        mean, poses = np.asarray(b.mean[i]), np.asarray(b.smoothing.poses)[i]
-        geo = np.asarray(b.smoothing.log.geo)
-        realize = bool(b.model.sensor.classifier.uses_scores)
-        assert self.scenario.discovery is not None  # checked on construction
-        density = self.scenario.discovery.new_object_log_density
-        max_steps = cast(Hybrid, self.estimator).gn_max_steps
-
-        def solve(h, c, n, p, objects):
-            out = _solve(belief.smoothing.log, belief.model, jnp.asarray(h), jnp.asarray(c),
-                         jnp.asarray(n, jnp.int32), jnp.asarray(p), jnp.asarray(objects), jnp.asarray(k), realize,
-                         max_steps)
-            p2, m2, c2, cost, ok = jax.device_get(out)
-            objects2 = np.asarray(m2)[3:].reshape(-1, 3)
-            missed = misses(self.scenario, np.asarray(p2)[: k + 1], objects2, h[:k], n, settings)
-            return np.asarray(p2), np.asarray(m2), np.asarray(c2), float(cost), bool(ok), missed
-
-        # The component's own closures re-opened (the pass's reopen): each stretch of an object's
-        # detections after a pause longer than the gap becomes an object of its own.
-        h_r, c_r, origin, added = reopen(history, classes, settings.gap)
-        num_r = num + added
-        objects_r = _back_projected(h_r, geo, poses, mean[3:].reshape(-1, 3), range(num, num_r))
-        p_r, mean_r, cov_r, cost_r, ok_r, misses_r = solve(h_r, c_r, num_r, poses, objects_r)
-        if not ok_r:
-            return belief
-        ranges = creating_ranges(geo[:k], h_r[:k], num_r)
-        cands = candidates(mean_r, cov_r, h_r[:k], c_r, num_r, settings)
-        ranked, _ = search(mean_r, cov_r, cands, density, ranges, settings.beam, settings.revisit_log_odds)
-        # The parent is the re-opened graph with every stretch merged back: its log odds against it.
-        back = tuple((s, int(origin[s])) for s in range(num, num_r))
-        parent_odds = 0.0
-        if back:
-            *_, misses_0 = solve(history, classes, num, poses, mean[3:].reshape(-1, 3))
-            parent_odds = (log_bayes_factor(mean_r, cov_r, back, density, ranges)
-                           + settings.revisit_log_odds * len(back)
-                           + negative_information(misses_0 - misses_r, settings))
-        alive = np.flatnonzero(log_w > -np.inf)
-        best = None
-        for merges, lbf in ranked[: settings.tries]:
-            if set(merges) == set(back):
-                continue  # the parent itself
-            h2, c2, o2, n2 = _renumbered(h_r, c_r, mean_r[3:].reshape(-1, 3), num_r, dict(merges))
-            if any(np.array_equal(h2, np.asarray(b.history[j])) for j in alive):
-                continue  # an alive component already holds these associations
-            p2, mean2, cov2, cost2, ok2, misses2 = solve(h2, c2, n2, p_r, o2)
-            score = judge(lbf, cost2 - cost_r, ok2, misses2 - misses_r, len(merges), settings)
-            if not score.verified:
-                continue
-            odds = score.log_odds - parent_odds
-            if odds > settings.threshold and (best is None or odds > best[0]):
-                best = (odds, merges, h2, c2, n2, p2, mean2, cov2)
-        if best is None or len(log_w) < 2:  # a belief of one component has no room for a second hypothesis
-            return belief
-        odds, merges, h2, c2, n2, p2, mean2, cov2 = best
-        self.closures.append(_closure(k, merges, origin, range(num, num_r), odds))
-        return self._insert(belief, i, log_w[i] + odds, h2, c2, n2, p2, mean2, cov2)
-
-    def _insert(self, belief: Belief, parent: int, log_weight: float, history, classes, num, poses, mean,
-                cov) -> Belief:
-        """``belief`` with the merged component in an empty slot (else the weakest but the parent's)."""
-        log_w = np.asarray(belief.log_weights).copy()
-        dead = np.flatnonzero(log_w == -np.inf)
-        if dead.size:
-            j = int(dead[0])
-        else:
-            order = np.argsort(log_w)
-            j = int(order[0] if order[0] != parent else order[1])
-            self.replaced += 1
-        log_w[j] = log_weight
-        log_w = log_w - np.logaddexp.reduce(log_w[log_w > -np.inf])
-        # On the host: a device-side .at[j].set would compile a program per field on first use.
-        host = jax.device_get((belief.history, belief.classes, belief.num_created, belief.smoothing.poses,
-                               belief.mean, belief.cov))
-        fields = []
-        for array, value in zip(host, (history, classes, num, poses, mean, cov)):
-            array = np.array(array)
-            array[j] = value
-            fields.append(jnp.asarray(array))
-        return eqx.tree_at(lambda x: (x.log_weights, x.history, x.classes, x.num_created, x.smoothing.poses,
-                                      x.mean, x.cov), belief, (jnp.asarray(log_w), *fields))
+    def write(self, state: Belief, slot: int, log_weights: np.ndarray, component: MergedComponent,
+              parent: int) -> Belief:
+        c = component
+        return write_fields(
+            state, slot,
+            lambda x: (x.log_weights, x.history, x.classes, x.num_created, x.smoothing.poses, x.mean, x.cov),
+            (whole(log_weights), c.history, c.classes, c.num, c.poses, c.mean, c.cov))

@@ -172,6 +172,12 @@ class Multimodal(AbstractEstimator):
         best = best_slot(state.log_weights)
         return state.mean[best, 3:].reshape(-1, 3), state.num_created[best]
 
+    def loop_closure_access(self):
+        """The state's fields for loop closure during the run (:mod:`.loops`)."""
+        from .loops import MultimodalLoopAccess
+
+        return MultimodalLoopAccess(self.gn_max_steps)
+
     def step(self, state: State, odometry: Float[Array, "3"], detections: Detections,
              key: jax.Array) -> tuple[State, StepInfo]:
         """Propagate (Eq. 5.7's odometry factor), weigh the (component, joint assignment) children by
