@@ -1,5 +1,7 @@
-"""gpda on a known map with a clutter density: a detection more likely clutter than not adds no
-factor, and the clutter mass of the others shrinks their pull (PDA, :func:`clutter_weights`)."""
+"""A known map with a clutter density and a spurious source that stands still (another robot seen
+again and again at one place): gpda must not follow it where clutter explains it better. A
+detection more likely clutter than not adds no factor, and the clutter mass of the others shrinks
+their pull (PDA, :func:`hybridslam.estimators.gpda.clutter_weights`)."""
 
 from __future__ import annotations
 
@@ -20,14 +22,14 @@ from hybridslam.io.scenario import Step
 OFFSET = 0.15  # rad: the spurious detection's bearing beyond object 0's (2 bearing sds of S, inside the gate)
 
 
-def _stationary(clutter_log_density: float, steps: int = 8) -> hs.Scenario:
+def _stationary(clutter_log_density: float, steps: int = 8, offset: float = OFFSET) -> hs.Scenario:
     """A robot standing at the origin (heading sd 0.1 rad) that sees, at every step, one detection
-    of no object at object 0's range (5 m) but ``OFFSET`` rad beside it: a static spurious source
+    of no object at object 0's range (5 m) but ``offset`` rad beside it: a static spurious source
     (another robot standing still). Its true pose never changes; objects are known to 1 mm."""
     base = hs.simulate(2, steps=1, setup=hs.PaperSetup(max_detections=2, max_range=12.0))
     x, y = base.object_prior_means[0, :2]
     spurious = dataclasses.replace(base.steps[0].detections[0], range=float(math.hypot(x, y)),
-                                   bearing=float(math.atan2(y, x)) + OFFSET, true_object=None)
+                                   bearing=float(math.atan2(y, x)) + offset, true_object=None)
     n = base.num_objects
     return base.replace(
         steps=tuple(Step(odometry=np.zeros(3), detections=(spurious,)) for _ in range(steps)),
@@ -82,3 +84,4 @@ def test_one_candidate_gets_the_pda_gain(b0):
     w = float(np.asarray(clutter_weights(jnp.array([[1.0 - b0]]), jnp.array([b0]), jnp.array([[lam]])))[0, 0])
     gain = prior / (prior + gamma / w)
     assert gain == pytest.approx((1.0 - b0) * prior / (prior + gamma), rel=1e-9)
+
