@@ -25,7 +25,7 @@ from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from ..inference import gating
 from ..models.measurement import Detections
@@ -73,7 +73,7 @@ def clutter_weights(p: Float[Array, "Dmax G"], clutter: Float[Array, " Dmax"],
 
 
 def innovation_spread(sensor, mean: Float[Array, " D"], cov: Float[Array, "D D"], detections: Detections,
-                      candidates) -> Float[Array, "Dmax G"]:
+                      candidates: Int[Array, "Dmax G"]) -> Float[Array, "Dmax G"]:
     """``λ_max(Γ^{-½} S_g Γ^{-½})`` of every (detection, candidate) pair (:func:`clutter_weights`)."""
     s = gating.innovations(sensor, mean, cov, detections).cov[candidates]  # (Dmax, G, 2, 2)
     w, _ = sensor.geometric_sqrt_information()
