@@ -101,7 +101,10 @@ With a log density over [range, bearing] the null choice is a clutter detection 
 object's (:func:`_null_log_likelihood`, that density for ``new_object_log_density``; the hybrid
 belief's clutter hypothesis), weighed against the assignments by the same Monte Carlo integral,
 and counted in ``rejected``: spurious detections (ghosts, a duplicate, one outside every object's
-footprint) are explained instead of dragging the pose or emptying the step.
+footprint) are explained instead of dragging the pose or emptying the step. With clutter the
+candidates are also gated (``children.CLUTTER_GATE``: the 0.999 chi-square gate of the
+single-Gaussian estimators, Sec. 3.2.1): an object beyond it is no candidate, and a detection with
+none is clutter (on MRCLAM, dataset 6, robot 2, unfiltered: 0.235 → 0.155 m smoothed APE).
 """
 
 from .state import ASSOCIATION_PRIORS as ASSOCIATION_PRIORS

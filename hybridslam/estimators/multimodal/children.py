@@ -20,11 +20,19 @@ from ...inference.update import downdate, prior_gauss_newton_gain, support_of
 from ...models import geometry
 from ...models.measurement import Detections
 from .. import novelty
+from ..gaussian import chi2_gate
 from .likelihood import (_new_object, _placeholders, _sub_indices, assignment_objects, class_log_likelihoods,
                          condition, draws, gate, localized_terms, sampled_log_likelihood,
                          screen_log_likelihood, skipped_detections, slot_log_likelihood, slot_terms,
                          sub_gaussian, tuple_log_probs)
 from .state import SMALL_LAPACK_BATCH, State, _chunked
+
+
+# With a clutter hypothesis (a known map), a detection's candidates are the objects inside the
+# chi-square gate of the single-Gaussian estimators' default (gate_probability 0.999: d² ≤ 13.8),
+# as the thesis gates (Sec. 3.2.1); a detection with none is clutter. Without clutter every
+# detection is some object's, and the nearest ``candidates`` compete whatever their distance.
+CLUTTER_GATE = chi2_gate(0.999)
 
 
 # --------------------------------------------------------------------------- #
@@ -91,6 +99,8 @@ def hypotheses(
     def per_component(m, c, class_lp, created):
         pred = gating.innovations(sensor, m, c, detections)
         cand = gate(pred.d2, created, cfg.candidates)
+        if cfg.clutter:  # the chi-square gate (Sec. 3.2.1): an object beyond it leaves the detection to clutter
+            cand, _ = novelty.restrict(cand, pred.d2, CLUTTER_GATE)
         near = jnp.zeros(cfg.max_detections, bool)  # a known object within τ: "new" breaks the rule (.novelty)
         if cfg.mahalanobis_new:
             cand, near = novelty.restrict(cand, pred.d2, params.new_landmark_tau)
