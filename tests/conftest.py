@@ -63,22 +63,6 @@ def unchecked_types():
     jaxtyping.config.update("jaxtyping_disable", False)
 
 
-@pytest.hookimpl(hookwrapper=True)
-def pytest_runtest_protocol(item, nextitem):
-    """The runtime type checker off for the ``slow`` tests (their fixtures included). Their programs
-    trace the same functions as the quick tests, which run under the checker, only bigger or under
-    ``jax.grad``: checking every annotation while tracing them again costs a fifth of their time
-    (a minute of the suite's CPU) and finds nothing the quick tier would not."""
-    slow = item.get_closest_marker("slow") is not None
-    if slow:
-        jaxtyping.config.update("jaxtyping_disable", True)
-    try:
-        yield
-    finally:
-        if slow:
-            jaxtyping.config.update("jaxtyping_disable", False)
-
-
 # One small shape for most step-level tests: capacity 8, 2 detection slots, 200 samples.
 CAPACITY, SAMPLES, SLOTS = 8, 200, 2
 
