@@ -39,7 +39,7 @@ from ..models.measurement import Detections
 from .options import shown, value_text
 
 if TYPE_CHECKING:  # loop_online imports this module
-    from .loop_online import LoopClosureAccess
+    from .loop_access import LoopClosureAccess
 
 LOW_ESS = 0.01  # below this a weight estimate rests on ~1% of its draws
 

@@ -23,7 +23,8 @@ import math
 
 import numpy as np
 
-from ..loop_online import LoopClosureAccess, MergedComponent, whole, write_fields
+from ..loop_access import LoopClosureAccess, MergedComponent
+from ..loop_online import whole, write_fields
 from .state import State
 
 
