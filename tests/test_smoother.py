@@ -158,8 +158,14 @@ def test_auto_order_eliminates_the_larger_set_or_a_small_pose_chain_last():
     assert sm.resolve_method("dense", 11, 6, True) == "dense"
 
 
+@pytest.fixture(scope="module")
+def solve_dense():
+    """``solve`` with the dense elimination (one compiled program for the module)."""
+    return jax.jit(lambda g, p0, o0: sm.solve(g, p0, o0, max_steps=20, lambda_init=0.0, method="dense"))
+
+
 @pytest.mark.parametrize("k", [0, 1])
-def test_marginal_of_independent_objects_inverts_their_blocks(solve, k):
+def test_marginal_of_independent_objects_inverts_their_blocks(solve, solve_dense, k):
     """Fewer poses than objects and a block-diagonal object prior: ``"auto"`` eliminates the objects
     first, block by block, and still gives the block of ``H⁻¹``, inactive objects at identity."""
     graph = _graph(np.random.default_rng(8), poses=2, independent=True)
@@ -168,8 +174,7 @@ def test_marginal_of_independent_objects_inverts_their_blocks(solve, k):
     sol = solve(graph, jnp.zeros((2, 3)), jnp.zeros((N, 3)))
     assert sol.linearization.object_blocks
     mean, cov = sm.marginal(sol, k)
-    reference = jax.jit(lambda g, p0, o0: sm.solve(g, p0, o0, max_steps=20, lambda_init=0.0, method="dense"))(
-        dataclasses.replace(graph, independent_objects=False), jnp.zeros((2, 3)), jnp.zeros((N, 3)))
+    reference = solve_dense(dataclasses.replace(graph, independent_objects=False), jnp.zeros((2, 3)), jnp.zeros((N, 3)))
     h, _ = reference.linearization.dense()
     idx = np.concatenate([np.arange(3 * k, 3 * k + 3), 6 + np.arange(3 * N)])
     np.testing.assert_allclose(np.asarray(cov), np.linalg.inv(np.asarray(h))[np.ix_(idx, idx)], rtol=1e-8,
@@ -247,7 +252,7 @@ def test_marginalizing_keeps_an_uninformed_object_uninformed(solve):
         sm.solve(eqx.tree_at(lambda g: g.prior_sqrt_info, reduced, None), jnp.zeros((P - 1, 3)), jnp.zeros((N, 3)))
 
 
-def test_max_mixture_picks_the_component_that_explains_the_data():
+def test_max_mixture_picks_the_component_that_explains_the_data(solve):
     """A factor with a consistent candidate and an absurd one: "max" mode ignores the absurd one
     (the result equals the graph with only the good candidate); a hopeless outlier takes the null."""
     rng = np.random.default_rng(5)
@@ -271,7 +276,7 @@ def test_max_mixture_picks_the_component_that_explains_the_data():
                                   "meas_log_weight": jnp.asarray(np.where(np.arange(G) == 0, 0.0, -np.inf)[None]
                                                                  * np.ones((F, 1))).at[-1].set(-jnp.inf),
                                   "mode": "sum"})
-    ref = sm.solve(only_good, jnp.asarray(poses0), jnp.asarray(truth_objects), max_steps=30)
+    ref = solve(only_good, jnp.asarray(poses0), jnp.asarray(truth_objects))  # linear: the exact minimizer
     np.testing.assert_allclose(np.asarray(out.poses), np.asarray(ref.poses), atol=1e-7)
     np.testing.assert_allclose(np.asarray(out.objects), np.asarray(ref.objects), atol=1e-7)
 

@@ -33,10 +33,17 @@ def _belief(scenario, classifier="mirror", prune_ratio=150.0, **settings):
     return estimator, estimator.init(scenario)
 
 
+# Geometry only, never pruned, half the shared capacity: several association hypotheses stay alive
+# and the belief overflows (test_capacity_overflow_is_counted_not_silent). One program for the
+# file's driver runs (the run_none fixture and the seed test).
+RUN_NONE = dict(classifier="none", capacity=CAPACITY // 2, samples=SAMPLES, max_detections=SLOTS, prune_ratio=1e300,
+                smoother="filter")
+
+
 @pytest.fixture(scope="module")
 def run_none(scenario):
-    """Geometry only keeps several association hypotheses alive: a good belief to check marginals on."""
-    return hs.run_estimator(scenario, classifier="none", capacity=CAPACITY, samples=SAMPLES, max_detections=SLOTS)
+    """A full belief of several association hypotheses (some dropped): a good one to check marginals on."""
+    return hs.run_estimator(scenario, **RUN_NONE)
 
 
 def test_weights_and_marginals_sum_to_one(run_none):
@@ -89,33 +96,45 @@ def _first_detection_of(step, num_objects):
     return Step(step.odometry, dets)
 
 
+_TRACES: list[int] = []  # one entry per trace of _default_step
+
+
+@jax.jit
+def _default_step(*args):
+    """The default estimator's step (``_estimator()``; the classifier and alpha live in the belief's
+    model: traced), jitted once for the module: test_step_is_traced_once_per_run counts its traces,
+    and test_unexplainable_detection_falls_back_to_likelihood runs the same compiled program."""
+    _TRACES.append(1)
+    return _estimator().step(*args)
+
+
+def _default_belief(scenario, alpha=0.25):
+    return hs.Hybrid(classifier=hs.Mirror(alpha, 15.0), capacity=CAPACITY, max_detections=SLOTS,
+                     weights=hs.LaplaceIS(samples=SAMPLES)).init(scenario)
+
+
 def test_step_is_traced_once_per_run(scenario, key):
     """One compile per run, also when model parameters (alpha) change between runs."""
-    traces = []
-    estimator = _estimator()  # the classifier (and alpha) live in the belief's model: traced
-    counted = jax.jit(eqx.debug.assert_max_traces(lambda *a: traces.append(1) or estimator.step(*a), max_traces=1))
     for alpha in (0.25, 0.4):
-        belief = hs.Hybrid(classifier=hs.Mirror(alpha, 15.0), capacity=CAPACITY, max_detections=SLOTS,
-                           weights=hs.LaplaceIS(samples=SAMPLES)).init(scenario)
+        belief = _default_belief(scenario, alpha)
         for k in range(scenario.num_steps):
-            belief, info = counted(belief, *_inputs(scenario, k), jax.random.fold_in(key, k))
-    assert len(traces) == 1
+            belief, info = _default_step(belief, *_inputs(scenario, k), jax.random.fold_in(key, k))
+    assert len(_TRACES) == 1  # in this module's whole process: every other call reused the first trace
 
 
 def test_same_seed_same_result_and_different_seed_differs(scenario):
-    kwargs = dict(classifier="none", capacity=CAPACITY, samples=SAMPLES, max_detections=SLOTS)
-    a = hs.run_estimator(scenario, seed=3, **kwargs).result
-    b = hs.run_estimator(scenario, seed=3, **kwargs).result
-    c = hs.run_estimator(scenario, seed=4, **kwargs).result
+    a = hs.run_estimator(scenario, seed=3, **RUN_NONE).result
+    b = hs.run_estimator(scenario, seed=3, **RUN_NONE).result
+    c = hs.run_estimator(scenario, seed=4, **RUN_NONE).result
     weights = lambda r: [c.weight for s in r.steps for c in s.components]  # noqa: E731
     assert weights(a) == weights(b)
     assert weights(a) != weights(c)
 
 
-def test_capacity_overflow_is_counted_not_silent(scenario):
+def test_capacity_overflow_is_counted_not_silent(run_none):
     # Never pruned, the belief holds 8 components by step 6 (a capacity of 8 is just enough): half of it overflows.
-    run = hs.run_estimator(scenario, classifier="none", capacity=CAPACITY // 2, samples=SAMPLES, max_detections=SLOTS,
-                           prune_ratio=1e300, smoother="filter")
+    run = run_none
+    assert RUN_NONE["capacity"] == CAPACITY // 2 and RUN_NONE["prune_ratio"] == 1e300
     dropped = [int(i.dropped_capacity) for i in run.infos]
     assert max(dropped) > 0
     assert all(int(i.num_components) <= CAPACITY // 2 for i in run.infos)
@@ -129,15 +148,15 @@ def test_history_overflow_is_refused(scenario):
         hs.run(estimator, scenario.replace(steps=scenario.steps + scenario.steps[:1], true_robot_poses=None))
 
 
-@pytest.mark.slow  # its own compile, 25 s: the extended suite, CI
+@pytest.mark.slow  # the extended suite, CI (after test_step_is_traced_once_per_run: no compile of its own)
 def test_unexplainable_detection_falls_back_to_likelihood(scenario, key):
     """The robot surely faces away from every object, yet detects two: no hypothesis has its
     objects in view (a model violation). The step weighs by likelihood instead and stays finite."""
-    estimator, belief = _belief(scenario)
+    belief = _default_belief(scenario)
     odometry, det = _inputs(scenario, 0)
     det = hs.Detections(det.geo, det.scores, jnp.array([True, True]))
     away = eqx.tree_at(lambda b: (b.mean, b.cov), belief, (belief.mean.at[:, 2].set(np.pi), belief.cov * 1e-4))
-    new, info = STEP(estimator, away, odometry, det, key)
+    new, info = _default_step(away, odometry, det, key)
     assert bool(info.visibility_ignored)
     assert bool(jnp.all(jnp.isfinite(new.log_weights[new.alive])))
     np.testing.assert_allclose(new.weights[new.alive].sum(), 1.0)
@@ -252,15 +271,16 @@ def test_a_known_map_step_that_no_child_names_whole_skips_the_fewest_detections(
 
 
 def test_the_clutter_hypothesis_explains_a_spurious_detection(key):
-    """The same duplicated detection with a clutter hypothesis (``clutter``, a log density over
-    [range, bearing]): the likeliest child names the true detection's object and calls the copy
-    clutter (-1, counted in ``rejected``, not ``skipped``); every child that calls a detection
-    clutter carries the density once per such detection."""
+    """The same duplicated detection with a clutter hypothesis (a log density over [range, bearing]:
+    the scenario's ``clutter_log_density``, which the default ``clutter`` setting reads, so both
+    densities run one compiled step): the likeliest child names the true detection's object and
+    calls the copy clutter (-1, counted in ``rejected``, not ``skipped``); every child that calls a
+    detection clutter carries the density once per such detection."""
     scenario, first, inputs = _duplicated_detection()
+    estimator = _estimator(gate=1, weights="linearized", smoother="filter", max_detections=3)
     beliefs = {}
     for density in (-10.0, -9.0):
-        estimator = _estimator(gate=1, weights="linearized", smoother="filter", max_detections=3, clutter=density)
-        belief, info = STEP(estimator, estimator.init(scenario), *inputs, key)
+        belief, info = STEP(estimator, estimator.init(scenario.replace(clutter_log_density=density)), *inputs, key)
         assert int(info.rejected) == 1 and int(info.skipped) == 0
         alive = np.isfinite(np.asarray(belief.log_weights))
         assert np.isclose(np.exp(np.asarray(belief.log_weights)[alive]).sum(), 1.0)

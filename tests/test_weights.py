@@ -226,12 +226,17 @@ def test_sampled_children_are_each_childs_monte_carlo_mean_over_its_parents_draw
     live_children = np.asarray(alive)[np.asarray(parent)]
     assert np.all(np.isfinite(np.asarray(got[1])[live_children]))
     assert np.sum(np.isfinite(np.asarray(got[0])[live_children])) >= 2  # some children in view, too
+
+    @jax.jit  # one compile for the parents below, not dispatched op by op
+    def tables(mean_p, cov_p):  # a parent's draws mean + L eps and their likelihood tables
+        draws = mean_p[None, :] + eps @ jnp.linalg.cholesky(cov_p).T
+        return jax.vmap(log_likelihood_table, (None, 0, None))(sensor, draws, det)
+
     for i in range(parent.shape[0]):
         p = int(parent[i])
         if not bool(alive[p]):  # masked by the caller
             continue
-        draws = mean[p][None, :] + eps @ jnp.linalg.cholesky(cov[p]).T
-        lik, view = jax.vmap(log_likelihood_table, (None, 0, None))(sensor, draws, det)
+        lik, view = tables(mean[p], cov[p])
         terms_free = sum(lik[:, j, measured[i, j], slot_class[i, j]] for j in range(2) if measured[i, j] >= 0)
         terms = terms_free + sum(view[:, measured[i, j]] for j in range(2) if measured[i, j] >= 0)
         log_mean = lambda t: jax.scipy.special.logsumexp(t) - np.log(s)  # noqa: E731
