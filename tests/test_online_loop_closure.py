@@ -12,7 +12,7 @@ import hybridslam as hs
 from hybridslam.analysis.trajectory import error_summary
 from hybridslam.estimators import loop_settings
 from hybridslam.analysis.recall import closure_recall
-from hybridslam.estimators.hybrid.loops import OnlineLoopClosure, _renumbered
+from hybridslam.estimators.loop_online import OnlineLoopClosure, _renumbered
 from hybridslam.estimators.multimodal.loops import merged_class_posteriors
 from hybridslam.sim.hallway import HallwaySetup, hallway
 

@@ -144,6 +144,7 @@ class Association(eqx.Module):
     class_loglik: Float[Array, "Dmax Nmax M"]  # log P(z^s_j | c) seen from each object
     new_class_loglik: Float[Array, "Dmax M"]  # ... from the object the detection would create
     dropped: Int[Array, ""]  # assignments the beam dropped within its margin of the best (0 if exhaustive)
+    candidate_cov: Float[Array, "Dmax G 2 2"]  # innovation covariance S_g of each candidate (Eq. 4.15)
 
     @property
     def num_candidates(self) -> int:
@@ -422,7 +423,7 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
     onehot = options[:, :, None] == jnp.arange(g + 1)[None, None, :]  # (R, Dmax, G+1)
     marginals = jnp.einsum("r,rdo->do", jnp.exp(log_prob), onehot.astype(mean.dtype))
     return Association(candidates, candidate_ok, options, log_prob, new, unmapped, skip, clutter, marginals,
-                       class_loglik, new_class_loglik, dropped)
+                       class_loglik, new_class_loglik, dropped, inn.cov[candidates])
 
 
 # --------------------------------------------------------------------------- #

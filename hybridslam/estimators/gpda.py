@@ -25,9 +25,8 @@ from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Float
 
-from ..inference import gating
 from ..models.measurement import Detections
 from . import gaussian
 from .base import StepInfo
@@ -72,12 +71,11 @@ def clutter_weights(p: Float[Array, "Dmax G"], clutter: Float[Array, " Dmax"],
     return p / (1.0 - b0 + b0 * jnp.maximum(spread, 1.0))
 
 
-def innovation_spread(sensor, mean: Float[Array, " D"], cov: Float[Array, "D D"], detections: Detections,
-                      candidates: Int[Array, "Dmax G"]) -> Float[Array, "Dmax G"]:
-    """``λ_max(Γ^{-½} S_g Γ^{-½})`` of every (detection, candidate) pair (:func:`clutter_weights`)."""
-    s = gating.innovations(sensor, mean, cov, detections).cov[candidates]  # (Dmax, G, 2, 2)
+def innovation_spread(sensor, candidate_cov: Float[Array, "Dmax G 2 2"]) -> Float[Array, "Dmax G"]:
+    """``λ_max(Γ^{-½} S_g Γ^{-½})`` of every (detection, candidate) pair (:func:`clutter_weights`),
+    from the candidates' innovation covariances ``S_g`` (``Association.candidate_cov``)."""
     w, _ = sensor.geometric_sqrt_information()
-    m = jnp.einsum("ij,...jk,lk->...il", w, s, w)
+    m = jnp.einsum("ij,...jk,lk->...il", w, candidate_cov, w)
     half_sum, half_diff = 0.5 * (m[..., 0, 0] + m[..., 1, 1]), 0.5 * (m[..., 0, 0] - m[..., 1, 1])
     return half_sum + jnp.sqrt(half_diff**2 + m[..., 0, 1] * m[..., 1, 0])
 
@@ -87,7 +85,7 @@ def _step(est: GPDA, state: GaussianState, odometry, detections: Detections) -> 
     assoc = gaussian.associate(state, mean, cov, detections, est.max_hypotheses)
     g = assoc.num_candidates
     if state.structure.clutter:  # the clutter mass shrinks each candidate's pull (clutter_weights)
-        spread = innovation_spread(state.model.sensor, mean, cov, detections, assoc.candidates)
+        spread = innovation_spread(state.model.sensor, assoc.candidate_cov)
     mean, cov, new, created, unmapped = gaussian.create_likeliest_new(state, mean, cov, assoc, detections)
     # A detection whose likeliest option is a new object is that object's alone: created, or unmapped
     # when no slot is free (as a creation, no soft update of the old candidates).

@@ -13,11 +13,10 @@ import dataclasses
 
 import numpy as np
 
-from ..loop_online import ClosureHypothesis as ClosureHypothesis
 from ..loop_access import LoopClosureAccess, MergedComponent
-from ..loop_online import whole, write_fields
+from ..loop_online import ClosureHypothesis as ClosureHypothesis  # the names' former home, still importable
 from ..loop_online import OnlineLoopClosure as OnlineLoopClosure
-from ..loop_online import _renumbered as _renumbered  # noqa: F401  (tests)
+from ..loop_online import whole, write_fields
 from .belief import Belief
 
 
