@@ -348,10 +348,15 @@ def test_functionals():
 # --------------------------------------------------------------------------------------------
 
 # ml and gpda share max-mixture's single-Gaussian step and its class update (checked by hand: 2e-8 to
-# 4e-8 filter, 4e-6 full; docs/gradients.md), left out for the suite's time. One case runs reverse mode
-# (what jax.grad does: the transpose of the implicit-derivative rule); the others run forward mode along
-# the random directions, whose programs compile in half the time (hybrid, lag:1: 72 vs 147 CPU s,
-# 2026-11-27) and check the same rule's tangents.
+# 4e-8 filter, 4e-6 full; docs/gradients.md), left out for the suite's time. The smoother's own
+# implicit derivative (the solve's custom_jvp rule, its transpose and the marginal) is checked where it
+# lives, tests/test_smoother.py::test_derivatives_of_a_nonlinear_solution_and_its_marginal_match_finite_differences;
+# each case here adds an estimator's path into and out of it: the hybrid belief's per-component solve in
+# reverse mode (what jax.grad does, transposed through the scan, the graph built from the histories and
+# the smoothed marginal's use in the weights), the fixed-lag window with its marginalized prior
+# (`Lag(1)`: the window slides at step 2), the single-Gaussian estimators' max-mixture factors and
+# multimodal's clusters. Forward mode takes one random direction (a jvp, no batching: the smallest
+# program that checks the tangents); reverse mode one pullback of a combination of the functionals.
 SMOOTHED = {"hybrid, full": ("hybrid", "full", "reverse"), "hybrid, lag:1": ("hybrid", "lag:1", "forward"),
             "max-mixture, full": ("max-mixture", "full", "forward"),
             "multimodal, full": ("multimodal", "full", "forward")}
@@ -363,7 +368,7 @@ def test_gradients_through_the_smoothers_match_finite_differences(case):
     """Reverse or forward mode (``SMOOTHED``) through two steps of a smoother estimator (the paper setup; every component
     re-solves its trajectory by Levenberg-Marquardt each step) along random directions of the odometry,
     Σ_v, Σ_w, alpha and K, against central differences: relative error ≤ 1e-3 (``RTOL``), with the
-    discrete choices (histories, parents) unchanged within ±h."""
+    discrete choices (histories, surviving components) unchanged within ±h."""
     name, smoother, mode = SMOOTHED[case]
     scenario = hs.simulate(0, steps=T)
     options = dict(weights="linearized", capacity=4) if name == "hybrid" else {}
@@ -375,6 +380,7 @@ def test_gradients_through_the_smoothers_match_finite_differences(case):
     p = {"odometry": f64(stacked.odometry), "geometric_cov": model.sensor.geometric_cov,
          "motion_cov": model.motion_cov, "alpha": model.sensor.classifier.alpha,
          "K": model.sensor.classifier.K}
+    p = jax.tree.map(np.asarray, p)  # the compiled program's argument types, also at p ± h·v
 
     def functionals(p):
         state = eqx.tree_at(lambda s: (s.model.sensor.geometric_cov, s.model.motion_cov,
@@ -392,33 +398,37 @@ def test_gradients_through_the_smoothers_match_finite_differences(case):
 
     rng = np.random.default_rng(0)
     directions = []
-    for _ in range(4):
+    for _ in range(2 if mode == "reverse" else 1):
         v = {k: rng.normal(size=np.shape(x)) * 0.1 * (np.abs(np.asarray(x)) + 0.01) for k, x in p.items()}
         for k in ("geometric_cov", "motion_cov"):
             v[k] = (v[k] + v[k].T) / 2
         directions.append(v)
-    stacked_directions = jax.tree.map(lambda *x: np.stack(x), *directions)
 
-    def value_and_derivatives(p, vs):
-        """The functionals, the discrete choices and their derivatives along the directions ``vs`` (one
-        program, also for the finite differences' evaluations, so that each case compiles once): in
-        reverse mode the pullback of each output's unit cotangent (what ``jax.jacrev`` builds) applied to
-        ``vs``, in forward mode one tangent per direction."""
+    def value_and_derivative(p, v):
+        """The functionals, the discrete choices, and: in forward mode their derivative along ``v`` (one
+        jvp), in reverse mode the gradient of ``v @ functionals`` (one pullback, what ``jax.grad``
+        builds). One program, also for the finite differences' evaluations: each case compiles once."""
         if mode == "reverse":
             values, pullback, aux = jax.vjp(functionals, p, has_aux=True)
-            jac = jax.vmap(pullback)(jnp.eye(values.shape[0]))[0]
-            ad = jax.vmap(lambda v: sum(jnp.tensordot(jac[k], v[k], jnp.ndim(v[k])) for k in p))(vs)
-            return values, aux, ad
-        values, aux = functionals(p)
-        return values, aux, jax.vmap(lambda v: jax.jvp(lambda q: functionals(q)[0], (p,), (v,))[1])(vs)
+            return values, aux, pullback(v)[0]
+        values, tangent, aux = jax.jvp(functionals, (p,), (v,), has_aux=True)
+        return values, aux, tangent
 
     with _fast_compile():
-        program = jax.jit(value_and_derivatives)
-        values, choice, derivatives = program(p, stacked_directions)
-    value = lambda q: program(q, stacked_directions)[:2]  # noqa: E731
+        program = jax.jit(value_and_derivative).lower(p, directions[0] if mode == "forward" else np.eye(3)[0]).compile()
+    if mode == "forward":
+        values, choice, tangent = program(p, directions[0])
+        derivatives = np.asarray(tangent)[None]
+        value = lambda q: program(q, directions[0])[:2]  # noqa: E731
+    else:
+        rows = [program(p, c) for c in np.eye(3)]  # ∂F_i/∂p: one pullback per functional
+        values, choice = rows[0][:2]
+        dot = lambda g, v: sum(float(np.vdot(np.asarray(g[k]), v[k])) for k in p)  # noqa: E731
+        derivatives = np.array([[dot(r[2], v) for r in rows] for v in directions])
+        value = lambda q: program(q, np.eye(3)[0])[:2]  # noqa: E731
     assert np.all(np.isfinite(np.asarray(values)))
     h = 1e-4
-    for v, ad in zip(directions, np.asarray(derivatives)):
+    for v, ad in zip(directions, derivatives):
         shifted = (jax.tree.map(lambda a, b: a + s * h * b, p, v) for s in (1, -1))
         (plus, c_plus), (minus, c_minus) = (value(q) for q in shifted)
         for a, b, c in zip(jax.tree.leaves(choice), jax.tree.leaves(c_plus), jax.tree.leaves(c_minus)):
