@@ -17,8 +17,8 @@ import pytest
 
 import hybridslam  # noqa: F401  (float64)
 from hybridslam.inference import smoother as sm
-from hybridslam.models import geometry, se2
 from hybridslam.inference.update import GN_TOLERANCE
+from hybridslam.models import geometry, se2
 from hybridslam.models.motion import odometry_residual
 
 P, N, F, G = 5, 3, 7, 2
@@ -91,7 +91,8 @@ def _graph(rng, mode="sum", poses=P, linear=True, independent=False):
         meas_pose=jnp.asarray(rng.integers(0, poses, size=F)),
         meas_objects=jnp.asarray(meas_objects),
         meas_log_weight=jnp.asarray(log_w),
-        meas_null_log_weight=jnp.full(F, -np.inf, float) if mode == "sum" else jnp.asarray(np.log(rng.uniform(0.01, 0.1, F))),
+        meas_null_log_weight=(jnp.full(F, -np.inf, float) if mode == "sum"
+                              else jnp.asarray(np.log(rng.uniform(0.01, 0.1, F)))),
         meas_data=jnp.asarray(rng.normal(size=(F, 2)) * 0.2),
         pose_active=jnp.ones(poses, bool),
         object_active=jnp.ones(N, bool),

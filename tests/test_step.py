@@ -79,7 +79,8 @@ def test_lazy_class_realizations_equal_full_enumeration(scenario, key):
         lambda b: (b.classes, b.log_weights),
         lazy,
         # log weights of the lazy belief's dtype, not weakly typed: both beliefs run one compiled step
-        (lazy.classes.at[:4].set(realizations), jnp.full(16, -jnp.inf, lazy.log_weights.dtype).at[:4].set(jnp.log(prior))),
+        (lazy.classes.at[:4].set(realizations),
+         jnp.full(16, -jnp.inf, lazy.log_weights.dtype).at[:4].set(jnp.log(prior))),
     )
     for k in range(3):
         odometry, det = _inputs(small, k)

@@ -38,7 +38,8 @@ def test_update_reaches_the_stationary_point_of_eq9():
     assign, cls = jnp.array([0, 1]), jnp.array([0, 1])
     new_mean, new_cov, result = _update(sensor, mean, cov, assign, cls, det, 20)
     args = (sensor, mean, jnp.linalg.cholesky(cov), assign, cls, det)
-    jac, res = (np.asarray(a) for a in jax.jit(lambda y: (jax.jacfwd(_residuals)(y, args), _residuals(y, args)))(new_mean))
+    jacobian_and_residuals = jax.jit(lambda y: (jax.jacfwd(_residuals)(y, args), _residuals(y, args)))
+    jac, res = (np.asarray(a) for a in jacobian_and_residuals(new_mean))
     new_cov, cov = np.asarray(new_cov), np.asarray(cov)
     newton_step = np.linalg.solve(jac.T @ jac, jac.T @ res)
     assert result == optx.RESULTS.successful
