@@ -60,25 +60,35 @@ def _whole(lin: sm.Linearization) -> sm.Linearization:
     return dataclasses.replace(lin, live_poses=None, live_objects=None)
 
 
+# Compiled programs of this file's own functions (traced under ``small_buckets``: the bucket sizes are
+# fixed at trace time, so no other file's program may stand in for them); the live counts are traced.
+@jax.jit
+def _bucketed_solves(graph, start, k):
+    """The linearization's live counts, dense ``H``, ``g`` and bucketed solutions; the bucketed
+    marginal of ``[x_k, O]`` at the solver's solution, and that of the whole graph."""
+    lin = sm.linearize(graph, start, jnp.zeros((N, 3)))
+    solutions = {m: sm.solve_normal(lin, m) for m in ("poses-first", "objects-first")}
+    sol = sm.solve(graph, start, jnp.zeros((N, 3)), max_steps=5)
+    whole = dataclasses.replace(sol, linearization=_whole(sol.linearization))
+    return (lin.live_poses, lin.live_objects), lin.dense(), solutions, sm.marginal(sol, k), sm.marginal(whole, k)
+
+
 @pytest.mark.parametrize(("poses", "objects"), [(1, 0), (2, 1), (3, 3), (5, 1), (5, 3)])
 def test_bucketed_solve_and_marginal_equal_the_whole_graphs(small_buckets, poses, objects):
     graph = _prefix_graph(poses * 10 + objects, poses, objects)
     start = jnp.asarray(np.random.default_rng(0).normal(size=(P, 3)) * 0.1)
-    lin = sm.linearize(graph, start, jnp.zeros((N, 3)))
-    assert (int(lin.live_poses), int(lin.live_objects)) == (poses, objects)
-    h, g = lin.dense()
+    live, (h, g), solutions, (mean, cov), (mean_w, cov_w) = _bucketed_solves(graph, start, jnp.asarray(poses - 1))
+    assert tuple(int(n) for n in live) == (poses, objects)
     ref = -np.linalg.solve(np.asarray(h), np.asarray(g))
-    for method in ("poses-first", "objects-first"):
-        d_p, d_o = sm.solve_normal(lin, method)
+    for method, (d_p, d_o) in solutions.items():
         got = np.concatenate([np.asarray(d_p).reshape(-1), np.asarray(d_o).reshape(-1)])
         np.testing.assert_allclose(got, ref, atol=1e-10, err_msg=method)
-    sol = sm.solve(graph, start, jnp.zeros((N, 3)), max_steps=5)
-    k = poses - 1
-    mean, cov = sm.marginal(sol, k)
-    whole = dataclasses.replace(sol, linearization=_whole(sol.linearization))
-    mean_w, cov_w = sm.marginal(whole, k)
     np.testing.assert_allclose(np.asarray(cov), np.asarray(cov_w), rtol=1e-9, atol=1e-12)
     np.testing.assert_array_equal(np.asarray(mean), np.asarray(mean_w))
+
+
+_marginalize_bucketed = jax.jit(lambda *args: sm.marginalize_first_information(*args))
+_marginalize_whole = jax.jit(lambda *args: sm.marginalize_first_information(*args))  # traced with BUCKETS = 1
 
 
 @pytest.mark.parametrize("objects", [0, 1, 2, 3])
@@ -88,9 +98,9 @@ def test_bucketed_marginalization_of_the_first_pose_equals_the_whole_graphs(smal
     graph = _prefix_graph(7 + objects, P, objects)
     rng = np.random.default_rng(objects)
     poses, objs = jnp.asarray(rng.normal(size=(P, 3)) * 0.1), jnp.asarray(rng.normal(size=(N, 3)) * 0.1)
-    got = sm.marginalize_first_information(graph, poses, objs)
+    got = _marginalize_bucketed(graph, poses, objs)
     monkeypatch.setattr(buckets, "BUCKETS", 1)
-    want = sm.marginalize_first_information(graph, poses, objs)
+    want = _marginalize_whole(graph, poses, objs)
     for a, b, name in zip(got, want, ("mean", "R", "H'")):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-12, err_msg=name)
     tail = slice(3 + 3 * objects, None)
@@ -100,11 +110,13 @@ def test_bucketed_marginalization_of_the_first_pose_equals_the_whole_graphs(smal
 def test_bucketed_solve_under_vmap_with_a_live_count_per_member(small_buckets):
     graphs = [_prefix_graph(seed, poses, objects) for seed, (poses, objects) in enumerate([(2, 1), (5, 2), (3, 3)])]
     start = jnp.asarray(np.random.default_rng(1).normal(size=(P, 3)) * 0.1)
-    lins = [sm.linearize(g, start, jnp.zeros((N, 3))) for g in graphs]
+    linearize = jax.jit(lambda g: sm.linearize(g, start, jnp.zeros((N, 3))))
+    lins = [linearize(g) for g in graphs]
     batch = jax.tree.map(lambda *a: jnp.stack(a), *lins)
     d_p, d_o = jax.jit(jax.vmap(sm.solve_normal))(batch)
+    solve_whole = jax.jit(lambda lin: sm.solve_normal(_whole(lin)))
     for i, lin in enumerate(lins):
-        ref_p, ref_o = sm.solve_normal(_whole(lin))
+        ref_p, ref_o = solve_whole(lin)
         np.testing.assert_allclose(np.asarray(d_p[i]), np.asarray(ref_p), atol=1e-10)
         np.testing.assert_allclose(np.asarray(d_o[i]), np.asarray(ref_o), atol=1e-10)
 

@@ -1,7 +1,9 @@
 """The single-Gaussian association strategies ``ml``, ``gpda``, ``max-mixture`` (Doherty's thesis).
 
 Every scenario here has the same shapes (4 object slots with discovery, 2 detection slots, an
-8-step history), so each estimator's step is compiled once for the whole file.
+8-step history), so each estimator's step is compiled once for the whole file; the runs use the
+filter (association, discovery and the one-step updates are the subjects here; the smoother's are
+tests/test_smoother_batch.py and tests/test_smoother.py).
 """
 
 from __future__ import annotations
@@ -168,6 +170,9 @@ def associate():
     return jax.jit(gaussian.associate)
 
 
+_predict = jax.jit(gaussian.predict)  # op by op: about a hundred tiny compiles
+
+
 _associate_beam = jax.jit(gaussian.associate, static_argnames="width")
 
 
@@ -175,12 +180,12 @@ _associate_beam = jax.jit(gaussian.associate, static_argnames="width")
 def toy():
     scenario = _toy()
     state = _init(scenario)
-    mean, cov = gaussian.predict(state, jnp.zeros(3))
+    mean, cov = _predict(state, jnp.zeros(3))
     return scenario, state, mean, cov
 
 
 def _runs(scenario, estimator):
-    return run_estimator(scenario, estimator, max_steps=MAX_STEPS, max_detections=2)
+    return run_estimator(scenario, estimator, max_steps=MAX_STEPS, max_detections=2, smoother="filter")
 
 
 # --------------------------------------------------------------------------- #
@@ -230,7 +235,7 @@ def test_ml_fixes_the_brute_force_argmax(toy):
 
 def _line_weights(associate, scenario):
     state = _init(scenario)
-    mean, cov = gaussian.predict(state, jnp.zeros(3))
+    mean, cov = _predict(state, jnp.zeros(3))
     assoc = associate(state, mean, cov, _dets(scenario))
     cand = np.asarray(assoc.candidates)[0]
     w = {int(cand[g]): float(assoc.marginals[0, g]) for g in range(2)}
@@ -366,7 +371,7 @@ def test_result_files_and_cli(discovery_scenario, tmp_path, capsys):
     path = tmp_path / "scenario.json"
     hs.save_scenario(discovery_scenario, path)
     out = tmp_path / "gpda.json"
-    assert cli.main(["run", str(path), "-o", str(out), "--estimator", "gpda"]) == 0
+    assert cli.main(["run", str(path), "-o", str(out), "--estimator", "gpda", "--smoother", "filter"]) == 0
     result = load_result(out)
     assert "Gaussian PDA" in result.estimator and len(result.steps) == discovery_scenario.num_steps
     assert result.steps[-1].components[0].classes[:4] != [-1] * 4

@@ -1,5 +1,6 @@
 """Laplace importance sampling (weights="laplace-is") against closed forms and quadrature."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -32,7 +33,7 @@ def _exact_log_evidence():
 
 def test_linear_gaussian_evidence_is_exact_with_16_samples_and_ess_is_one():
     eps = jax.random.normal(jax.random.PRNGKey(0), (16, 3))
-    ev = laplace_is(_linear(), MU, P, eps, max_steps=10)
+    ev = jax.jit(lambda e: laplace_is(_linear(), MU, P, e, max_steps=10))(eps)  # op by op: hundreds of compiles
     assert abs(float(ev.log_evidence - _exact_log_evidence())) < np.log(1.01)
     np.testing.assert_allclose(ev.log_evidence, _exact_log_evidence(), atol=1e-9)  # in fact exact
     np.testing.assert_allclose(ev.ess, 1.0, atol=1e-9)
@@ -43,27 +44,34 @@ def test_hard_visibility_cut_matches_quadrature():
     a brute-force grid over (y_0, y_1, y_2)."""
     cut = 1.2  # keeps about 62% of the posterior mass
     eps = jax.random.normal(jax.random.PRNGKey(1), (4096, 3))
-    ev = laplace_is(_linear(lambda y: jnp.where(y[0] < cut, 0.0, -jnp.inf)), MU, P, eps, max_steps=10)
-    # Quadrature on a grid around the posterior (the integrand is negligible elsewhere).
-    post_cov = jnp.linalg.inv(jnp.linalg.inv(P) + H.T @ jnp.linalg.inv(R) @ H)
-    post_mean = post_cov @ (jnp.linalg.inv(P) @ MU + H.T @ jnp.linalg.inv(R) @ Z)
-    # Midpoint rule over y_0 < cut (so the cut itself is not discretized) and ±7σ elsewhere.
-    sd = jnp.sqrt(jnp.diagonal(post_cov))
-    edges = [jnp.linspace(post_mean[0] - 7 * sd[0], cut, 241)] + [
-        jnp.linspace(post_mean[i] - 7 * sd[i], post_mean[i] + 7 * sd[i], 121) for i in (1, 2)
-    ]
-    axes = [0.5 * (e[1:] + e[:-1]) for e in edges]
-    grid = jnp.stack(jnp.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    with jax.numpy_rank_promotion("allow"):
-        log_f = mvn.logpdf(Z[None, :] - grid @ H.T, jnp.zeros(2), R) + mvn.logpdf(grid, MU, P)
-    cell = np.prod([float(e[1] - e[0]) for e in edges])
-    quad = jnp.log(jnp.sum(jnp.exp(log_f)) * cell)
-    inside = float(norm.cdf((cut - post_mean[0]) / jnp.sqrt(post_cov[0, 0])))
+
+    @jax.jit  # one compiled program (op by op: hundreds of tiny compiles)
+    def estimate_and_quadrature(eps):
+        ev = laplace_is(_linear(lambda y: jnp.where(y[0] < cut, 0.0, -jnp.inf)), MU, P, eps, max_steps=10)
+        # Quadrature on a grid around the posterior (the integrand is negligible elsewhere).
+        post_cov = jnp.linalg.inv(jnp.linalg.inv(P) + H.T @ jnp.linalg.inv(R) @ H)
+        post_mean = post_cov @ (jnp.linalg.inv(P) @ MU + H.T @ jnp.linalg.inv(R) @ Z)
+        # Midpoint rule over y_0 < cut (so the cut itself is not discretized) and ±7σ elsewhere.
+        sd = jnp.sqrt(jnp.diagonal(post_cov))
+        edges = [jnp.linspace(post_mean[0] - 7 * sd[0], cut, 241)] + [
+            jnp.linspace(post_mean[i] - 7 * sd[i], post_mean[i] + 7 * sd[i], 121) for i in (1, 2)
+        ]
+        axes = [0.5 * (e[1:] + e[:-1]) for e in edges]
+        grid = jnp.stack(jnp.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        with jax.numpy_rank_promotion("allow"):
+            log_f = mvn.logpdf(Z[None, :] - grid @ H.T, jnp.zeros(2), R) + mvn.logpdf(grid, MU, P)
+        cell = jnp.prod(jnp.stack([e[1] - e[0] for e in edges]))
+        quad = jnp.log(jnp.sum(jnp.exp(log_f)) * cell)
+        inside = norm.cdf((cut - post_mean[0]) / jnp.sqrt(post_cov[0, 0]))
+        return ev, quad, inside, _exact_log_evidence()
+
+    ev, quad, inside, exact = estimate_and_quadrature(eps)
+    inside = float(inside)
     assert 0.3 < inside < 0.9  # the cut really cuts
     mc_rel_err = np.sqrt(inside * (1 - inside) / eps.shape[0]) / inside
     assert abs(float(ev.log_evidence - quad)) < 4 * mc_rel_err
-    np.testing.assert_allclose(quad, _exact_log_evidence() + np.log(inside), atol=1e-4)  # the quadrature is right
-    np.testing.assert_allclose(ev.log_evidence_free, _exact_log_evidence(), atol=1e-9)
+    np.testing.assert_allclose(quad, exact + np.log(inside), atol=1e-4)  # the quadrature is right
+    np.testing.assert_allclose(ev.log_evidence_free, exact, atol=1e-9)
     assert 0.2 < float(ev.ess) < 0.95  # the cut costs effective samples, and says so
 
 
@@ -86,11 +94,16 @@ def test_mode_search_is_the_dense_gauss_newton_on_a_manifold():
         return w @ d, 0.0, 0.0
 
     eps = jax.random.normal(jax.random.PRNGKey(2), (8, 6))
-    ev = laplace_is(measurement, mean, cov, eps, max_steps=50, difference=difference)
-    chol = jnp.linalg.cholesky(cov)
-    whitened = lambda y, _: jnp.concatenate(  # noqa: E731
-        [jax.scipy.linalg.solve_triangular(chol, difference(y, mean), lower=True), measurement(y)[0]])
-    mode, post_cov, _ = gauss_newton(whitened, mean, None, 50)
+
+    @eqx.filter_jit  # one compiled program for both (op by op: hundreds of tiny compiles)
+    def both(eps):
+        ev = laplace_is(measurement, mean, cov, eps, max_steps=50, difference=difference)
+        chol = jnp.linalg.cholesky(cov)
+        whitened = lambda y, _: jnp.concatenate(  # noqa: E731
+            [jax.scipy.linalg.solve_triangular(chol, difference(y, mean), lower=True), measurement(y)[0]])
+        return ev, gauss_newton(whitened, mean, None, 50)
+
+    ev, (mode, post_cov, _) = both(eps)
     np.testing.assert_allclose(difference(ev.mode, mode), 0.0, atol=1e-7)
     np.testing.assert_allclose(ev.cov, post_cov, rtol=1e-6, atol=1e-10)
     assert float(jnp.abs(ev.mode[2])) > 3.0  # the mode stayed near ±π: the wrap mattered
@@ -98,10 +111,11 @@ def test_mode_search_is_the_dense_gauss_newton_on_a_manifold():
 
 def test_laplace_is_weights_are_stable_across_seeds(scenario):
     """Paper prior (σ = 10 m): two seeds give nearly the same association posterior at every step
-    (the paper's sampled estimator disagrees on the top hypothesis in 6 of 20 such runs: docs/weights.md)."""
+    (the paper's sampled estimator disagrees on the top hypothesis in 6 of 20 such runs: docs/weights.md).
+    On the filter (the weights are the subject, not the smoother): the program of the ESS test below."""
     runs = [
         hs.run_estimator(scenario, classifier="none", weights="laplace-is", seed=s, capacity=8,
-                        samples=SAMPLES, max_detections=SLOTS).result
+                        samples=SAMPLES, max_detections=SLOTS, smoother="filter").result
         for s in (1, 2)
     ]
     tvs = []

@@ -154,19 +154,19 @@ def two_steps() -> hs.Scenario:
     return hs.simulate(0, steps=2)
 
 
-# The paper's sampled weights (Eq. 16) compile in about half the time of laplace-is; the step and
-# the run share one compile.
+# The paper's sampled weights (Eq. 16) compile in about half the time of laplace-is; the steps of
+# both tests below run one compiled program (the same settings, shapes and classifier file format).
 SETTINGS = {"capacity": 4, "samples": 32, "max_detections": 2, "weights": "sampled"}
 
 
 @pytest.mark.slow  # a step's compile with the MLP inside; the suite's time
-def test_step_with_learned_model(fitted, two_steps):
-    estimator = hs.make_estimator("hybrid", classifier=fitted, **SETTINGS)
-    belief = estimator.init(two_steps)
-    st = hs.stack_steps(two_steps, 2)
-    det = hs.Detections(jnp.asarray(st.geo[0]), jnp.asarray(st.scores[0]), jnp.asarray(st.mask[0]))
-    belief, _ = eqx.filter_jit(estimator.step)(belief, jnp.asarray(st.odometry[0]), det, jax.random.PRNGKey(0))
-    w = belief.weights[belief.alive]
+def test_step_with_learned_model(fitted, model_file, two_steps):
+    """The fitted network inside the estimator's steps (read from its file, as a scenario names it)."""
+    run = hs.run_estimator(two_steps.replace(classifier=Classifier("learned", path=model_file)), **SETTINGS)
+    assert isinstance(run.state.model.sensor.classifier, hs.Learned)
+    for a, b in zip(jax.tree_util.tree_leaves(run.state.model.sensor.classifier), jax.tree_util.tree_leaves(fitted)):
+        np.testing.assert_array_equal(a, b)
+    w = run.belief.weights[run.belief.alive]
     assert w.size >= 1 and bool(jnp.all(jnp.isfinite(w)))
     np.testing.assert_allclose(float(w.sum()), 1.0, rtol=1e-12)
 
@@ -217,11 +217,17 @@ def test_learned_residuals_match_the_base_formula(num_classes):
     # Larger output weights than the initialization's, so the upper entries and scales matter.
     model = eqx.tree_at(lambda m: m.layers[-1].weight, model, 3.0 * model.layers[-1].weight)
     rng = np.random.default_rng(num_classes)
+
+    @eqx.filter_jit  # one compiled program for the three points (op by op: about a hundred tiny compiles)
+    def both(model, z, v):
+        jac = jax.jacfwd(lambda vv: model.residuals(z, vv)[0])(v)
+        jac_base = jax.jacfwd(lambda vv: ClassifierModel.residuals(model, z, vv)[0])(v)
+        return model.residuals(z, v), ClassifierModel.residuals(model, z, v), jac, jac_base
+
     for _ in range(3):
         z = jnp.asarray(rng.uniform(-1, 2, num_classes))
         v = jnp.asarray([np.cos(a := rng.uniform(-np.pi, np.pi)), np.sin(a)])
-        for got, want in zip(model.residuals(z, v), ClassifierModel.residuals(model, z, v)):
-            np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
-        jac = jax.jacfwd(lambda vv: model.residuals(z, vv)[0])(v)
-        jac_base = jax.jacfwd(lambda vv: ClassifierModel.residuals(model, z, vv)[0])(v)
+        got, want, jac, jac_base = both(model, z, v)
+        for a, b in zip(got, want):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(jac, jac_base, rtol=1e-12, atol=1e-12)

@@ -78,7 +78,9 @@ def test_lazy_class_realizations_equal_full_enumeration(scenario, key):
     full = eqx.tree_at(
         lambda b: (b.classes, b.log_weights),
         lazy,
-        (lazy.classes.at[:4].set(realizations), jnp.full(16, -jnp.inf).at[:4].set(jnp.log(prior))),
+        # log weights of the lazy belief's dtype, not weakly typed: both beliefs run one compiled step
+        (lazy.classes.at[:4].set(realizations),
+         jnp.full(16, -jnp.inf, lazy.log_weights.dtype).at[:4].set(jnp.log(prior))),
     )
     for k in range(3):
         odometry, det = _inputs(small, k)
@@ -101,16 +103,17 @@ _TRACES: list[int] = []  # one entry per trace of _default_step
 
 @jax.jit
 def _default_step(*args):
-    """The default estimator's step (``_estimator()``; the classifier and alpha live in the belief's
-    model: traced), jitted once for the module: test_step_is_traced_once_per_run counts its traces,
-    and test_unexplainable_detection_falls_back_to_likelihood runs the same compiled program."""
+    """The default estimator's step with the filter (``_estimator(smoother="filter")``: neither test
+    below is about the smoother; the classifier and alpha live in the belief's model: traced),
+    jitted once for the module: test_step_is_traced_once_per_run counts its traces, and
+    test_unexplainable_detection_falls_back_to_likelihood runs the same compiled program."""
     _TRACES.append(1)
-    return _estimator().step(*args)
+    return _estimator(smoother="filter").step(*args)
 
 
 def _default_belief(scenario, alpha=0.25):
     return hs.Hybrid(classifier=hs.Mirror(alpha, 15.0), capacity=CAPACITY, max_detections=SLOTS,
-                     weights=hs.LaplaceIS(samples=SAMPLES)).init(scenario)
+                     weights=hs.LaplaceIS(samples=SAMPLES), smoother=hs.Filter()).init(scenario)
 
 
 def test_step_is_traced_once_per_run(scenario, key):
