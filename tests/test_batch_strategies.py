@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import hybridslam as hs
-from hybridslam import compilation
+from hybridslam import compilation, driver
 from hybridslam.studies import batch as sweep
 from hybridslam.studies.strategies import MapBatches, VmapBatches, default_strategy, parse_strategy
 
@@ -32,6 +32,9 @@ def many():
     estimator = hs.Hybrid(weights=hs.Linearized(), smoother=hs.Filter(), capacity=4, classifier="mirror")
     compiles = []
     real = compilation.compile_lowered
+    # A fresh process as far as compiled programs go: another file of this worker may have compiled
+    # this program (tests/test_sweep.py's single runs); its executable then comes from the run's cache.
+    driver.clear_compiled()
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(compilation, "compile_lowered", lambda *a, **k: compiles.append(1) or real(*a, **k))
         runs = hs.run_many(estimator, scenarios, seed=[3, 4, 5])
