@@ -1,5 +1,10 @@
 """How the tracks of a batch share a program (vmap, or a map over chunks) and `hs.run_many`: the
-same numbers as single runs, one compile for files of different lengths and detection counts."""
+same numbers as single runs, one compile for files of different lengths and detection counts.
+
+Every run here has the settings and shapes of tests/test_sweep.py's tiny study (capacity 4,
+``linearized``, the filter, ``mirror``, 2 detection slots, 3 steps): `hs.run_many`'s program is the
+single runs' program of the strategies test, and MapBatches(1)'s is the tiny study's (shared through
+the run's compilation cache and exported programs when both files run in one session)."""
 
 from __future__ import annotations
 
@@ -8,13 +13,32 @@ import numpy as np
 import pytest
 
 import hybridslam as hs
-from hybridslam import compilation
+from hybridslam import compilation, driver
 from hybridslam.studies import batch as sweep
 from hybridslam.studies.strategies import MapBatches, VmapBatches, default_strategy, parse_strategy
 
 from .scripts import load_script
 
 TINY = hs.Hybrid(weights=hs.Linearized(), smoother=hs.Filter(), capacity=4, classifier="mirror", max_detections=2)
+
+
+@pytest.fixture(scope="module")
+def many():
+    """`hs.run_many` over files of 2-3 steps with 1 or 2 detection slots, with TINY's settings but the
+    slots left to the files: (estimator, scenarios, seeds, runs, compiles it made). A fixture: the
+    compile count needs the first use of its program in this module."""
+    scenarios = [hs.simulate(20, steps=2, setup=hs.PaperSetup(max_detections=1)),
+                 hs.simulate(21, steps=3), hs.simulate(22, steps=3)]
+    estimator = hs.Hybrid(weights=hs.Linearized(), smoother=hs.Filter(), capacity=4, classifier="mirror")
+    compiles = []
+    real = compilation.compile_lowered
+    # A fresh process as far as compiled programs go: another file of this worker may have compiled
+    # this program (tests/test_sweep.py's single runs); its executable then comes from the run's cache.
+    driver.clear_compiled()
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(compilation, "compile_lowered", lambda *a, **k: compiles.append(1) or real(*a, **k))
+        runs = hs.run_many(estimator, scenarios, seed=[3, 4, 5])
+    return estimator, scenarios, (3, 4, 5), runs, len(compiles)
 
 
 def _close(a, b):
@@ -31,41 +55,18 @@ def test_strategies_by_backend_and_by_name():
             parse_strategy(bad)
 
 
-@pytest.mark.slow  # four compiles: the extended suite, CI
-def test_map_over_tracks_gives_the_vmapped_numbers():
-    """Three tracks (the last one shorter, padded) as one vmap, one by one and in chunks of two (the
-    third chunk padded): the same traces."""
-    scenarios = [hs.simulate(t, steps=3 if t < 2 else 2, alpha=0.4) for t in range(3)]
-    estimator = sweep.batched(TINY, scenarios)
-    inputs = sweep.batch_inputs(estimator, scenarios, seeds=[0, 1, 2])
-    runs = {s.describe(): sweep.run_batch(estimator, inputs, strategy=s)
-            for s in (VmapBatches(), MapBatches(1), MapBatches(2))}
-    assert {r.strategy for r in runs.values()} == {"vmap", "map:1", "map:2"}
-    for name in ("map:1", "map:2"):
-        _close(runs["vmap"].trace, runs[name].trace)
-    alone = hs.run(estimator.with_batch_axis(None), scenarios[2], seed=2).result.steps
-    got = sweep.step_records(runs["map:1"].trace, 2, scenarios[2])
-    assert len(got) == 2
-    for a, b in zip(alone, got):
-        assert [c.associations for c in a.components] == [c.associations for c in b.components]
-        np.testing.assert_allclose([c.weight for c in a.components], [c.weight for c in b.components], rtol=1e-9)
-
-
-def test_run_many_compiles_once_and_equals_single_runs(monkeypatch):
-    """Files of 2-4 steps with 1 or 2 detection slots: one compile for all of them (padded to the
+def test_run_many_compiles_once_and_equals_single_runs(many, monkeypatch):
+    """Files of 2-3 steps with 1 or 2 detection slots: one compile for all of them (padded to the
     longest and widest), each run's numbers those of `hs.run` alone with the unpadded estimator."""
-    scenarios = [hs.simulate(20, steps=2, setup=hs.PaperSetup(max_detections=1)),
-                 hs.simulate(21, steps=4), hs.simulate(22, steps=3)]
-    estimator = hs.Hybrid(weights=hs.Linearized(), smoother=hs.Filter(), capacity=5)
+    estimator, scenarios, seeds, runs, compiled = many
+    assert compiled == 1
+    assert [len(r.result.steps) for r in runs] == [2, 3, 3]
+    assert runs[0].result.timing["compile_s"] > 0 and runs[1].result.timing["compile_s"] == 0
     compiles = []
     real = compilation.compile_lowered
     monkeypatch.setattr(compilation, "compile_lowered", lambda *a, **k: compiles.append(1) or real(*a, **k))
-    runs = hs.run_many(estimator, scenarios, seed=[3, 4, 5])
-    assert len(compiles) == 1
-    assert [len(r.result.steps) for r in runs] == [2, 4, 3]
-    assert runs[0].result.timing["compile_s"] > 0 and runs[1].result.timing["compile_s"] == 0
     shared = sweep.shared_shapes(estimator, scenarios)
-    for s, seed, got in zip(scenarios, (3, 4, 5), runs):
+    for s, seed, got in zip(scenarios, seeds, runs):
         # hs.run with the padded estimator runs the same executable (no compile); alone, unpadded, the
         # file of 2 steps and 1 detection slot compiles its own program (numbers to rounding).
         for want in [hs.run(shared, s, seed=seed).result] + ([hs.run(estimator, s, seed=seed).result] if seed == 3 else []):
@@ -75,7 +76,29 @@ def test_run_many_compiles_once_and_equals_single_runs(monkeypatch):
                                            rtol=1e-9, atol=1e-12)
                 for key in a.metrics:
                     np.testing.assert_allclose(a.metrics[key], b.metrics[key], rtol=1e-9, atol=1e-12)
-    assert len(compiles) == 2  # the padded runs reused run_many's executable
+    assert len(compiles) == 1  # the padded runs reused run_many's executable; the unpadded one compiled
+
+
+@pytest.mark.slow  # three compiles: the extended suite, CI
+def test_map_over_tracks_gives_the_vmapped_numbers(many):
+    """Three tracks (the last one shorter, padded) as one vmap, one by one and in chunks of two (the
+    third chunk padded): the same traces. Alone, the padded track gets run_many's program."""
+    scenarios = [hs.simulate(t, steps=3 if t < 2 else 2, alpha=0.4) for t in range(3)]
+    estimator = sweep.batched(TINY, scenarios)
+    inputs = sweep.batch_inputs(estimator, scenarios, seeds=[0, 1, 2])
+    runs = {s.describe(): sweep.run_batch(estimator, inputs, strategy=s)
+            for s in (VmapBatches(), MapBatches(1), MapBatches(2))}
+    assert {r.strategy for r in runs.values()} == {"vmap", "map:1", "map:2"}
+    for name in ("map:1", "map:2"):
+        _close(runs["vmap"].trace, runs[name].trace)
+    single = estimator.with_batch_axis(None)
+    assert single == sweep.shared_shapes(many[0], many[1])  # run_many's estimator: its compiled program
+    alone = hs.run(single, scenarios[2], seed=2).result.steps
+    got = sweep.step_records(runs["map:1"].trace, 2, scenarios[2])
+    assert len(got) == 2
+    for a, b in zip(alone, got):
+        assert [c.associations for c in a.components] == [c.associations for c in b.components]
+        np.testing.assert_allclose([c.weight for c in a.components], [c.weight for c in b.components], rtol=1e-9)
 
 
 def test_run_many_checks_its_seeds():

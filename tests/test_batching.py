@@ -61,9 +61,9 @@ def test_live_slots_equal_vmap_for_every_chunk_size_and_under_an_outer_vmap():
     # Two tracks under an outer vmap with its axis name: a slot live in either track is computed.
     lives = jnp.stack([live, jnp.zeros(K, bool).at[6].set(True)])
     xs, ys = jnp.stack([x, -x]), jnp.stack([y, 2 * y])
-    for chunk in (1, 4):
-        out = jax.vmap(lambda lv, a, b, c=chunk: map_live(_fn, lv, a, b, chunk=c, axis_name="t"), axis_name="t")(
-            lives, xs, ys)
+    for chunk in (1, 4):  # jitted: one program each (op by op, every operation of map_live compiles alone)
+        out = jax.jit(jax.vmap(lambda lv, a, b, c=chunk: map_live(_fn, lv, a, b, chunk=c, axis_name="t"),
+                               axis_name="t"))(lives, xs, ys)
         for t in range(2):
             ref = jax.vmap(_fn)(xs[t], ys[t])
             mask = np.asarray(lives[t])
@@ -90,6 +90,6 @@ def test_fold_live_visits_only_chunks_with_a_live_slot():
         assert int(chunks) == visited, chunk
     # Under an outer vmap with its axis name, a chunk live in either track is visited in both.
     lives = jnp.stack([live, jnp.zeros(K, bool).at[0].set(True)])
-    total, chunks = jax.vmap(lambda lv, a: _sum_live(lv, a, 4, "t"), axis_name="t")(lives, jnp.stack([x, x]))
+    total, chunks = jax.jit(jax.vmap(lambda lv, a: _sum_live(lv, a, 4, "t"), axis_name="t"))(lives, jnp.stack([x, x]))
     np.testing.assert_allclose(total, [want, float(x[0] ** 2)], rtol=1e-15)
     assert chunks.tolist() == [2, 2]

@@ -22,9 +22,11 @@ def test_second_study_loads_the_exported_program_without_tracing(monkeypatch, tm
     folder = jax.config.jax_compilation_cache_dir  # the suite's persistent cache (tests/conftest.py)
     assert folder
     monkeypatch.setattr(exported, "FOLDER", f"exported-{tmp_path.name}")  # this test's files only
-    scenarios = [hs.simulate(t, steps=2, alpha=0.4) for t in range(2)]
+    exported.clear()  # another file of this worker may hold this program already (tests/test_sweep.py)
+    # tests/test_sweep.py's tiny study's shapes: its XLA executable, from the run's cache when both files run.
+    scenarios = [hs.simulate(t, steps=3, alpha=0.4) for t in range(3)]
     estimator = sweep.batched(TINY, scenarios)
-    inputs = sweep.batch_inputs(estimator, scenarios, seeds=[0, 1])
+    inputs = sweep.batch_inputs(estimator, scenarios, seeds=[0, 1, 2])
     first = sweep.run_batch(estimator, inputs, strategy=MapBatches(1))
     assert len(os.listdir(os.path.join(folder, exported.FOLDER))) == 1
 

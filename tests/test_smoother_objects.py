@@ -4,6 +4,7 @@ give what their names give."""
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -45,11 +46,17 @@ def test_a_smoother_that_is_no_smoother_is_refused_by_name(make, unchecked_types
 
 def test_elimination_objects_give_what_their_names_give(unchecked_types):
     graph = _graph(np.random.default_rng(3))
-    lin = sm.linearize(graph, jnp.zeros((P, 3)), jnp.zeros((N, 3))).damped(jnp.asarray(1e-3))
-    for name, strategy in [("poses-first", sm.PosesFirst()), ("objects-first", sm.ObjectsFirst()),
-                           ("dense", sm.Dense()), ("auto", sm.Auto())]:
+    pairs = [("poses-first", sm.PosesFirst()), ("objects-first", sm.ObjectsFirst()), ("dense", sm.Dense()),
+             ("auto", sm.Auto())]
+    for name, strategy in pairs:
         assert sm.as_elimination(name) == strategy
-        by_name, by_object = sm.solve_normal(lin, name), sm.solve_normal(lin, strategy)
+
+    @jax.jit  # one program for the eight solves (op by op, each of their few hundred operations compiles alone)
+    def solves(graph):
+        lin = sm.linearize(graph, jnp.zeros((P, 3)), jnp.zeros((N, 3))).damped(jnp.asarray(1e-3))
+        return [(sm.solve_normal(lin, name), sm.solve_normal(lin, strategy)) for name, strategy in pairs]
+
+    for (name, _), (by_name, by_object) in zip(pairs, solves(graph), strict=True):
         for a, b in zip(by_name, by_object):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-13, err_msg=name)
     assert sm.resolve_method(sm.Auto(), 61, 70) == "objects-first"
@@ -61,9 +68,14 @@ def test_elimination_objects_give_what_their_names_give(unchecked_types):
 def test_the_termination_config_is_what_the_keywords_were():
     graph = _graph(np.random.default_rng(4))
     start = (jnp.zeros((P, 3)), jnp.zeros((N, 3)))
-    by_keywords = sm.solve(graph, *start, max_steps=30, cost_rtol=1e-10, lambda_init=1e-3)
     config = sm.TerminationConfig(cost_rtol=1e-10, lambda_init=1e-3)
-    by_config = sm.levenberg_marquardt(graph, *start, config, max_steps=30, method=sm.Auto())
+
+    @jax.jit  # one program for both solves
+    def both(graph, poses, objects):
+        return (sm.solve(graph, poses, objects, max_steps=30, cost_rtol=1e-10, lambda_init=1e-3),
+                sm.levenberg_marquardt(graph, poses, objects, config, max_steps=30, method=sm.Auto()))
+
+    by_keywords, by_config = both(graph, *start)
     np.testing.assert_allclose(np.asarray(by_config.poses), np.asarray(by_keywords.poses), rtol=0, atol=1e-12)
     assert int(by_config.steps) == int(by_keywords.steps)
 

@@ -1,8 +1,13 @@
-"""The sweep engine: batched runs equal single runs, kill-and-resume, sharding over 4 devices.
+"""The sweep engine: batched runs equal single runs, kill-and-resume, sharding over 4 devices and
+over two processes.
 
 One tiny study (3 alphas x 1 model x 3 tracks x 3 steps, capacity 4, deterministic
 ``linearized`` weights so that there is one short compile) is run once in this process; the
-other tests compare against its table. The subprocess tests share a persistent compilation cache.
+other tests compare against its table, and run their batches, file studies and single runs in its
+shapes and settings, so that they reuse its programs (JAX compiles dominate: see tests/conftest.py).
+The subprocesses share the run's persistent compilation cache and the study's exported program
+(:mod:`hybridslam.studies.exported`): a one-device subprocess of the same settings traces and
+compiles nothing.
 """
 
 from __future__ import annotations
@@ -11,6 +16,7 @@ import json
 import os
 import pathlib
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -20,8 +26,10 @@ import numpy as np
 import pytest
 
 import hybridslam as hs
+from hybridslam import cli
 from hybridslam.studies import batch as sweep
 from hybridslam.studies import study
+from hybridslam.studies.strategies import CPU_DEVICES_ENV
 
 TINY = dict(alphas=(0.1, 0.4, 0.7), models=("mirror",), tracks=3, steps=3)
 ESTIMATOR = hs.Hybrid(weights=hs.Linearized(), smoother=hs.Filter(), capacity=4)
@@ -43,6 +51,27 @@ def append_then_die(self, record):
 study.Records.append = append_then_die
 sys.exit(cli.main(sys.argv[1:]))
 """
+# The tiny study in each of two processes (``jax.distributed`` on CPU, gloo collectives): the cluster
+# recipe of docs/sweeps.md on two local processes of one CPU device each.
+TWO_PROCESSES = """
+import sys
+import jax
+pid, port, folder = int(sys.argv[1]), sys.argv[2], sys.argv[3]
+jax.config.update("jax_cpu_collectives_implementation", "gloo")
+jax.distributed.initialize(coordinator_address=f"localhost:{port}", num_processes=2, process_id=pid)
+import hybridslam as hs
+from hybridslam.studies import study
+spec = study.AlphaStudy(alphas=(0.1, 0.4, 0.7), models=("mirror",), tracks=3, steps=3,
+                        estimator=hs.Hybrid(weights=hs.Linearized(), capacity=4, smoother=hs.Filter()))
+rows = study.run_alpha_study(spec, folder)
+print("process", jax.process_index(), "of", jax.process_count(), "devices", len(jax.devices()), "rows", len(rows))
+"""
+
+
+def _alone(scenario: hs.Scenario, seed: int) -> hs.Result:
+    """``hybridslam.run`` of one track with the tiny study's settings (one program for 3-step tracks and shorter)."""
+    return hs.run_estimator(scenario, classifier="mirror", capacity=4, weights="linearized", seed=seed,
+                            max_detections=2, max_steps=3, smoother="filter").result
 
 
 @pytest.fixture(scope="module")
@@ -56,10 +85,20 @@ def tiny(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def cache_env(shared_compilation_cache):
-    """The subprocesses' environment: the run's compilation cache (conftest), one CPU device."""
-    env = dict(os.environ)
-    env.pop("XLA_FLAGS", None)
-    return env
+    """The subprocesses' environment: the run's compilation cache and XLA flags (conftest: the flags are
+    part of the cache's key), one CPU device (the CLI would otherwise split the host into one per core)."""
+    flags = [f for f in os.environ.get("XLA_FLAGS", "").split() if "xla_force_host_platform_device_count" not in f]
+    return dict(os.environ, XLA_FLAGS=" ".join(flags), **{CPU_DEVICES_ENV: "1"})
+
+
+def _same_table(got: str, expected: str) -> None:
+    """Equal keys, metrics to 1e-9 (other devices or processes run other programs: rounding may differ)."""
+    exp_rows = [line.split(",") for line in expected.splitlines()]
+    got_rows = [line.split(",") for line in got.splitlines()]
+    assert [r[:5] for r in got_rows] == [r[:5] for r in exp_rows]
+    for e, g in zip(exp_rows[1:], got_rows[1:]):
+        np.testing.assert_allclose([float(v or "nan") for v in g[5:]], [float(v or "nan") for v in e[5:]],
+                                   rtol=1e-9, atol=1e-12, equal_nan=True)
 
 
 def _sweep_cmd(folder: str, *extra: str, python: tuple[str, ...] = ("-m", "hybridslam")) -> list[str]:
@@ -87,8 +126,7 @@ def test_batched_run_equals_single_runs(tiny):
     run = sweep.run_batch(estimator, sweep.batch_inputs(estimator, scenarios, seeds=[0, 1, 2]))
     assert run.compile_s == 0.0  # the study compiled this shape already: one executable per shape
     for t in (0, 2):
-        alone = hs.run_estimator(scenarios[t], classifier="mirror", capacity=4, weights="linearized",
-                                seed=t, max_detections=2, smoother="filter").result.steps
+        alone = _alone(scenarios[t], t).steps
         batched = sweep.step_records(run.trace, t, scenarios[t])
         for a, b in zip(alone, batched):
             assert [c.associations for c in a.components] == [c.associations for c in b.components]
@@ -98,21 +136,25 @@ def test_batched_run_equals_single_runs(tiny):
                 np.testing.assert_allclose(a.metrics[key], b.metrics[key], rtol=1e-9, atol=1e-12)
 
 
-@pytest.mark.slow  # two batch widths, 20 s of compiles: the extended suite, CI
+@pytest.mark.slow  # a batch width of its own, 20 s of compiles: the extended suite, CI
 def test_wide_batches_run_as_slices(tiny, monkeypatch):
-    """More tracks than MAX_TRACKS_PER_DEVICE: equal slices in sequence, same numbers."""
+    """More tracks than MAX_TRACKS_PER_DEVICE: equal slices in sequence, same numbers. (Slices of one
+    track: the program the memory test below splits into; tracks padded to fill a batch are
+    test_sharded_over_four_devices_equals_one's, on the same code path.)"""
     scenarios = [hs.simulate(t, steps=3, alpha=0.4) for t in range(3)]
     estimator = sweep.batched(hs.Hybrid(weights=hs.Linearized(), smoother=hs.Filter(), capacity=4, classifier="mirror", max_detections=2),
                               scenarios)
     inputs = sweep.batch_inputs(estimator, scenarios, seeds=[0, 1, 2])
     whole = sweep.run_batch(estimator, inputs).trace
-    monkeypatch.setattr(sweep, "MAX_TRACKS_PER_DEVICE", 2)
-    sliced = sweep.run_batch(estimator, inputs).trace  # 2 slices of 2 tracks (the last padded)
+    monkeypatch.setattr(sweep, "MAX_TRACKS_PER_DEVICE", 1)
+    plans = []
+    sliced = sweep.run_batch(estimator, inputs, on_plan=plans.append).trace
+    assert (plans[0].slices, plans[0].width) == (3, 1)
     for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(sliced)):
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
 
 
-@pytest.mark.slow  # two batch widths, 20 s of compiles: the extended suite, CI
+@pytest.mark.slow  # the batch width of the test above: the extended suite, CI
 def test_batches_too_big_for_memory_are_split(tiny, monkeypatch):
     """A batch whose compiled program needs more memory than the budget runs as smaller slices (halved
     until it fits, here down to one track each), with the same numbers, and says so."""
@@ -130,8 +172,11 @@ def test_batches_too_big_for_memory_are_split(tiny, monkeypatch):
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
 
 
-@pytest.mark.slow  # two sweeps in subprocesses, 30 s: the extended suite, CI
-def test_resume_after_kill_gives_the_same_table(tiny, tmp_path, cache_env):
+@pytest.mark.slow  # a sweep killed in a subprocess (the study's program from the caches): the extended suite, CI
+def test_resume_after_kill_gives_the_same_table(tiny, tmp_path, cache_env, capsys, unchecked_types):
+    """A real kill (a process's SIGKILL half way through a record), then ``hybridslam sweep`` again on
+    the folder (here in this process: without the suite's type checker, as the command runs; its cell
+    summary builds a StepInfo of (tracks, steps) arrays) ends with the table of the run that never stopped."""
     _, expected, _ = tiny
     folder = str(tmp_path / "killed")
     killed = subprocess.run(_sweep_cmd(folder, python=("-c", KILLED_AFTER_ONE_CELL)), env=cache_env,
@@ -143,9 +188,9 @@ def test_resume_after_kill_gives_the_same_table(tiny, tmp_path, cache_env):
     with open(os.path.join(folder, study.TABLE), encoding="utf-8") as f:
         assert f.read() == "\n".join(expected.splitlines()[:1 + 9]) + "\n"  # the finished cell's rows
 
-    resumed = subprocess.run(_sweep_cmd(folder), env=cache_env, capture_output=True, text=True, timeout=300)
-    assert resumed.returncode == 0, resumed.stderr
-    assert "resuming: 1 of 3 cells already recorded" in resumed.stdout
+    capsys.readouterr()
+    assert cli.main(["sweep", *CLI_ARGS, "-o", folder]) == 0
+    assert "resuming: 1 of 3 cells already recorded" in capsys.readouterr().out
     with open(os.path.join(folder, study.TABLE), encoding="utf-8") as f:
         assert f.read() == expected
     lines = pathlib.Path(records).read_text(encoding="utf-8").splitlines()
@@ -155,7 +200,7 @@ def test_resume_after_kill_gives_the_same_table(tiny, tmp_path, cache_env):
 @pytest.mark.slow  # a sweep in a subprocess over four host devices: the extended suite, CI
 def test_sharded_over_four_devices_equals_one(tiny, tmp_path, cache_env):
     _, expected, _ = tiny
-    env = dict(cache_env, XLA_FLAGS="--xla_force_host_platform_device_count=4")
+    env = dict(cache_env, XLA_FLAGS=f"{cache_env['XLA_FLAGS']} --xla_force_host_platform_device_count=4".strip())
     folder = str(tmp_path / "sharded")
     # 3 tracks on 4 devices also exercises the padding.
     out = subprocess.run(_sweep_cmd(folder), env=env, capture_output=True, text=True, timeout=300)
@@ -164,13 +209,31 @@ def test_sharded_over_four_devices_equals_one(tiny, tmp_path, cache_env):
     records = [json.loads(line) for line in pathlib.Path(folder, study.RECORDS).read_text(encoding="utf-8").splitlines()][1:]
     assert all(r["devices"] == 4 for r in records)
     with open(os.path.join(folder, study.TABLE), encoding="utf-8") as f:
-        got = f.read()
-    exp_rows = [line.split(",") for line in expected.splitlines()]
-    got_rows = [line.split(",") for line in got.splitlines()]
-    assert [r[:5] for r in got_rows] == [r[:5] for r in exp_rows]
-    for e, g in zip(exp_rows[1:], got_rows[1:]):
-        np.testing.assert_allclose([float(v or "nan") for v in g[5:]], [float(v or "nan") for v in e[5:]],
-                                   rtol=1e-9, atol=1e-12, equal_nan=True)
+        _same_table(f.read(), expected)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.slow  # two processes compiling the sweep, a minute: the extended suite, CI
+def test_two_processes_give_the_single_process_table(tiny, tmp_path, cache_env):
+    """The tiny study across two local processes (``jax.distributed``, one CPU device each) gives the
+    single-process table; only process 0 writes it."""
+    _, expected, _ = tiny
+    two = tmp_path / "two"
+    port = str(_free_port())
+    procs = [subprocess.Popen([sys.executable, "-c", TWO_PROCESSES, str(i), port, str(two)], env=cache_env,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
+    outs = [p.communicate(timeout=600) for p in procs]
+    for p, (out, err) in zip(procs, outs):
+        assert p.returncode == 0, err
+        assert "of 2 devices 2 rows 27" in out, out
+    _same_table((two / study.TABLE).read_text(encoding="utf-8"), expected)
+    records = (two / study.RECORDS).read_text(encoding="utf-8").splitlines()
+    assert len(records) == 1 + 3 and all('"devices": 2' in line for line in records[1:])
 
 
 def test_other_settings_are_refused(tiny):
@@ -188,24 +251,26 @@ def test_a_subset_of_the_grid_reuses_finished_cells(tiny):
     assert calls == [] and again == [r for r in rows if r["alpha"] == 0.4]
 
 
-@pytest.mark.slow  # a file study and single runs, 40 s of compiles: the extended suite, CI
+@pytest.mark.slow  # a file study and single runs in the tiny study's programs: the extended suite, CI
 def test_scenario_files_give_result_files_equal_to_single_runs(tiny, tmp_path):
     """`--scenarios`: files of equal shape run as one batch; each gets the result `run` would write."""
     files = tmp_path / "logs"
     files.mkdir()
     # Files of different lengths run in one batch: the shorter ones are padded with inactive steps.
-    scenarios = {f"log{t}": hs.simulate(10 + t, steps=3 if t < 2 else 4, alpha=0.4) for t in range(3)}
+    scenarios = {f"log{t}": hs.simulate(10 + t, steps=3 if t < 2 else 2, alpha=0.4) for t in range(3)}
     for name, s in scenarios.items():
         hs.save_scenario(s, str(files / f"{name}.json"))
     out = str(tmp_path / "out")
     spec = study.FileStudy(tuple(study.scenario_paths(str(files))), None, 7, ESTIMATOR)
     rows = study.run_file_study(spec, out)
-    assert len(rows) == 3 + 3 + 4 and {r["scenario"] for r in rows} == {f"{n}.json" for n in scenarios}
+    assert len(rows) == 3 + 3 + 2 and {r["scenario"] for r in rows} == {f"{n}.json" for n in scenarios}
+    record = json.loads(pathlib.Path(out, study.RECORDS).read_text(encoding="utf-8").splitlines()[1])
+    assert record["compile_s"] == 0.0  # padded to 3 steps and 2 slots: the tiny study's program
     for name, s in scenarios.items():
         got = hs.load_result(os.path.join(out, "results", f"{name}.json"))
-        want = hs.run(ESTIMATOR.__class__(weights=hs.Linearized(), smoother=hs.Filter(), capacity=4, max_detections=2, max_steps=4), s,
-                      seed=7).result
+        want = _alone(s, 7)
         assert got.timing is not None and len(got.timing["step_s"]) == s.num_steps
+        assert len(got.steps) == len(want.steps) == s.num_steps
         for a, b in zip(want.steps, got.steps):
             assert [c.associations for c in a.components] == [c.associations for c in b.components]
             np.testing.assert_allclose([c.weight for c in a.components], [c.weight for c in b.components], rtol=1e-9)
@@ -246,8 +311,6 @@ def test_files_are_grouped_by_shape_and_model():
 
 
 def test_cli_plot_and_sweep_errors(tiny, tmp_path, capsys):
-    from hybridslam import cli
-
     folder, _, _ = tiny
     assert cli.main(["plot", folder]) == 0
     assert os.path.getsize(os.path.join(folder, "alpha_sweep.png")) > 10_000
