@@ -173,10 +173,9 @@ def test_batches_too_big_for_memory_are_split(tiny, monkeypatch):
 
 
 @pytest.mark.slow  # a sweep killed in a subprocess (the study's program from the caches): the extended suite, CI
-def test_resume_after_kill_gives_the_same_table(tiny, tmp_path, cache_env, capsys, unchecked_types):
+def test_resume_after_kill_gives_the_same_table(tiny, tmp_path, cache_env, capsys):
     """A real kill (a process's SIGKILL half way through a record), then ``hybridslam sweep`` again on
-    the folder (here in this process: without the suite's type checker, as the command runs; its cell
-    summary builds a StepInfo of (tracks, steps) arrays) ends with the table of the run that never stopped."""
+    the folder (here in this process) ends with the table of the run that never stopped."""
     _, expected, _ = tiny
     folder = str(tmp_path / "killed")
     killed = subprocess.run(_sweep_cmd(folder, python=("-c", KILLED_AFTER_ONE_CELL)), env=cache_env,

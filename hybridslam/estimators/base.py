@@ -25,6 +25,7 @@ from __future__ import annotations
 import abc
 import dataclasses
 import math
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import equinox as eqx
@@ -132,13 +133,21 @@ def lacks_object_slots(mask: Bool[Array, " Dmax"], num_created: Int[Array, "*K"]
     return jnp.any(mask) & jnp.any(jnp.asarray(relevant) & (num_created >= max_objects))
 
 
+_COUNTS = ("dropped_capacity", "dropped_budget", "dropped_mass", "visibility_ignored", "solver_failures",
+           "is_failures", "skipped", "rejected", "unmapped", "object_overflow", "log_overflow", "num_components",
+           "inconsistent")
+
+
 def _totals(info: StepInfo) -> dict[str, float]:
     """Host-side totals of the counts of one info, or of a stack of them (any leading axes)."""
-    a = {name: np.asarray(getattr(info, name)) for name in
-         ("dropped_capacity", "dropped_budget", "dropped_mass", "visibility_ignored", "solver_failures",
-          "is_failures", "skipped", "rejected", "unmapped", "object_overflow", "log_overflow", "num_components",
-          "inconsistent")}
-    ess = np.asarray(info.min_ess, dtype=float)
+    return _totals_of({name: getattr(info, name) for name in (*_COUNTS, "min_ess")})
+
+
+def _totals_of(counts: Mapping[str, Any]) -> dict[str, float]:
+    """:func:`_totals` of :class:`StepInfo`'s fields given by name (a missing count is zero, a missing
+    ``min_ess`` unknown), each of any shape (e.g. tracks × steps)."""
+    a = {name: np.asarray(counts.get(name, 0)) for name in _COUNTS}
+    ess = np.asarray(counts.get("min_ess", math.nan), dtype=float)
     out: dict[str, float] = {name: float(np.sum(v)) for name, v in a.items()}
     out["steps_dropped_capacity"] = float(np.sum(a["dropped_capacity"] > 0))
     out["min_ess"] = float(np.min(ess[np.isfinite(ess)])) if np.any(np.isfinite(ess)) else math.nan
@@ -149,6 +158,12 @@ def _totals(info: StepInfo) -> dict[str, float]:
 def summarize(infos: StepInfo) -> list[str]:
     """The warnings of many steps at once (``infos`` stacked on leading axes, e.g. tracks × steps)."""
     return messages(_totals(infos), per_step=False)
+
+
+def summarize_counts(counts: Mapping[str, Any]) -> list[str]:
+    """:func:`summarize` of :class:`StepInfo`'s counts given by field name, as stored (e.g. a study's
+    per-cell diagnostics, tracks × steps): a missing count is zero."""
+    return messages(_totals_of(counts), per_step=False)
 
 
 def messages(t: dict[str, float], per_step: bool) -> list[str]:

@@ -25,11 +25,10 @@ import math
 import os
 from collections.abc import Callable, Iterable, Sequence
 
-import jax.numpy as jnp
 import numpy as np
 
 from ..driver import object_poses
-from ..estimators.base import AbstractEstimator, StepInfo, summarize
+from ..estimators.base import AbstractEstimator, summarize_counts
 from ..estimators.hybrid.estimator import Hybrid
 from ..io.result import Result, save_result
 from ..io.scenario import Scenario, load_scenario
@@ -159,11 +158,7 @@ def _record(cell: dict, run: BatchRun, extra: dict | None = None) -> dict:
 def cell_warnings(record: dict) -> list[str]:
     """One line per kind of trouble in a cell (capacity drops, failed solves, low ESS, ...), in the
     words every estimator's :class:`~hybridslam.estimators.StepInfo` uses."""
-    d = record["diagnostics"]
-    counts = {name: np.asarray(d[name]) for name in DIAGNOSTICS if name in d and name != "num_components"}
-    info = StepInfo(k=jnp.zeros((), jnp.int32), num_components=jnp.asarray(d.get("num_components", 0)),
-                    **{name: jnp.asarray(v) for name, v in counts.items()})
-    return summarize(info)
+    return summarize_counts({name: np.asarray(v) for name, v in record["diagnostics"].items()})
 
 
 # --------------------------------------------------------------------------- #
