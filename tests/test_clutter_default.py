@@ -7,6 +7,7 @@ import dataclasses
 import json
 import math
 
+import jax
 import numpy as np
 import pytest
 
@@ -53,16 +54,25 @@ def test_the_paper_files_declare_no_clutter_and_the_field_round_trips(duplicated
 @pytest.mark.parametrize("name", ["ml", "gpda", "max-mixture"])
 def test_the_single_gaussian_estimators_read_the_files_clutter_density(name, outlier):
     """With the file's clutter density the far copy is explained as clutter (``rejected``), nothing
-    is skipped, and the settings line says which density; ``clutter="none"`` turns it off (nothing is
-    rejected), and a number overrides the file's."""
+    is skipped, and the settings line says which density; ``clutter="none"`` turns it off (its state
+    is that of the file without the field, where nothing is rejected), and a number overrides the file's."""
     with_clutter = outlier.replace(clutter_log_density=-10.0)
     est = hs.make_estimator(name, gate=1, smoother="filter")
     assert "clutter=-10" in est.describe(with_clutter) and "clutter" not in est.describe(outlier)
     infos = run(est, with_clutter).infos
     assert int(infos[0].rejected) == 1 and int(infos[0].skipped) == 0
-    off = run(hs.make_estimator(name, gate=1, smoother="filter", clutter="none"), with_clutter).infos
-    assert int(off[0].rejected) == 0
-    assert "clutter=-3" in hs.make_estimator(name, clutter=-3.0).describe(with_clutter)
+    # "none" is resolved when the state is built: the state equals the file's without a density, so
+    # its steps are `est`'s on that file (ml's program is test_ml_without_a_clutter_density_...'s).
+    off = hs.make_estimator(name, gate=1, smoother="filter", clutter="none").init(with_clutter)
+    plain = est.init(outlier)
+    assert not off.structure.clutter and off.structure == plain.structure
+    assert float(off.params.clutter_log_density) == -np.inf
+    for a, b in zip(jax.tree.leaves(off), jax.tree.leaves(plain), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert int(run(est, outlier).infos[0].rejected) == 0
+    override = hs.make_estimator(name, clutter=-3.0)
+    assert "clutter=-3" in override.describe(with_clutter)
+    assert float(override.init(with_clutter).params.clutter_log_density) == -3.0
 
 
 def test_ml_without_a_clutter_density_skips_the_copy_as_before(duplicated):

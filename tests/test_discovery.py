@@ -25,6 +25,8 @@ CAPACITY = 5  # object slots
 RUN = {"capacity": 8, "max_detections": 2, "weights": "linearized", "smoother": "filter"}
 # One jitted step for the file: estimators of equal settings and beliefs of equal shapes share it.
 STEP = eqx.filter_jit(lambda estimator, belief, *inputs: estimator.step(belief, *inputs))
+# create_object jitted (op by op, each test's calls compiled some 60-90 small programs).
+CREATE_OBJECT = jax.jit(create_object)
 
 
 def _world(steps: int = 8) -> hs.Scenario:
@@ -271,7 +273,7 @@ def test_create_object_covariance_matches_monte_carlo():
     cov[6:, 6:] = np.eye(6)
     mean = np.r_[1.0, 2.0, 0.4, 3.0, 1.0, 0.2, np.zeros(6)]
     geo, geometric_cov, var = np.array([2.0, 0.3]), np.diag([0.01, 0.004]), 9.87
-    new_mean, new_cov = jax.jit(create_object)(jnp.asarray(mean), jnp.asarray(cov), jnp.asarray(1), jnp.asarray(geo),
+    new_mean, new_cov = CREATE_OBJECT(jnp.asarray(mean), jnp.asarray(cov), jnp.asarray(1), jnp.asarray(geo),
                                       jnp.asarray(geometric_cov), jnp.asarray(var))
     n = 50_000
     y = rng.multivariate_normal(mean, cov, n)
@@ -295,10 +297,9 @@ def test_create_object_equals_the_dense_affine_map_and_discards_the_slot():
     cov = root @ root.T / dim + 0.05 * np.eye(dim)
     mean = rng.normal(size=dim)
     geo, geometric_cov, var = np.array([2.5, -0.7]), np.array([[0.02, 0.003], [0.003, 0.01]]), 4.0
-    new_mean, new_cov = create_object(jnp.asarray(mean), jnp.asarray(cov), jnp.asarray(slot), jnp.asarray(geo),
+    new_mean, new_cov = CREATE_OBJECT(jnp.asarray(mean), jnp.asarray(cov), jnp.asarray(slot), jnp.asarray(geo),
                                       jnp.asarray(geometric_cov), jnp.asarray(var))
-    j_x = np.asarray(jax.jacfwd(back_project, 0)(jnp.asarray(mean[:3]), jnp.asarray(geo)))
-    j_z = np.asarray(jax.jacfwd(back_project, 1)(jnp.asarray(mean[:3]), jnp.asarray(geo)))
+    j_x, j_z = (np.asarray(a) for a in jax.jit(jax.jacfwd(back_project, (0, 1)))(jnp.asarray(mean[:3]), jnp.asarray(geo)))
     rows = 3 + 3 * slot + np.arange(3)
     a = np.eye(dim)
     a[rows] = 0.0
@@ -310,7 +311,7 @@ def test_create_object_equals_the_dense_affine_map_and_discards_the_slot():
     np.testing.assert_allclose(new_cov, a @ cov @ a.T + b @ geometric_cov @ b.T + var * np.outer(e, e),
                                rtol=1e-12, atol=1e-12)
     want_mean = mean.copy()
-    want_mean[rows] = np.r_[np.asarray(back_project(jnp.asarray(mean[:3]), jnp.asarray(geo))), 0.0]
+    want_mean[rows] = np.r_[np.asarray(jax.jit(back_project)(jnp.asarray(mean[:3]), jnp.asarray(geo))), 0.0]
     np.testing.assert_allclose(new_mean, want_mean, rtol=1e-12, atol=1e-12)
 
 
@@ -323,11 +324,11 @@ def test_create_object_with_apply_false_changes_nothing():
     cov = jnp.asarray(root @ root.T / dim + 0.05 * np.eye(dim))
     mean = jnp.asarray(rng.normal(size=dim))
     args = (jnp.asarray(1), jnp.asarray([2.0, 0.3]), jnp.eye(2) * 0.01, jnp.asarray(4.0))
-    same_mean, same_cov = create_object(mean, cov, *args, apply=jnp.asarray(False))
+    same_mean, same_cov = CREATE_OBJECT(mean, cov, *args, apply=jnp.asarray(False))
     np.testing.assert_array_equal(np.asarray(same_mean), np.asarray(mean))
     np.testing.assert_array_equal(np.asarray(same_cov), np.asarray(cov))
-    full = create_object(mean, cov, *args)
-    batched = jax.vmap(lambda a: create_object(mean, cov, *args, apply=a))(jnp.asarray([True, False]))
+    full = CREATE_OBJECT(mean, cov, *args)  # the program of test_create_object_covariance_matches_monte_carlo
+    batched = jax.jit(jax.vmap(lambda a: create_object(mean, cov, *args, apply=a)))(jnp.asarray([True, False]))
     np.testing.assert_array_equal(np.asarray(batched[1][0]), np.asarray(full[1]))
     np.testing.assert_array_equal(np.asarray(batched[1][1]), np.asarray(cov))
     assert not np.allclose(np.asarray(full[1]), np.asarray(cov))
@@ -345,9 +346,9 @@ def test_create_objects_creates_in_detection_order_and_skips_the_rest():
     slots, creates = jnp.asarray([3, -1, 1, 2]), jnp.asarray([True, False, True, False])
     geo = jnp.asarray([[2.0, 0.3], [1.0, -0.2], [3.0, 1.1], [2.5, 0.0]])
     gcov, var = jnp.eye(2) * 0.01, jnp.asarray(4.0)
-    got = create_objects(mean, cov, slots, creates, geo, gcov, var)
-    want = create_object(mean, cov, jnp.asarray(3), geo[0], gcov, var)
-    want = create_object(*want, jnp.asarray(1), geo[2], gcov, var)
+    got = jax.jit(create_objects)(mean, cov, slots, creates, geo, gcov, var)
+    want = CREATE_OBJECT(mean, cov, jnp.asarray(3), geo[0], gcov, var)
+    want = CREATE_OBJECT(*want, jnp.asarray(1), geo[2], gcov, var)
     for g, w in zip(got, want):
         np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=1e-14, atol=1e-14)
     assert abs(float(got[1][3 + 3 * 3, 3 + 3 * 1])) > 0  # the two new objects are correlated

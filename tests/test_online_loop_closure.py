@@ -9,12 +9,23 @@ import numpy as np
 import pytest
 
 import hybridslam as hs
+from hybridslam import compilation
 from hybridslam.analysis.trajectory import error_summary
 from hybridslam.estimators import loop_settings
 from hybridslam.analysis.recall import closure_recall
 from hybridslam.estimators.loop_online import OnlineLoopClosure, _renumbered
 from hybridslam.estimators.multimodal.loops import merged_class_posteriors
 from hybridslam.sim.hallway import HallwaySetup, hallway
+
+
+@pytest.fixture(scope="module", autouse=True)
+def quick_compiles():
+    """The 28-step runs compile as short runs do (LLVM level 0, ``hybridslam.compilation``): XLA's part
+    of each compile about halves and the steps, which these runs are few of, take longer. For the
+    whole module, so that every run (the CLI's too) finds the same executable."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(compilation, "QUICK_RUN_STEPS", 28)
+        yield
 
 
 def test_merged_slots_are_renumbered_in_creation_order():
