@@ -1,7 +1,7 @@
 """The code blocks of the README and the documentation pages, as the tests run them.
 
 A page's ```` ```python ```` and ```` ```bash ```` blocks are its examples. Every one of them is run by
-``tests/test_readme_run.py`` (marker ``readme``) unless the line before it is an HTML comment
+``tests/test_readme_run.py`` or ``tests/test_readme_python.py`` (marker ``readme``, :data:`WITH_COMMANDS`) unless the line before it is an HTML comment
 ``<!-- skip-test: REASON -->`` (a block that needs a GPU, SLURM or several hosts); the quick tests
 of ``tests/test_docs_blocks.py`` check that every block is one the runner knows how to run, that
 each skipped one says why, and that the names and options the blocks use exist.
@@ -96,3 +96,23 @@ def kind(command: str) -> str:
 
 def commands(block: Block) -> list[str]:
     return [part.strip() for line in command_lines(block) for part in line.split("&&")]
+
+
+def runnable(page: Path) -> list[str]:
+    """The page's commands that the runner runs or checks (kinds ``run`` and ``script``), in order."""
+    return [c for b in blocks(page) if b.lang == "bash" and b.skip is None for c in commands(b)
+            if kind(c) in ("run", "script")]
+
+
+def python_blocks(page: Path) -> list[Block]:
+    return [b for b in blocks(page) if b.lang == "python" and b.skip is None]
+
+
+# The pages whose Python blocks run beside the commands (tests/test_readme_run.py, after them, in the
+# commands' process): those with commands (their Python reads the files the commands write) and
+# those whose Python builds a program a command builds alike (the API page's and the file-format
+# page's runs are the README's `hybridslam run`s), so that it is traced and compiled once. Every other
+# page's Python runs in tests/test_readme_python.py: the two files run side by side on CI's two
+# workers.
+SHARES_PROGRAMS = ("index.md", "api.md", "file_format.md")
+WITH_COMMANDS = [p for p in PAGES if runnable(p) or p.name in SHARES_PROGRAMS]

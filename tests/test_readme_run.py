@@ -1,26 +1,37 @@
-"""Every code block of the README and of the documentation pages runs, in the pages' order, as a
-user types it, and the README's commands print what the README says they print.
+"""Every command of the README and of the documentation pages runs, in the pages' order, as a user
+types it, and the README's commands print what the README says they print; then the Python blocks
+of the pages that go with the commands (``tests/docblocks.py``'s ``WITH_COMMANDS``). The other pages'
+Python blocks run in ``tests/test_readme_python.py``, beside this file on CI's other worker.
 
 The pages are those of ``tests/docblocks.py`` (the README first, then the site's navigation). Their
-``bash`` commands run as subprocesses through the shell, in one scratch folder, so each one's output
-is the next one's input (``simulate`` writes the ``scenario.json`` that ``run`` reads; ``sweep``
-writes the ``runs/sweep`` that ``plot`` draws); a command that two pages share runs once. Each
-page's ``python`` blocks run in order as one script in the same folder, each page in a namespace of
-its own, all pages in one process (``tests/docworker.py``), so that the imports and the compiles
-are shared; a failure names the page's block and line. A block after ``<!-- skip-test: REASON -->``
-is not run (``tests/test_docs_blocks.py`` reports it). Two inputs a
-fresh machine lacks are supplied:
+``bash`` commands run in one scratch folder, so each one's output is the next one's input
+(``simulate`` writes the ``scenario.json`` that ``run`` reads; ``sweep`` writes the ``runs/sweep``
+that ``plot`` draws); a command that two pages share runs once. The README's main job, ``hybridslam
+sweep -o runs/sweep``, runs through the shell as a process of its own, from the installed entry
+point: it tests the install. Every other ``hybridslam`` command runs as that entry point runs it,
+:func:`hybridslam.cli.main` with the command's arguments, in one long-lived process
+(``tests/docworker.py``, started as the CLI's sweep starts: one CPU device per core), so that the
+interpreter's start and the imports are paid once and a program that several commands (or a page's
+Python) build alike is traced and compiled once; a command with shell syntax beyond quoting (a
+glob, a pipe) would run through the shell. Each page's ``python`` blocks run in order as one script
+in the same folder and process, each page in a namespace of its own, starting in float32 as a
+user's Python does; a failure names the page's block and line. A block after ``<!-- skip-test:
+REASON -->`` is not run (``tests/test_docs_blocks.py`` reports it). Two inputs a fresh machine
+lacks are supplied:
 
 * ``MRCLAM_Dataset7``: the real dataset when ``$MRCLAM_DATASET`` names it, else the committed
   45 s excerpt of dataset 7, robot 1 (``tests/data/mrclam``). The excerpt is shorter than the
-  pages' window, so on it ``--start 20 --duration 100`` becomes ``--start 0 --duration 40``;
-  nothing else of any command line is changed.
+  pages' window, so on it ``--start 20 --duration 100`` becomes ``--start 0 --duration 10``: 20
+  steps, a run short enough for the quick compile (``hybridslam.compilation.QUICK_RUN_STEPS``; the
+  main sweep's batch compiles fully), which halves the real-data commands' time. Nothing else of
+  any command line is changed.
 * ``logs/``: the user's own scenario files for ``sweep --scenarios 'logs/*.json'``; here the two
   files the MRCLAM page's ``import`` lines wrote.
 
 ``python3 experiments/...`` and ``python3 scripts/...`` lines (studies of minutes to hours) are
-checked against the script's own ``--help``: every option the page gives exists. The install,
-test and docs-build lines (``pip``, ``pytest``, ``mypy``, ``mkdocs``) are what CI itself runs.
+checked against the script's own ``--help`` (the script run with ``--help`` in the same process):
+every option the page gives exists. The install, test and docs-build lines (``pip``, ``pytest``,
+``mypy``, ``mkdocs``) are what CI itself runs.
 
 Marked ``readme`` (minutes on 2 cores; the default study alone about 1.5 of them), so ``python3 -m
 pytest -q`` skips it; ``.ci/run`` runs it in one session with the rest (``python3 -m pytest -q -m ""``),
@@ -31,7 +42,6 @@ for what it prints.
 
 from __future__ import annotations
 
-import json
 import os
 import re
 import shlex
@@ -44,18 +54,20 @@ import pytest
 
 import hybridslam as hs
 
-from .docblocks import PAGES, README, ROOT, blocks, commands, kind
+from .docblocks import PAGES, README, ROOT, WITH_COMMANDS, blocks, commands, kind, python_blocks, runnable
+from .docworker import Worker, environment
 
 pytestmark = pytest.mark.readme
 
 EXCERPT = ROOT / "tests" / "data" / "mrclam"
 
 # Every page's commands that this test runs or checks, in order, each once; the README's alone.
-COMMANDS = list(dict.fromkeys(c for p in PAGES for b in blocks(p) if b.lang == "bash" and b.skip is None
-                              for c in commands(b) if kind(c) in ("run", "script")))
+COMMANDS = list(dict.fromkeys(c for p in PAGES for c in runnable(p)))
 README_COMMANDS = [c for b in blocks(README) if b.lang == "bash" for c in commands(b) if kind(c) == "run"]
-PYTHON_PAGES = [p for p in PAGES if any(b.lang == "python" and b.skip is None for b in blocks(p))]
-
+PYTHON_PAGES = [p for p in WITH_COMMANDS if python_blocks(p)]
+# The commands that run through the shell, each a process of its own: the README's main job, which
+# tests the installed entry point (every other command runs in the worker process).
+SHELL = ("hybridslam sweep -o runs/sweep",)
 
 
 def _scenario(path: str, **expect):
@@ -127,20 +139,36 @@ def workdir(tmp_path_factory) -> Path:
     return path
 
 
-def _shell_line(command: str) -> str:
-    """The command as the shell runs it here: on the excerpt, a window that lies inside it."""
+@pytest.fixture(scope="module")
+def worker(workdir):
+    """The process of every command but :data:`SHELL`'s and of :data:`PYTHON_PAGES`' blocks."""
+    worker = Worker(workdir, "--split-cpu")
+    yield worker
+    worker.close()
+
+
+def _on_excerpt(command: str) -> str:
+    """The command as it runs here: on the excerpt, a window that lies inside it."""
     if not os.environ.get("MRCLAM_DATASET"):
-        command = command.replace("--start 20 --duration 100", "--start 0 --duration 40")
-    if shutil.which("hybridslam", path=_environment()["PATH"]) is None:  # installed without scripts
+        command = command.replace("--start 20 --duration 100", "--start 0 --duration 10")
+    return command
+
+
+def _shell_line(command: str) -> str:
+    """The command as the shell runs it here: the entry point of this interpreter's environment."""
+    command = _on_excerpt(command)
+    if shutil.which("hybridslam", path=environment()["PATH"]) is None:  # installed without scripts
         command = re.sub(r"^hybridslam ", f"{shlex.quote(sys.executable)} -m hybridslam ", command)
     return command
 
 
-def _environment() -> dict[str, str]:
-    """This interpreter's folder first on PATH: its ``hybridslam`` entry point (a venv need not be activated)."""
-    env = dict(os.environ)
-    env["PATH"] = os.pathsep.join([str(Path(sys.executable).parent), env.get("PATH", "")])
-    return env
+def _arguments(command: str) -> list[str] | None:
+    """The words the shell would pass, or ``None`` when the shell would do more than split and
+    unquote them (expand a glob or a variable, redirect, pipe, chain): then only the shell runs it."""
+    unquoted = re.sub(r"'[^']*'|\"[^\"$`\\\\]*\"", "", command)
+    if re.search(r"[*?\[\]$`~|&;<>(){}\\]", unquoted):
+        return None
+    return shlex.split(command)
 
 
 def test_every_readme_command_has_an_expectation():
@@ -149,86 +177,61 @@ def test_every_readme_command_has_an_expectation():
     assert not missing, f"README commands without an entry in EXPECT (add one): {missing}"
     unused = [c for c in EXPECT if c not in COMMANDS]
     assert not unused, f"EXPECT entries no page documents any more (remove them): {unused}"
+    assert all(c in COMMANDS for c in SHELL), [c for c in SHELL if c not in COMMANDS]
+
+
+def test_arguments_as_the_shell_splits_them():
+    """The worker gets what the shell would pass; anything the shell itself expands goes to the shell."""
+    assert _arguments("hybridslam sweep --scenarios 'logs/*.json' -o runs/logs") == [
+        "hybridslam", "sweep", "--scenarios", "logs/*.json", "-o", "runs/logs"]
+    assert _arguments('hybridslam run "my file.json" -o r.json') == ["hybridslam", "run", "my file.json", "-o", "r.json"]
+    for line in ("hybridslam run logs/*.json", "hybridslam run $F", "hybridslam run a.json > out.txt",
+                 "hybridslam run a.json | tee out", "hybridslam run ~/a.json", 'hybridslam run "$F"'):
+        assert _arguments(line) is None, line
 
 
 @pytest.mark.parametrize("command", COMMANDS)
-def test_readme_command_runs(command, workdir, monkeypatch):
+def test_readme_command_runs(command, workdir, worker, monkeypatch):
     monkeypatch.chdir(workdir)
     if command.startswith("python3 "):
-        return _check_options(command)
+        return _check_options(command, worker)
     if "logs/" in command:
         os.makedirs("logs", exist_ok=True)
         for name in ("robot1.json", "robot1-slam.json"):
             shutil.copy(name, Path("logs") / name)
-    proc = subprocess.run(_shell_line(command), shell=True, capture_output=True, text=True, env=_environment())
-    assert proc.returncode == 0, f"{command}\nexit {proc.returncode}\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
-    assert "Traceback" not in proc.stderr, proc.stderr
+    argv = _arguments(_on_excerpt(command))
+    if command in SHELL or argv is None:
+        proc = subprocess.run(_shell_line(command), shell=True, capture_output=True, text=True, env=environment())
+        status, stdout, stderr = proc.returncode, proc.stdout, proc.stderr
+    else:
+        answer = worker.ask({"command": argv[1:]}, command)
+        assert answer is not None, f"{command}: {worker.ended()}"
+        status, stdout, stderr = answer["status"], answer["stdout"], answer["stderr"]
+    assert status == 0, f"{command}\nexit {status}\n{stdout[-3000:]}\n{stderr[-3000:]}"
+    assert "Traceback" not in stderr, stderr
     if command not in EXPECT:
         return
     printed, check_files = EXPECT[command]
     for pattern in printed:
-        assert re.search(pattern, proc.stdout, flags=re.M), f"{command}: no line matches {pattern!r}:\n{proc.stdout}"
+        assert re.search(pattern, stdout, flags=re.M), f"{command}: no line matches {pattern!r}:\n{stdout}"
     check_files()  # type: ignore[operator]
 
 
-class _Worker:
-    """One ``tests/docworker.py`` process for every page's Python blocks (imports and compiles shared);
-    started again if a page kills it."""
-
-    def __init__(self, workdir: Path):
-        self.workdir, self.proc = workdir, None
-        self.stderr = workdir.parent / "docworker.stderr"
-
-    def run(self, page: Path) -> dict:
-        if self.proc is None or self.proc.poll() is not None:
-            env = _environment()
-            env["MPLBACKEND"] = "Agg"
-            # A user's Python starts in float32: the pages turn float64 on themselves (hs.setup()).
-            env.pop("JAX_ENABLE_X64", None)
-            self.proc = subprocess.Popen([sys.executable, str(ROOT / "tests" / "docworker.py"), str(self.workdir)],
-                                         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
-                                         stderr=self.stderr.open("w"))
-        request = [[b.name, b.line, b.code] for b in blocks(page) if b.lang == "python" and b.skip is None]
-        assert self.proc.stdin and self.proc.stdout
-        self.proc.stdin.write(json.dumps({"page": page.name, "blocks": request}) + "\n")
-        self.proc.stdin.flush()
-        answer = self.proc.stdout.readline()
-        if not answer:
-            self.proc.wait()
-            tail = self.stderr.read_text(encoding="utf-8", errors="replace")[-3000:]
-            return {"failed": f"{page.relative_to(ROOT)} (the process ended: exit {self.proc.returncode})",
-                    "error": tail, "output": ""}
-        return json.loads(answer)
-
-    def close(self) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            assert self.proc.stdin
-            self.proc.stdin.close()
-            self.proc.wait()
-
-
-@pytest.fixture(scope="module")
-def python_worker(workdir):
-    worker = _Worker(workdir)
-    yield worker
-    worker.close()
-
-
 @pytest.mark.parametrize("page", PYTHON_PAGES, ids=lambda p: str(p.relative_to(ROOT)))
-def test_python_blocks_run(page, python_worker):
+def test_python_blocks_run(page, worker):
     """A page's Python blocks, in order, as one script in the scratch folder (after the commands,
     so the files they name exist); a failure names the block and its line in the page."""
-    answer = python_worker.run(page)
+    answer = worker.page(page, ROOT, python_blocks(page))
     assert answer["failed"] is None, f"{answer['failed']} failed:\n{answer['error']}\n{answer['output'][-3000:]}"
 
 
-def _check_options(command: str) -> None:
-    """A script line: the script exists and its ``--help`` lists every option the README gives it."""
+def _check_options(command: str, worker: Worker) -> None:
+    """A script line: the script exists and its ``--help`` lists every option the page gives it."""
     argv = shlex.split(command)
     script = ROOT / argv[1]
     assert script.is_file(), f"{command}: no such script {argv[1]}"
-    proc = subprocess.run([sys.executable, str(script), "--help"], capture_output=True, text=True, cwd=ROOT)
-    assert proc.returncode == 0, proc.stderr
+    answer = worker.ask({"script": str(script), "argv": ["--help"], "cwd": str(ROOT)}, command)
+    assert answer is not None, f"{command}: {worker.ended()}"
+    assert answer["status"] == 0, answer["stderr"]
     for option in (a for a in argv[2:] if a.startswith("--")):
-        assert re.search(rf"(^|\s){re.escape(option)}\b", proc.stdout), f"{command}: {option} not in --help"
-
+        assert re.search(rf"(^|\s){re.escape(option)}\b", answer["stdout"]), f"{command}: {option} not in --help"
