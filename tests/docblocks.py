@@ -1,10 +1,11 @@
 """The code blocks of the README and the documentation pages, as the tests run them.
 
 A page's ```` ```python ```` and ```` ```bash ```` blocks are its examples. Every one of them is run by
-``tests/test_readme_run.py`` or ``tests/test_readme_python.py`` (marker ``readme``, :data:`WITH_COMMANDS`) unless the line before it is an HTML comment
-``<!-- skip-test: REASON -->`` (a block that needs a GPU, SLURM or several hosts); the quick tests
-of ``tests/test_docs_blocks.py`` check that every block is one the runner knows how to run, that
-each skipped one says why, and that the names and options the blocks use exist.
+``tests/test_readme_run.py`` or ``tests/test_readme_python.py`` (marker ``readme``,
+:data:`WITH_COMMANDS`) unless the line before it is an HTML comment ``<!-- skip-test: REASON -->``
+(a block that needs a GPU, SLURM or several hosts); the quick tests of ``tests/test_docs_blocks.py``
+check that every block is one the runner knows how to run, that each skipped one says why, and that
+the names and options the blocks use exist.
 """
 
 from __future__ import annotations

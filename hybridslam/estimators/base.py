@@ -134,8 +134,8 @@ def lacks_object_slots(mask: Bool[Array, " Dmax"], num_created: Int[Array, "*K"]
 
 
 _COUNTS = ("dropped_capacity", "dropped_budget", "dropped_mass", "visibility_ignored", "solver_failures",
-           "is_failures", "skipped", "rejected", "unmapped", "object_overflow", "log_overflow", "num_components",
-           "inconsistent")
+           "is_failures", "skipped", "rejected", "unmapped", "object_overflow", "log_overflow",
+           "num_components", "inconsistent")
 
 
 def _totals(info: StepInfo) -> dict[str, float]:
