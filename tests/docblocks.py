@@ -2,10 +2,10 @@
 
 A page's ```` ```python ```` and ```` ```bash ```` blocks are its examples. Every one of them is run by
 ``tests/test_readme_run.py``, ``tests/test_readme_python.py`` or the test file about the page's
-subject (marker ``readme``; :data:`WITH_COMMANDS`, :data:`IN_TEST_FILES`) unless the line before it is an HTML comment ``<!-- skip-test: REASON -->``
-(a block that needs a GPU, SLURM or several hosts); the quick tests of ``tests/test_docs_blocks.py``
-check that every block is one the runner knows how to run, that each skipped one says why, and that
-the names and options the blocks use exist.
+subject (marker ``readme``; :data:`WITH_COMMANDS`, :data:`IN_TEST_FILES`) unless the line before it
+is an HTML comment ``<!-- skip-test: REASON -->`` (a block that needs a GPU, SLURM or several hosts);
+the quick tests of ``tests/test_docs_blocks.py`` check that every block is one the runner knows how
+to run, that each skipped one says why, and that the names and options the blocks use exist.
 """
 
 from __future__ import annotations
@@ -132,16 +132,16 @@ def run_here(request, page: str) -> dict:
     (``tests/docworker.py``'s ``run_blocks``): in order, in one fresh namespace, what they print
     captured, in the test's ``tmp_path``, starting in float32 (the page turns float64 on itself:
     ``hs.setup()``; the suite's float64 is restored after). A failure names the block and its line
-    (``File "docs/planning.md", line 23``). The rest of JAX's configuration is the suite's (rank
-    promotion raises, the type checker runs): it is part of JAX's cache keys, so the page's programs
-    are the tests'. Returns the namespace the blocks leave (``ns["plan"]``). ``request``: the calling
+    (``File "docs/planning.md", line 23``). The rest of the configuration is the suite's: rank
+    promotion raises (a part of JAX's cache keys: the page's programs are the tests') and the type
+    checker runs. Returns the namespace the blocks leave (``ns["plan"]``). ``request``: the calling
     test's, which must be marked ``readme`` and be in the file :data:`IN_TEST_FILES` names."""
     import jax
 
     from .docworker import run_blocks
 
     path = ROOT / "docs" / page
-    assert IN_TEST_FILES.get(page) == request.path.name, f"{page} is run by {IN_TEST_FILES.get(page)}, see IN_TEST_FILES"
+    assert IN_TEST_FILES.get(page) == request.path.name, f"{page} is not {request.path.name}'s: IN_TEST_FILES"
     assert request.node.get_closest_marker("readme"), f"{request.node.nodeid} runs {page}: mark it readme"
     monkeypatch = request.getfixturevalue("monkeypatch")
     monkeypatch.chdir(request.getfixturevalue("tmp_path"))
@@ -151,10 +151,12 @@ def run_here(request, page: str) -> dict:
         namespace, answer = run_blocks([[b.name, b.line, b.code] for b in python_blocks(path)])
     finally:
         jax.config.update("jax_enable_x64", x64)
-    assert answer["failed"] is None, f"{answer['failed']} failed:\n{answer['error']}\n{answer['output'][-3000:]}"
+    failed = answer["failed"]
+    assert failed is None, f"{failed} failed:\n{answer['error']}\n{answer['output'][-3000:]}"
     return namespace
 
 
 def run_here_calls(test_file: Path) -> list[str]:
     """The pages a test file runs with :func:`run_here` (its calls' literal page names)."""
-    return re.findall(r"\brun_here\(\s*request\s*,\s*[\"']([^\"']+)[\"']", test_file.read_text(encoding="utf-8"))
+    text = test_file.read_text(encoding="utf-8")
+    return re.findall(r"\brun_here\(\s*request\s*,\s*[\"']([^\"']+)[\"']", text)

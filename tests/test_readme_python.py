@@ -30,7 +30,7 @@ def test_every_python_page_runs_in_exactly_one_test():
     """Each page with Python blocks is run by one test: with the commands (tests/test_readme_run.py),
     here, or by the one ``run_here`` call of the test file ``IN_TEST_FILES`` names for it."""
     calls = [(page, f.name) for f in sorted((ROOT / "tests").glob("test_*.py")) for page in run_here_calls(f)]
-    assert sorted(calls) == sorted(IN_TEST_FILES.items())  # each listed page called once, in its file, none other
+    assert sorted(calls) == sorted(IN_TEST_FILES.items())  # each listed page once, in its file; no other
     together = [p for p in WITH_COMMANDS if python_blocks(p)] + PYTHON_PAGES + IN_TEST_PAGES
     assert sorted(together) == sorted(p for p in PAGES if python_blocks(p))
     assert len(set(together)) == len(together)
