@@ -1,11 +1,11 @@
 """The code blocks of the README and the documentation pages, as the tests run them.
 
 A page's ```` ```python ```` and ```` ```bash ```` blocks are its examples. Every one of them is run by
-``tests/test_readme_run.py`` or ``tests/test_readme_python.py`` (marker ``readme``,
-:data:`WITH_COMMANDS`) unless the line before it is an HTML comment ``<!-- skip-test: REASON -->``
-(a block that needs a GPU, SLURM or several hosts); the quick tests of ``tests/test_docs_blocks.py``
-check that every block is one the runner knows how to run, that each skipped one says why, and that
-the names and options the blocks use exist.
+``tests/test_readme_run.py``, ``tests/test_readme_python.py`` or the test file about the page's
+subject (marker ``readme``; :data:`WITH_COMMANDS`, :data:`IN_TEST_FILES`) unless the line before it
+is an HTML comment ``<!-- skip-test: REASON -->`` (a block that needs a GPU, SLURM or several hosts);
+the quick tests of ``tests/test_docs_blocks.py`` check that every block is one the runner knows how
+to run, that each skipped one says why, and that the names and options the blocks use exist.
 """
 
 from __future__ import annotations
@@ -113,7 +113,50 @@ def python_blocks(page: Path) -> list[Block]:
 # commands' process): those with commands (their Python reads the files the commands write) and
 # those whose Python builds a program a command builds alike (the API page's and the file-format
 # page's runs are the README's `hybridslam run`s), so that it is traced and compiled once. Every other
-# page's Python runs in tests/test_readme_python.py: the two files run side by side on CI's two
-# workers.
+# page's Python runs in tests/test_readme_python.py (the two files run side by side on CI's two
+# workers) or in the test file about its subject (IN_TEST_FILES, below).
 SHARES_PROGRAMS = ("index.md", "api.md", "file_format.md")
 WITH_COMMANDS = [p for p in PAGES if runnable(p) or p.name in SHARES_PROGRAMS]
+
+# The pages whose Python runs in the process of the test file about their subject (:func:`run_here`),
+# because the page and that file's tests build the same programs: in one process JAX traces and
+# compiles each once (its in-memory caches are per process, and a program with a host callback, as
+# the planner's refinement, never reaches the persistent compilation cache). Each file has one test,
+# marked ``readme``, that calls ``run_here(request, PAGE)``; tests/test_readme_python.py checks that
+# this table is what the files call, and runs every other page's Python.
+IN_TEST_FILES = {"planning.md": "test_planning.py"}
+
+
+def run_here(request, page: str) -> dict:
+    """Run ``docs/PAGE``'s Python blocks in this process, as the worker runs a page
+    (``tests/docworker.py``'s ``run_blocks``): in order, in one fresh namespace, what they print
+    captured, in the test's ``tmp_path``, starting in float32 (the page turns float64 on itself:
+    ``hs.setup()``; the suite's float64 is restored after). A failure names the block and its line
+    (``File "docs/planning.md", line 23``). The rest of the configuration is the suite's: rank
+    promotion raises (a part of JAX's cache keys: the page's programs are the tests') and the type
+    checker runs. Returns the namespace the blocks leave (``ns["plan"]``). ``request``: the calling
+    test's, which must be marked ``readme`` and be in the file :data:`IN_TEST_FILES` names."""
+    import jax
+
+    from .docworker import run_blocks
+
+    path = ROOT / "docs" / page
+    assert IN_TEST_FILES.get(page) == request.path.name, f"{page} is not {request.path.name}'s: IN_TEST_FILES"
+    assert request.node.get_closest_marker("readme"), f"{request.node.nodeid} runs {page}: mark it readme"
+    monkeypatch = request.getfixturevalue("monkeypatch")
+    monkeypatch.chdir(request.getfixturevalue("tmp_path"))
+    monkeypatch.setenv("MPLBACKEND", "Agg")
+    x64 = jax.config.read("jax_enable_x64")
+    try:
+        namespace, answer = run_blocks([[b.name, b.line, b.code] for b in python_blocks(path)])
+    finally:
+        jax.config.update("jax_enable_x64", x64)
+    failed = answer["failed"]
+    assert failed is None, f"{failed} failed:\n{answer['error']}\n{answer['output'][-3000:]}"
+    return namespace
+
+
+def run_here_calls(test_file: Path) -> list[str]:
+    """The pages a test file runs with :func:`run_here` (its calls' literal page names)."""
+    text = test_file.read_text(encoding="utf-8")
+    return re.findall(r"\brun_here\(\s*request\s*,\s*[\"']([^\"']+)[\"']", text)

@@ -42,7 +42,10 @@ import traceback
 from pathlib import Path
 
 
-def run_page(blocks: list[list]) -> dict:
+def run_blocks(blocks: list[list]) -> tuple[dict, dict]:
+    """A page's blocks (``[BLOCK_NAME, LINE, CODE]``), in order, in one fresh namespace, starting in
+    float32: the namespace they leave and the answer of :func:`run_page`. In this process, whichever
+    it is (the worker, or a test file's: ``tests/docblocks.py``'s :func:`run_here`)."""
     import jax
 
     jax.config.update("jax_enable_x64", False)  # a user's Python starts in float32: the page calls hs.setup()
@@ -58,7 +61,11 @@ def run_page(blocks: list[list]) -> dict:
                 failed, error = name, traceback.format_exc()
                 break
     _close_figures()
-    return {"failed": failed, "error": error, "output": output.getvalue()}
+    return namespace, {"failed": failed, "error": error, "output": output.getvalue()}
+
+
+def run_page(blocks: list[list]) -> dict:
+    return run_blocks(blocks)[1]
 
 
 def _close_figures() -> None:

@@ -1,10 +1,12 @@
 """Planning: predicted observations come from the belief; moving on towards the objects is informative.
 
-The tests plan on docs/planning.md's belief with its scoring settings (horizon 3, capacity 4,
-linearized predicted updates, 32 candidates, 4 draws): the same programs, whose XLA compiles the
-run's persistent compilation cache does once for the page and the tests. The refinement's program
-is not cached (its derivatives of the Gauss-Newton update carry lineax's error check, a host
-callback), so its test keeps cheaper settings of its own.
+The page runs here (``test_the_page_runs``, marked ``readme``: ``tests/docblocks.py``'s ``run_here``),
+in this file's process, and the tests plan on its belief with its settings (horizon 3, capacity 4,
+linearized predicted updates, 2 Gauss-Newton iterations; 32 candidates and 4 draws to score, 2 draws
+and up to 20 BFGS steps to refine): the same programs, which JAX traces and compiles once for the
+page and the tests. The refinement's program never reaches the persistent compilation cache (its
+derivatives of the Gauss-Newton update carry lineax's error check, a host callback): only one
+process can share it.
 """
 
 from __future__ import annotations
@@ -17,8 +19,20 @@ import pytest
 import hybridslam as hs
 from hybridslam import planning
 
+from .docblocks import run_here
+
 HORIZON = 3
 SETTINGS = dict(capacity=4, weights="linearized", gn_max_steps=2)  # docs/planning.md's
+
+
+@pytest.mark.readme
+def test_the_page_runs(request):
+    """docs/planning.md's example, as a user runs it: finite scores, a refined plan of the page's form."""
+    page = run_here(request, "planning.md")
+    assert page["scores"].shape == (32,) and np.all(np.isfinite(np.asarray(page["scores"])))
+    actions = np.asarray(page["refined"].actions)
+    assert actions.shape == (HORIZON, 3) and np.all(np.abs(actions[:, 2]) < 0.6)  # |turn| < max_turn
+    np.testing.assert_array_equal(actions[:, :2], [[1.0, 0.0]] * HORIZON)
 
 
 @pytest.fixture(scope="module")
@@ -80,22 +94,19 @@ def test_arc_candidates_shapes():
     np.testing.assert_allclose(c[0, :, 2], -0.4)  # the arcs come first, evenly spaced
 
 
-@pytest.mark.slow  # a minute of compiling (gradients through a rollout): the extended suite, CI
+@pytest.mark.slow  # a minute of compiling (gradients through a rollout; the page's): the extended suite, CI
 def test_refinement_lowers_the_smooth_objective_within_bounds(ambiguous):
-    _, belief, _ = ambiguous
-    settings = dict(capacity=2, weights="linearized", gn_max_steps=1)
-    smooth = planning.prepare(belief, HORIZON, **settings, visibility_temperature=0.5)
-    hard = planning.prepare(belief, HORIZON, **settings)
+    _, belief, plan = ambiguous
+    smooth = planning.prepare(belief, HORIZON, **SETTINGS, visibility_temperature=0.5)  # the page's
     with pytest.raises(ValueError, match="visibility_temperature"):
-        planning.refine_actions(hard, jnp.zeros(HORIZON), jax.random.PRNGKey(0))
+        planning.refine_actions(plan, jnp.zeros(HORIZON), jax.random.PRNGKey(0))
     start = jnp.array([0.5, -0.5, 0.0])
-    r = planning.refine_actions(smooth, start, jax.random.PRNGKey(0), max_turn=0.6, num_draws=1, max_steps=4)
+    r = planning.refine_actions(smooth, start, jax.random.PRNGKey(0), max_turn=0.6, num_draws=2)
     assert float(r.final) < float(r.initial)  # the gradient steps found descent
     assert np.all(np.abs(np.asarray(r.actions[:, 2])) < 0.6)  # max_turn
     np.testing.assert_array_equal(np.asarray(r.actions[:, :2]), [[1.0, 0.0]] * HORIZON)
     # The reported value is the returned plan's: restarted from it (the same compiled program, on
     # the same draws), the objective at the start is `final`, and it never gets worse.
-    again = planning.refine_actions(smooth, r.actions[:, 2], jax.random.PRNGKey(0), max_turn=0.6, num_draws=1,
-                                    max_steps=4)
+    again = planning.refine_actions(smooth, r.actions[:, 2], jax.random.PRNGKey(0), max_turn=0.6, num_draws=2)
     np.testing.assert_allclose(float(again.initial), float(r.final), rtol=1e-9)
     assert float(again.final) <= float(again.initial)

@@ -1,7 +1,8 @@
 """Every command of the README and of the documentation pages runs, in the pages' order, as a user
 types it, and the README's commands print what the README says they print; then the Python blocks
 of the pages that go with the commands (``tests/docblocks.py``'s ``WITH_COMMANDS``). The other pages'
-Python blocks run in ``tests/test_readme_python.py``, beside this file on CI's other worker.
+Python blocks run in ``tests/test_readme_python.py``, beside this file on CI's other worker, or in the
+test file about their subject (``IN_TEST_FILES``).
 
 The pages are those of ``tests/docblocks.py`` (the README first, then the site's navigation). Their
 ``bash`` commands run in one scratch folder, so each one's output is the next one's input
