@@ -211,8 +211,8 @@ def test_sharded_over_four_devices_equals_one(tiny, tmp_path, cache_env):
     env = dict(cache_env, XLA_FLAGS=f"{cache_env['XLA_FLAGS']} --xla_force_host_platform_device_count=4".strip())
     folder = str(tmp_path / "sharded")
     # 3 tracks on 4 devices also exercises the padding.
-    out = subprocess.run(_sweep_cmd(folder, python=("-c", WITHOUT_PLOT)), env=env, capture_output=True, text=True,
-                         timeout=300)
+    out = subprocess.run(_sweep_cmd(folder, python=("-c", WITHOUT_PLOT)), env=env, capture_output=True,
+                         text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert "4 device(s)" in out.stdout
     records = [json.loads(line) for line in pathlib.Path(folder, study.RECORDS).read_text(encoding="utf-8").splitlines()][1:]
@@ -292,17 +292,17 @@ def test_scenario_files_give_result_files_equal_to_single_runs(tiny, tmp_path):
 @pytest.mark.slow  # two smoother compiles (batched and single): the extended suite, CI
 def test_scenario_files_run_by_a_smoother_carry_its_trajectory(tmp_path):
     """A smoother's result files from `--scenarios` carry the smoothed `trajectory` and `objects` that `run` writes,
-    cut to each file's own length (the shorter file ran padded). Run as the `independent` model: the batch runs
-    it as an AlphaK (batch.shared_classifier), which smooths class realizations apart that `Independent`
-    smooths once (step.py's ``by_class``): the same trajectories and weights."""
+    cut to each file's own length (the shorter file ran padded). Run as the `independent` model: the batch
+    runs it as an AlphaK (batch.shared_classifier), which smooths class realizations apart that
+    `Independent` smooths once (step.py's ``by_class``): the same trajectories and weights."""
     files = tmp_path / "logs"
     files.mkdir()
     scenarios = {"short": hs.simulate(3, steps=3), "long": hs.simulate(4, steps=4)}
     for name, s in scenarios.items():
         hs.save_scenario(s, str(files / f"{name}.json"))
     hybrid = hs.Hybrid(weights=hs.Linearized(), capacity=4, max_detections=2, max_steps=4)
-    study.run_file_study(study.FileStudy(tuple(study.scenario_paths(str(files))), ("independent",), 0, hybrid),
-                         str(tmp_path / "out"))
+    spec = study.FileStudy(tuple(study.scenario_paths(str(files))), ("independent",), 0, hybrid)
+    study.run_file_study(spec, str(tmp_path / "out"))
     alone = dataclasses.replace(hybrid, classifier="independent")
     for name, s in scenarios.items():
         got = hs.load_result(str(tmp_path / "out" / "results" / f"{name}.independent.json"))

@@ -168,7 +168,8 @@ class AlphaK(_AlphaK):
 
     def class_means(self, viewpoint):
         mirror, independent = self._parts()
-        return jnp.where(self.dependence > 0.5, mirror.class_means(viewpoint), independent.class_means(viewpoint))
+        return jnp.where(self.dependence > 0.5, mirror.class_means(viewpoint),
+                         independent.class_means(viewpoint))
 
     def class_sqrt_informations(self, viewpoint):
         mirror, independent = self._parts()

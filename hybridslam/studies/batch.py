@@ -111,13 +111,15 @@ def shared_classifier(estimator: AbstractEstimator, scenarios: Sequence[Scenario
     name = getattr(estimator, "classifier", "")
     if not (name is None or isinstance(name, str)):
         return estimator
-    specs = {(s.classifier.model if name is None else name, s.classifier.alpha, s.classifier.K) for s in scenarios}
+    specs = {(s.classifier.model if name is None else name, s.classifier.alpha, s.classifier.K)
+             for s in scenarios}
     if len(specs) != 1:
         return estimator
     ((model, alpha, K),) = specs
     if model not in ("mirror", "independent") or alpha is None or K is None:
         return estimator
-    return dataclasses.replace(estimator, classifier=AlphaK(alpha, K, 1.0 if model == "mirror" else 0.0))  # type: ignore[call-arg]
+    shared = AlphaK(alpha, K, 1.0 if model == "mirror" else 0.0)
+    return dataclasses.replace(estimator, classifier=shared)  # type: ignore[call-arg]
 
 
 def batched(estimator: AbstractEstimator, scenarios: Sequence[Scenario]) -> AbstractEstimator:
