@@ -1,9 +1,10 @@
 """Benchmark the sweep engine on the paper's full Fig. 5 study.
 
 6 alphas x 3 classifier models x 50 tracks x 10 steps (9000 track-steps), each (alpha, model)
-cell one batched, compiled run (hybridslam.studies.batch). Prints compile time (once per model: alpha is
-traced), the time of the batched runs, the wall time of the whole study (simulation and host work
-included) and track-steps per second. Runs into a fresh temporary folder; asserts nothing.
+cell one batched, compiled run (hybridslam.studies.batch). Prints compile time (once per program: alpha is
+traced, and mirror and independent share one), the time of the batched runs, the wall time of the whole
+study (simulation and host work included) and track-steps per second. Runs into a fresh temporary
+folder; asserts nothing.
 
     python scripts/bench_sweep.py [--weights sampled --samples 1000] [--tracks 50] [--capacity 16]
 """

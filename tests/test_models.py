@@ -102,6 +102,25 @@ def test_independent_is_the_viewpoint_average_of_mirror(alpha):
     np.testing.assert_allclose(indep.covariance(), total_cov, atol=1e-8)
 
 
+def test_alpha_k_is_mirror_or_independent_as_its_traced_leaf_says():
+    """One jitted function of AlphaK (the sweeps' shared program) gives each model's own numbers."""
+    from hybridslam.models.classifier import AlphaK
+
+    dirs = jnp.array([[1.0, 0.0], [0.6, 0.8], [-1.0, 0.0]])
+    scores = jnp.array([0.3, 0.9])
+
+    @jax.jit
+    def parts(model, v):
+        return model.class_means(v), model.class_sqrt_informations(v), model.residuals(scores, v)
+
+    for model, dependence in ((hs.Mirror(0.3, 15.0), 1.0), (hs.Independent(0.3, 15.0), 0.0)):
+        shared = AlphaK(0.3, 15.0, dependence)
+        assert shared.viewpoint_dependent and AlphaK.of(model).dependence == dependence
+        for v in dirs:
+            for a, b in zip(jax.tree.leaves(parts(shared, v)), jax.tree.leaves(parts(model, v)), strict=True):
+                np.testing.assert_allclose(a, b, rtol=1e-14, atol=1e-14)
+
+
 def test_none_classifier_ignores_scores():
     clf = hs.NoClassifier(2)
     v = jnp.array([1.0, 0.0])

@@ -12,6 +12,7 @@ compiles nothing.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import pathlib
@@ -49,6 +50,14 @@ def append_then_die(self, record):
         os.kill(os.getpid(), signal.SIGKILL)
     append(self, record)
 study.Records.append = append_then_die
+sys.exit(cli.main(sys.argv[1:]))
+"""
+# The CLI without its plot (drawn from the table in this process: test_cli_plot_and_sweep_errors).
+WITHOUT_PLOT = """
+import sys
+from hybridslam import cli
+from hybridslam.cli import sweep
+sweep.draw = lambda folder, rows: []
 sys.exit(cli.main(sys.argv[1:]))
 """
 # The tiny study in each of two processes (``jax.distributed`` on CPU, gloo collectives): the cluster
@@ -202,7 +211,8 @@ def test_sharded_over_four_devices_equals_one(tiny, tmp_path, cache_env):
     env = dict(cache_env, XLA_FLAGS=f"{cache_env['XLA_FLAGS']} --xla_force_host_platform_device_count=4".strip())
     folder = str(tmp_path / "sharded")
     # 3 tracks on 4 devices also exercises the padding.
-    out = subprocess.run(_sweep_cmd(folder), env=env, capture_output=True, text=True, timeout=300)
+    out = subprocess.run(_sweep_cmd(folder, python=("-c", WITHOUT_PLOT)), env=env, capture_output=True,
+                         text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert "4 device(s)" in out.stdout
     records = [json.loads(line) for line in pathlib.Path(folder, study.RECORDS).read_text(encoding="utf-8").splitlines()][1:]
@@ -282,21 +292,30 @@ def test_scenario_files_give_result_files_equal_to_single_runs(tiny, tmp_path):
 @pytest.mark.slow  # two smoother compiles (batched and single): the extended suite, CI
 def test_scenario_files_run_by_a_smoother_carry_its_trajectory(tmp_path):
     """A smoother's result files from `--scenarios` carry the smoothed `trajectory` and `objects` that `run` writes,
-    cut to each file's own length (the shorter file ran padded)."""
+    cut to each file's own length (the shorter file ran padded). Run as the `independent` model: the batch
+    runs it as an AlphaK (batch.shared_classifier), which smooths class realizations apart that
+    `Independent` smooths once (step.py's ``by_class``): the same trajectories and weights."""
     files = tmp_path / "logs"
     files.mkdir()
     scenarios = {"short": hs.simulate(3, steps=3), "long": hs.simulate(4, steps=4)}
     for name, s in scenarios.items():
         hs.save_scenario(s, str(files / f"{name}.json"))
-    ml = hs.make_estimator("ml", max_detections=2, max_steps=4)
-    study.run_file_study(study.FileStudy(tuple(study.scenario_paths(str(files))), None, 0, ml), str(tmp_path / "out"))
+    hybrid = hs.Hybrid(weights=hs.Linearized(), capacity=4, max_detections=2, max_steps=4)
+    spec = study.FileStudy(tuple(study.scenario_paths(str(files))), ("independent",), 0, hybrid)
+    study.run_file_study(spec, str(tmp_path / "out"))
+    alone = dataclasses.replace(hybrid, classifier="independent")
     for name, s in scenarios.items():
-        got = hs.load_result(str(tmp_path / "out" / "results" / f"{name}.json"))
-        want = hs.run(ml, s).result
+        got = hs.load_result(str(tmp_path / "out" / "results" / f"{name}.independent.json"))
+        want = hs.run(alone, s).result
+        assert "classifier=independent" in got.estimator
         assert got.trajectory is not None and got.trajectory.shape == (s.num_steps + 1, 3)
         np.testing.assert_allclose(got.trajectory, want.trajectory, atol=1e-9)
         assert got.objects is not None and got.objects.shape == (s.num_objects, 3)  # and the objects
         np.testing.assert_allclose(got.objects, want.objects, atol=1e-9)
+        for a, b in zip(want.steps, got.steps, strict=True):
+            assert [c.associations for c in a.components] == [c.associations for c in b.components]
+            np.testing.assert_allclose([c.weight for c in a.components], [c.weight for c in b.components],
+                                       rtol=1e-9, atol=1e-12)
 
 
 def test_files_are_grouped_by_shape_and_model():

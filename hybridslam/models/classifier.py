@@ -141,6 +141,42 @@ class Independent(_AlphaK):
         return jnp.broadcast_to(r, (2, 2, 2))
 
 
+class AlphaK(_AlphaK):
+    """:class:`Mirror` (``dependence`` 1) or :class:`Independent` (``dependence`` 0) with the choice a
+    traced leaf, so that one compiled program serves both (a study's cells of the two models).
+
+    Each model's ``h_c`` and ``R_c`` are computed as that model computes them and the one
+    ``dependence`` names is selected (exactly, not blended). ``viewpoint_dependent`` is True for
+    both: components that differ only in their classes are then smoothed apart even under the
+    independent model, whose class realizations change a graph's cost by a constant only, so its
+    smoothed solutions are those of :class:`Independent` (to rounding; more solves).
+    """
+
+    dependence: Float[Array, ""]  # 1.0: Mirror, 0.0: Independent
+
+    def __init__(self, alpha: float | Array, K: float | Array, dependence: float | Array):
+        super().__init__(alpha, K)
+        self.dependence = jnp.asarray(dependence, dtype=float)
+
+    @classmethod
+    def of(cls, model: Mirror | Independent) -> AlphaK:
+        """The same model as an :class:`AlphaK`."""
+        return cls(model.alpha, model.K, 1.0 if isinstance(model, Mirror) else 0.0)
+
+    def _parts(self) -> tuple[Mirror, Independent]:
+        return Mirror(self.alpha, self.K), Independent(self.alpha, self.K)  # type: ignore[call-arg]
+
+    def class_means(self, viewpoint):
+        mirror, independent = self._parts()
+        return jnp.where(self.dependence > 0.5, mirror.class_means(viewpoint),
+                         independent.class_means(viewpoint))
+
+    def class_sqrt_informations(self, viewpoint):
+        mirror, independent = self._parts()
+        return jnp.where(self.dependence > 0.5, mirror.class_sqrt_informations(viewpoint),
+                         independent.class_sqrt_informations(viewpoint))
+
+
 class NoClassifier(ClassifierModel):
     """Geometry only: scores are ignored (the paper's passive DA-BSP baseline, Sec. V)."""
 

@@ -43,6 +43,7 @@ from ..driver import Inputs, Trace, inputs_from_scenario, trace_record
 from ..estimators.base import AbstractEstimator
 from ..io.result import StepRecord
 from ..io.scenario import Scenario
+from ..models.classifier import AlphaK
 from .exported import compiled_exported
 from .strategies import BATCH_AXIS, BatchStrategy, MapBatches, VmapBatches, default_strategy
 
@@ -101,9 +102,30 @@ def shared_shapes(estimator: AbstractEstimator, scenarios: Sequence[Scenario]) -
     return estimator
 
 
+def shared_classifier(estimator: AbstractEstimator, scenarios: Sequence[Scenario]) -> AbstractEstimator:
+    """``estimator`` with the classifier ``"mirror"`` or ``"independent"`` (by name, or the scenarios'
+    own when it names none) as one :class:`~hybridslam.models.classifier.AlphaK` of the scenarios'
+    alpha and K, where they all share them: the choice of model is then a traced leaf, and batches
+    of the two models run one compiled program (a study's cells of both: one compile, not two).
+    Any other classifier, or scenarios of several alphas or K, leave ``estimator`` as it is."""
+    name = getattr(estimator, "classifier", "")
+    if not (name is None or isinstance(name, str)):
+        return estimator
+    specs = {(s.classifier.model if name is None else name, s.classifier.alpha, s.classifier.K)
+             for s in scenarios}
+    if len(specs) != 1:
+        return estimator
+    ((model, alpha, K),) = specs
+    if model not in ("mirror", "independent") or alpha is None or K is None:
+        return estimator
+    shared = AlphaK(alpha, K, 1.0 if model == "mirror" else 0.0)
+    return dataclasses.replace(estimator, classifier=shared)  # type: ignore[call-arg]
+
+
 def batched(estimator: AbstractEstimator, scenarios: Sequence[Scenario]) -> AbstractEstimator:
-    """``estimator`` as it runs a batch of ``scenarios``: :func:`shared_shapes`, the vmap axis named."""
-    return shared_shapes(estimator, scenarios).with_batch_axis(BATCH_AXIS)
+    """``estimator`` as it runs a batch of ``scenarios``: :func:`shared_shapes`, :func:`shared_classifier`,
+    the vmap axis named."""
+    return shared_classifier(shared_shapes(estimator, scenarios), scenarios).with_batch_axis(BATCH_AXIS)
 
 
 def _stack(trees):

@@ -298,7 +298,9 @@ def run_file_study(study: FileStudy, folder: str, *, mesh=None, on_cell: Progres
                                                     classifier=resolve_model(cell["run_as"])), group)
             run = run_batch(estimator, batch_inputs(estimator, group, [study.seed] * len(group)), mesh,
                             strategy=strategy)
-            _write_results(study, cell, group, run, estimator, folder)
+            # The result files name the model (the batch may run it as an AlphaK: batch.shared_classifier).
+            named = dataclasses.replace(estimator, classifier=resolve_model(cell["run_as"]))  # type: ignore[call-arg]
+            _write_results(study, cell, group, run, named, folder)
             record = _record(cell, run, {"steps": [g.num_steps for g in group]})
             records.append(record)
             write_table(table, FILE_COLUMNS, file_rows(cells, records))
