@@ -22,7 +22,8 @@ from hybridslam import cli
 from hybridslam.analysis import plot
 
 # The demo's settings for its mirror-model runs (test_demo_smoke), so that both use one program.
-SMALL = ["--samples", "50", "--capacity", "8", "--smoother", "filter", "--classifier", "mirror", "--max-detections", "2"]
+SMALL = ["--samples", "50", "--capacity", "8", "--smoother", "filter",
+         "--classifier", "mirror", "--max-detections", "2"]
 
 
 @pytest.fixture(scope="module")
