@@ -2,8 +2,9 @@
 
 JAX compiles dominate: every ``run`` here uses one program (3 steps, 2 detection slots, capacity 8,
 50 samples, the filter: the smoother is not these tests' subject, and the filter's program is a
-fraction of the full smoother's), which compiles once; the demo adds its three (one per classifier
-model, with deterministic weights).
+fraction of the full smoother's), which compiles once. It is the demo's program for the mirror
+model (the same estimator settings: the classifier and the detection slots named as the demo names
+them, on the demo's first track), so the demo adds two (the other classifier models).
 """
 
 from __future__ import annotations
@@ -20,12 +21,15 @@ import hybridslam as hs
 from hybridslam import cli
 from hybridslam.analysis import plot
 
-SMALL = ["--samples", "50", "--capacity", "8", "--smoother", "filter"]
+# The demo's settings for its mirror-model runs (test_demo_smoke), so that both use one program.
+SMALL = ["--samples", "50", "--capacity", "8", "--smoother", "filter",
+         "--classifier", "mirror", "--max-detections", "2"]
 
 
 @pytest.fixture(scope="module")
 def scenario_path(tmp_path_factory) -> str:
-    """A 3-step simulated scenario written by ``hybridslam simulate`` (seed 0 has a 2-detection step)."""
+    """A 3-step simulated scenario written by ``hybridslam simulate`` (seed 0 has a 2-detection step;
+    the demo's first track)."""
     path = tmp_path_factory.mktemp("cli") / "scenario.json"
     assert cli.main(["simulate", "--seed", "0", "--steps", "3", "--alpha", "0.25", "-o", str(path)]) == 0
     return str(path)
@@ -86,7 +90,8 @@ def test_same_seed_same_result(scenario_path, tmp_path):
     assert "timing" in a and "timing" in b
     del a["timing"], b["timing"]
     assert a == b
-    estimator = hs.make_estimator("hybrid", samples=50, capacity=8, smoother="filter")
+    estimator = hs.make_estimator("hybrid", samples=50, capacity=8, smoother="filter", classifier="mirror",
+                                  max_detections=2)
     api = hs.run(estimator, hs.load_scenario(scenario_path), seed=7).result
     assert hs.load_result(paths[0]).steps == api.steps
     assert a["format"] == "hybridslam-result/2" and "step_associations" in json.dumps(a["steps"][1])
@@ -177,8 +182,8 @@ def test_missing_input_and_unwritable_output_exit_2(scenario_path, tmp_path, cap
 @pytest.mark.slow  # the demo's compiles, half a minute: the extended suite, CI
 def test_demo_smoke(tmp_path, capsys):
     out = tmp_path / "demo"
-    # Linearized weights: three classifier models mean three compiles, and these are the cheapest.
-    argv = ["demo", "-o", str(out), "--tracks", "1", "--steps", "3", "--capacity", "8", "--weights", "linearized",
+    # Three classifier models mean three programs; the mirror model's is the ``run`` tests' (SMALL).
+    argv = ["demo", "-o", str(out), "--tracks", "1", "--steps", "3", "--capacity", "8", "--samples", "50",
             "--smoother", "filter"]
     assert cli.main(argv) == 0
     with open(out / "metrics.csv", newline="") as f:

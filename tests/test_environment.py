@@ -27,10 +27,13 @@ def _python(code: str, **env) -> subprocess.CompletedProcess:
                           timeout=120, check=False)
 
 
-def test_import_sets_nothing():
-    out = _python(SHOW.format(call=""))
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.split() == ["None", "None", "False"]
+def test_import_sets_nothing_and_an_estimator_refuses_float32_and_says_how_to_turn_float64_on():
+    """One process (each start imports the package again): the settings after the import, then an
+    estimator built without float64."""
+    out = _python(SHOW.format(call="") + "; hs.make_estimator('ml')")
+    assert out.stdout.split() == ["None", "None", "False"], out.stderr
+    assert out.returncode != 0
+    assert "ML(): hybridslam computes in float64" in out.stderr and "hybridslam.setup()" in out.stderr, out.stderr
 
 
 @pytest.mark.parametrize("env, want", [
@@ -43,11 +46,8 @@ def test_setup_sets_float64_and_thread_defaults_and_keeps_the_users(env, want):
     assert out.stdout.split() == want
 
 
-def test_an_estimator_refuses_float32_and_says_how_to_turn_float64_on():
-    out = _python("import hybridslam as hs; hs.make_estimator('ml')")
-    assert out.returncode != 0
-    assert "ML(): hybridslam computes in float64" in out.stderr and "hybridslam.setup()" in out.stderr, out.stderr
-    # JAX's own switch is enough (no thread settings needed to build one).
+def test_jaxs_own_float64_switch_is_enough_to_build_an_estimator():
+    """No thread settings needed to build one."""
     ok = _python("import hybridslam as hs; hs.make_estimator('max-mixture'); print('built')", JAX_ENABLE_X64="1")
     assert ok.stdout.strip() == "built", ok.stderr
 

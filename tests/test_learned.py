@@ -89,9 +89,12 @@ def test_classifier_interface(fitted):
     assert all(bool(jnp.any(layer.weight != 0)) for layer in grads.layers)
 
 
-def test_fit_is_deterministic(fitted, samples):
-    again = hs.fit_classifier(*samples, seed=0)
-    for a, b in zip(jax.tree_util.tree_leaves(fitted), jax.tree_util.tree_leaves(again)):
+def test_fit_is_deterministic(samples):
+    """Two fits of the same data and seed give the same weights. On 400 of the samples (200 per
+    class): a fit of all 4000 runs BFGS for seconds; the determinism is the fit's, not the data size's."""
+    subset = tuple(a[:400] for a in samples)  # the classes take turns (sample_scores): 200 each
+    first, again = (hs.fit_classifier(*subset, seed=0) for _ in range(2))
+    for a, b in zip(jax.tree_util.tree_leaves(first), jax.tree_util.tree_leaves(again)):
         np.testing.assert_array_equal(a, b)
 
 
@@ -156,7 +159,9 @@ def two_steps() -> hs.Scenario:
 
 # The paper's sampled weights (Eq. 16) compile in about half the time of laplace-is; the steps of
 # both tests below run one compiled program (the same settings, shapes and classifier file format).
-SETTINGS = {"capacity": 4, "samples": 32, "max_detections": 2, "weights": "sampled"}
+# The filter: the classifier inside the step is the subject, not the smoother (the filter's program
+# is a fraction of the full smoother's).
+SETTINGS = {"capacity": 4, "samples": 32, "max_detections": 2, "weights": "sampled", "smoother": "filter"}
 
 
 @pytest.mark.slow  # a step's compile with the MLP inside; the suite's time

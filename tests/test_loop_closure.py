@@ -107,10 +107,17 @@ def small_loop():
     return scenario, result, truth_of, late
 
 
-def test_a_small_loop_is_closed_onto_the_right_landmarks(small_loop, tmp_path):
+@pytest.fixture(scope="module")
+def closed_small_loop(small_loop):
+    """The pass over ``small_loop`` (the closed result and its report): two tests read it."""
+    scenario, result, _, _ = small_loop
+    return lc.close_loops(scenario, result, loop_settings.LoopClosureSettings(gap=GAP))
+
+
+def test_a_small_loop_is_closed_onto_the_right_landmarks(small_loop, closed_small_loop, tmp_path):
     scenario, result, truth_of, late = small_loop
     assert len(late) >= 2  # the scenario has a loop to close
-    closed, report = lc.close_loops(scenario, result, loop_settings.LoopClosureSettings(gap=GAP))
+    closed, report = closed_small_loop
     merges = [m for c in report.closures for m in c.merges]
     assert {a for a, _ in merges} == set(late)
     assert all(truth_of[a] == truth_of[b] for a, b in merges)
@@ -124,10 +131,10 @@ def test_a_small_loop_is_closed_onto_the_right_landmarks(small_loop, tmp_path):
     assert load_result(tmp_path / "closed.json") == closed
 
 
-def test_score_merges_gives_the_first_rounds_score_and_cost(small_loop):
+def test_score_merges_gives_the_first_rounds_score_and_cost(small_loop, closed_small_loop):
     scenario, result, truth_of, _ = small_loop
     settings = loop_settings.LoopClosureSettings(gap=GAP)
-    _, report = lc.close_loops(scenario, result, settings)
+    _, report = closed_small_loop
     first = report.closures[0]
     score = lc.score_merges(scenario, result, first.merges, settings)
     assert score.verified and score.log_odds == pytest.approx(first.log_bayes_factor, abs=1e-9)

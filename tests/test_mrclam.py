@@ -6,6 +6,8 @@ no JAX compiles; the whole file runs in a few seconds.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import math
 import os
 import shutil
@@ -31,6 +33,25 @@ def known() -> hs.Scenario:
 @pytest.fixture(scope="module")
 def unknown() -> hs.Scenario:
     return import_mrclam(DATA, 1, identity_filter=True, unknown_map=True)
+
+
+def _import_command(folder, *flags: str) -> tuple[str, str]:
+    """``hybridslam import mrclam`` of the excerpt's robot 1 with these flags: the file written and stdout."""
+    out, stdout = str(folder / "robot1.json"), io.StringIO()
+    with contextlib.redirect_stdout(stdout):
+        assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", out, *flags]) == 0
+    return out, stdout.getvalue()
+
+
+# The command's two conversions that several tests read (each writes and validates a 90-step file).
+@pytest.fixture(scope="module")
+def command_known(tmp_path_factory) -> tuple[str, str]:
+    return _import_command(tmp_path_factory.mktemp("known"), "--identity-filter")
+
+
+@pytest.fixture(scope="module")
+def command_default(tmp_path_factory) -> tuple[str, str]:
+    return _import_command(tmp_path_factory.mktemp("default"))
 
 
 @pytest.fixture
@@ -376,9 +397,9 @@ def test_unknown_map(unknown, known):
         import_mrclam(DATA, 1, identity_filter=True, unknown_map=True, max_objects=1)
 
 
-@pytest.mark.parametrize("variant", ["known", "unknown"])
-def test_save_load_round_trip(variant, request, tmp_path):
-    s = request.getfixturevalue(variant)
+def test_save_load_round_trip(unknown, tmp_path):
+    """The known-map file's round trip: test_cli_writes_a_valid_file_and_a_summary (the command saves it)."""
+    s = unknown
     path = tmp_path / "mrclam.json"
     hs.save_scenario(s, path)
     loaded = hs.load_scenario(path)
@@ -479,11 +500,11 @@ def test_bad_settings(settings, expected):
 # --------------------------------------------------------------------------- #
 
 
-def test_cli_writes_a_valid_file_and_a_summary(tmp_path, capsys, known):
-    out = tmp_path / "robot1.json"
-    assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out), "--identity-filter"]) == 0
-    stdout = capsys.readouterr().out
-    assert hs.load_scenario(out) == known
+def test_cli_writes_a_valid_file_and_a_summary(tmp_path, capsys, known, command_known):
+    out, stdout = command_known
+    loaded = hs.load_scenario(out)
+    assert loaded == known  # and the round trip of save_scenario and load_scenario
+    assert loaded.metadata["generator"]["name"] == "hybridslam.datasets.mrclam"
     assert stdout.startswith(f"wrote {out}: mrclam robot 1, 0-45 s after its first odometry record, 90 steps")
     for text in ("197 of 8 landmarks", "2.19 per step (max 8)", "12 robot-robot",
                  "motion_cov (calibrated): sd", "geometric_cov (calibrated from the detections as written)",
@@ -541,7 +562,7 @@ def test_cli_garbled_file_names_file_and_line(copy, tmp_path, capsys):
 # --------------------------------------------------------------------------- #
 
 
-def test_the_default_import_writes_every_reading_and_no_identity_it_lacks():
+def test_the_default_import_writes_every_reading_and_no_identity_it_lacks(known):
     """Without the identity filter every reading in a step's window is a detection (repeats kept
     here): the other robot's readings too, with no ``true_object``, counted in the metadata; the
     file declares the clutter density ``log(0.5 / (max_range · fov))``. The oracle-assisted
@@ -559,7 +580,7 @@ def test_the_default_import_writes_every_reading_and_no_identity_it_lacks():
     assert not g["identities"]["identity_filter"] and "selecting detections" not in g["identities"]["barcodes_used_for"]
     assert s.clutter_log_density == pytest.approx(math.log(0.5 / (s.max_range * s.fov)))
     assert hs.load_scenario(_saved(s)).clutter_log_density == pytest.approx(s.clutter_log_density)
-    assert import_mrclam(DATA, 1, identity_filter=True).clutter_log_density is None
+    assert known.clutter_log_density is None
     assert import_mrclam(DATA, 1, clutter_log_density="none").clutter_log_density is None
     assert import_mrclam(DATA, 1, clutter_log_density=-6.0).clutter_log_density == -6.0
     with pytest.raises(MRCLAMError, match="clutter_log_density"):
@@ -611,10 +632,9 @@ def test_an_unknown_maps_object_slots_come_from_the_data_not_the_landmark_count(
     assert import_mrclam(DATA, 1, unknown_map=True, max_objects=12).discovery.max_objects == 12
 
 
-def test_cli_default_import_says_what_it_kept(tmp_path, capsys):
+def test_cli_default_import_says_what_it_kept(tmp_path, capsys, command_default):
+    stdout = command_default[1]
     out = tmp_path / "robot1.json"
-    assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out)]) == 0
-    stdout = capsys.readouterr().out
     for text in ("every reading: 12 of no landmark (other robots: 12 readings", "0 repeats merged",
                  "clutter log density -"):
         assert text in stdout, text
@@ -623,7 +643,7 @@ def test_cli_default_import_says_what_it_kept(tmp_path, capsys):
     assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out), "--clutter-log-density", "x"]) == 2
 
 
-def test_a_file_with_clutter_gets_the_drift_calibrated_motion_noise_by_default():
+def test_a_file_with_clutter_gets_the_drift_calibrated_motion_noise_by_default(known):
     """With a clutter hypothesis (the default conversion) ``motion_cov`` is calibrated from the
     odometry's 5 s drift, so that ``S`` covers dead reckoning's real error and a landmark seen after
     a stretch without any is not explained as clutter; without clutter (the identity filter,
@@ -639,7 +659,7 @@ def test_a_file_with_clutter_gets_the_drift_calibrated_motion_noise_by_default()
     assert np.all(np.diag(s.motion_cov) >= np.diag(steps.motion_cov))
     assert np.any(np.diag(s.motion_cov) > 2 * np.diag(steps.motion_cov))  # the excerpt's heading drifts
     for kwargs in ({"identity_filter": True}, {"clutter_log_density": "none"}, {"duration": 20.0}):
-        other = import_mrclam(DATA, 1, **kwargs)
+        other = known if kwargs == {"identity_filter": True} else import_mrclam(DATA, 1, **kwargs)
         assert other.metadata["generator"]["calibration"]["motion_noise_from"] == "steps", kwargs
     assert import_mrclam(DATA, 1, identity_filter=True, clutter_log_density=-4.0) \
         .metadata["generator"]["calibration"]["motion_noise_from"] == "drift"
@@ -654,9 +674,6 @@ def test_default_motion_noise_rule(clutter, steps, dt, expected):
     assert mrclam.default_motion_noise(clutter, steps, dt) == expected
 
 
-def test_cli_default_import_calibrates_the_motion_noise_from_the_drift(tmp_path, capsys):
-    out = tmp_path / "robot1.json"
-    assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out)]) == 0
-    assert "motion_cov (calibrated, from the 5 s drift)" in capsys.readouterr().out
-    assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out), "--identity-filter"]) == 0
-    assert "motion_cov (calibrated): sd" in capsys.readouterr().out
+def test_cli_default_import_calibrates_the_motion_noise_from_the_drift(command_default, command_known):
+    assert "motion_cov (calibrated, from the 5 s drift)" in command_default[1]
+    assert "motion_cov (calibrated): sd" in command_known[1]
