@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import os
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
@@ -213,13 +214,17 @@ def _detection(obj: Any, path: str, num_classes: int, num_truth: int) -> Detecti
 
 
 def _truth_index(num_truth: int):
-    """``true_object``: an index into the map's objects (``true_objects`` with discovery)."""
-    def parse(obj: Any, path: str) -> int:
-        if num_truth == 0:
-            jf.fail(path, "names a true object, but the scenario lists none (with discovery, the top-level "
-                          "true_objects list holds them)")
-        return jf.integer(obj, path, 0, num_truth)
-    return parse
+    """``true_object``: an index into the map's objects (``true_objects`` with discovery). A module-level
+    function bound by ``partial``, not a closure: a closure would be defined (and, under a runtime type
+    checker's import hook, decorated) anew for every detection parsed."""
+    return functools.partial(_parse_truth_index, num_truth)
+
+
+def _parse_truth_index(num_truth: int, obj: Any, path: str) -> int:
+    if num_truth == 0:
+        jf.fail(path, "names a true object, but the scenario lists none (with discovery, the top-level "
+                      "true_objects list holds them)")
+    return jf.integer(obj, path, 0, num_truth)
 
 
 def _step(obj: Any, path: str, num_classes: int, num_truth: int) -> Step:
