@@ -644,6 +644,7 @@ def test_a_pose_belief_that_contradicts_every_association_is_flagged():
 def test_contradicted_counts_skipped_and_far_detections_against_half_the_step():
     """``gating.contradicted`` against ``d²`` computed here: a step is contradicted when more than
     half of its detections are skipped or named beyond the 1e-6 bound."""
+    import jax
     import jax.numpy as jnp
 
     import hybridslam as hs
@@ -653,17 +654,18 @@ def test_contradicted_counts_skipped_and_far_detections_against_half_the_step():
     state = hs.make_estimator("multimodal", smoother="filter", max_detections=3).init(two)
     det = _first(inputs_from_scenario(two, 3).detections)
     mean, cov, sensor = state.mean[0], state.cov[0], state.model.sensor
+    # Jitted: one program each (op by op, every call's ops compiled one by one).
+    mahalanobis, contradicted = jax.jit(gating.mahalanobis), jax.jit(gating.contradicted)
     for m in (mean, mean.at[1].add(3.0)):  # as believed, and 3 m to the side (every association far)
         c = cov if m is mean else cov * 1e-3
-        d2 = np.asarray(gating.mahalanobis(sensor, m, c, det))
+        d2 = np.asarray(mahalanobis(sensor, m, c, det))
         for objects in ([0, 1, -1], [1, 0, -1], [-1, -1, -1], [0, -1, 1], [1, -1, -1]):
             for skipped in (False, True):
                 unassociated = np.array([o < 0 and skipped for o in objects])
                 bad = sum((o >= 0 and d2[j, o] > gating.CONTRADICTION_D2) or unassociated[j] for j, o in enumerate(objects))
-                got = gating.contradicted(sensor, m, c, det, jnp.asarray(objects), jnp.asarray(unassociated))
+                got = contradicted(sensor, m, c, det, jnp.asarray(objects), jnp.asarray(unassociated))
                 assert bool(got) == (2 * bad > 3), (objects, skipped)
-    assert bool(gating.contradicted(sensor, mean.at[1].add(3.0), cov * 1e-3, det, jnp.asarray([0, 1, -1]),
-                                    jnp.zeros(3, bool)))
+    assert bool(contradicted(sensor, mean.at[1].add(3.0), cov * 1e-3, det, jnp.asarray([0, 1, -1]), jnp.zeros(3, bool)))
 
 
 def _first(tree):
