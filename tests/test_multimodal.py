@@ -374,10 +374,13 @@ def test_merge_keeps_the_mass_of_a_child_too_light_to_be_a_centre():
     """A child more than ``RELEVANT_NATS`` below the best (here 46 nats) becomes no centre, even with
     room for it (``K`` = 4), and is not smoothed; its mass joins the nearest centre, so the merged
     weights still sum to the children's. A dead child (-inf) is nobody's member."""
+    import equinox as eqx
     import jax.numpy as jnp
 
     from hybridslam.estimators.base import RELEVANT_NATS, relevant_children
     from hybridslam.estimators.multimodal import cluster
+
+    cluster = eqx.filter_jit(cluster)  # one program per call (op by op, each of its ops compiled alone)
 
     log_w = jnp.log(jnp.array([0.6, 0.4, 1e-20, 0.0]))
     mean = jnp.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [9.0, 0.0, 0.0], [5.0, 5.0, 0.0]])
