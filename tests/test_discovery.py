@@ -174,8 +174,8 @@ def test_an_unmapped_object_weighs_what_its_stored_classes_weigh(world):
     give the full component those children and weights (one program each, and the exhaustive
     table's for the roomier component)."""
     scenario = world.replace(discovery=Discovery(2, -2.0, 9.87))
-    settings = dict(classifier="mirror", capacity=16, max_detections=2, weights="linearized", smoother="filter",
-                    prune_ratio=1e300)
+    settings = {"classifier": "mirror", "capacity": 16, "max_detections": 2, "weights": "linearized",
+                "smoother": "filter", "prune_ratio": 1e300}
     exhaustive = hs.make_estimator("hybrid", exhaustive=True, **settings)
     beam = hs.make_estimator("hybrid", max_children=512, **settings)
     belief = exhaustive.init(scenario)

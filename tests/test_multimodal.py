@@ -668,7 +668,8 @@ def test_contradicted_counts_skipped_and_far_detections_against_half_the_step():
                 bad = sum((o >= 0 and d2[j, o] > gating.CONTRADICTION_D2) or unassociated[j] for j, o in enumerate(objects))
                 got = contradicted(sensor, m, c, det, jnp.asarray(objects), jnp.asarray(unassociated))
                 assert bool(got) == (2 * bad > 3), (objects, skipped)
-    assert bool(contradicted(sensor, mean.at[1].add(3.0), cov * 1e-3, det, jnp.asarray([0, 1, -1]), jnp.zeros(3, bool)))
+    assert bool(contradicted(sensor, mean.at[1].add(3.0), cov * 1e-3, det, jnp.asarray([0, 1, -1]),
+                             jnp.zeros(3, bool)))
 
 
 def _first(tree):

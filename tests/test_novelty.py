@@ -77,12 +77,15 @@ def _last_record(estimator, scenario, state) -> StepRecord:
     slots = jax.eval_shape(estimator.view, state).history.shape[-1]
     inputs = jax.tree.map(np.asarray, inputs_from_scenario(scenario, slots))
     key = jax.random.PRNGKey(0)
-    one = lambda k: jax.tree.map(lambda x: x[k : k + 1], inputs)  # noqa: E731
+    def one(k):
+        return jax.tree.map(lambda x: x[k : k + 1], inputs)
+
     step, _ = compiled(scan, estimator, state, one(0), key, steps=scenario.num_steps)
     for k in range(scenario.num_steps):
         state, trace = step(estimator, state, one(k), key)
-    return trace_record(jax.tree.map(lambda x: np.asarray(x)[0], trace), [len(s.detections) for s in scenario.steps],
-                        scenario.true_robot_poses is not None)
+    last = jax.tree.map(lambda x: np.asarray(x)[0], trace)
+    detections = [len(s.detections) for s in scenario.steps]
+    return trace_record(last, detections, scenario.true_robot_poses is not None)
 
 
 @pytest.mark.parametrize("name", [pytest.param(n, marks=() if n == "ml" else pytest.mark.slow) for n in ESTIMATORS])
@@ -103,7 +106,7 @@ def test_the_rule_decides_which_detections_are_new(name, short_hallway):
     tiny = estimators["mahalanobis:1e-9"]
     if name == "hybrid":  # τ is a constant of the hybrid belief's step: a program of its own
         count[tiny.new_landmark] = _objects(run(tiny, short_hallway).result.steps[-1])
-    else:  # τ is a parameter of the state (new_landmark_tau): the huge τ's program steps the tiny τ's state
+    else:  # τ is a state parameter (new_landmark_tau): the huge τ's program steps the tiny τ's state
         count[tiny.new_landmark] = _objects(_last_record(estimators["mahalanobis:1e9"], short_hallway,
                                                          tiny.init(short_hallway)))
     detections = count["density"][1]

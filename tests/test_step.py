@@ -106,10 +106,11 @@ def test_a_run_compiles_its_step_once_and_model_parameters_are_traced(scenario, 
     ``lax.scan`` refuses a step whose state changes type), also when model parameters change between
     runs: a run with another geometric covariance (it lives in the belief's model, as the classifier's
     alpha and K do) reuses the program and computes with its own covariance."""
-    other = hs.run_estimator(scenario.replace(geometric_cov=2.0 * np.asarray(scenario.geometric_cov)), **RUN_NONE)
+    wider = scenario.replace(geometric_cov=2.0 * np.asarray(scenario.geometric_cov))
+    other = hs.run_estimator(wider, **RUN_NONE)
     assert other.result.timing["compile_s"] == 0.0
-    weights = lambda r: [c.weight for s in r.steps for c in s.components]  # noqa: E731
-    assert not np.allclose(weights(other.result), weights(run_none.result))
+    weights = [[c.weight for s in r.result.steps for c in s.components] for r in (other, run_none)]
+    assert not np.allclose(*weights)
 
 
 def test_same_seed_same_result_and_different_seed_differs(scenario):
@@ -144,7 +145,7 @@ def test_unexplainable_detection_falls_back_to_likelihood(scenario, run_none):
     (One step of the program ``hs.run`` compiled for the run fixture: no compile of its own.)"""
     estimator = hs.make_estimator("hybrid", **RUN_NONE)
     belief = estimator.init(scenario)
-    inputs = jax.tree.map(lambda a: np.asarray(a)[:1], inputs_from_scenario(scenario, SLOTS))  # as hs.run slices
+    inputs = jax.tree.map(lambda a: np.asarray(a)[:1], inputs_from_scenario(scenario, SLOTS))  # as in hs.run
     inputs = eqx.tree_at(lambda i: i.detections.mask, inputs, np.ones((1, SLOTS), bool))
     away = eqx.tree_at(lambda b: (b.mean, b.cov), belief, (belief.mean.at[:, 2].set(np.pi), belief.cov * 1e-4))
     step, _ = compiled(scan, estimator, away, inputs, jax.random.PRNGKey(0), steps=1)
