@@ -529,28 +529,36 @@ def test_many_detection_slots_over_many_objects_are_accepted():
     assert state.history.shape[-1] == 16
 
 
+# A known map of two objects, three detection slots: one program for the runs of the step (the skip,
+# clutter-free, and pose-belief tests; the clutter run is a structure of its own).
+KNOWN = {"capacity": 2, "samples": 32, "max_detections": 3, "max_steps": 2, "smoother": "filter"}
+
+
 def test_a_known_map_step_with_more_detections_than_objects_skips_the_fewest():
     """Three detections, two mapped objects, no discovery: no injective assignment names all three.
-    The beam and the exhaustive enumeration both keep only the assignments that leave exactly one
-    detection unassociated (-1), the likeliest first, instead of losing the step."""
+    The beam (the step's children in a run, ``Details``) and the exhaustive enumeration both keep only
+    the assignments that leave exactly one detection unassociated (-1, counted in ``skipped``), the
+    likeliest first, instead of losing the step."""
     import jax
 
     from hybridslam.driver import inputs_from_scenario
     from hybridslam.estimators.multimodal import Multimodal, association_log_probabilities
     from hybridslam.estimators.smoothing import Filter
 
-    obj = _crowded().replace(discovery=None)
-    two = obj.replace(object_prior_means=obj.object_prior_means[:2], object_prior_covs=obj.object_prior_covs[:2],
-                      class_prior=obj.class_prior[:2])
+    two = _two_objects_three_detections()
+    run = run_estimator(two, "multimodal", **KNOWN)  # the beam (max_assignments 64), the pose-belief test's program
+    assert int(run.infos[0].skipped) == 1
+    details = run.infos[0].details
     detections = jax.tree.map(lambda a: a[0], inputs_from_scenario(two, 3).detections)
-    for width in (64, None):
-        est = Multimodal(capacity=2, samples=32, max_detections=3, max_steps=2, smoother=Filter(), max_assignments=width)
-        ch = association_log_probabilities(est.init(two), detections, jax.random.key(0))
-        live = np.asarray(ch.log_weight) > -np.inf
-        objects = np.asarray(ch.objects)[live]
-        assert live.any() and np.all((objects < 0).sum(axis=1) == 1), (width, objects)
+    est = Multimodal(capacity=2, samples=32, max_detections=3, max_steps=2, smoother=Filter(), max_assignments=None)
+    ch = association_log_probabilities(est.init(two), detections, jax.random.key(0))
+    for name, objects, score in (("beam", details.assoc_objects, details.assoc_log_probs),
+                                 ("exhaustive", ch.objects, ch.log_weight)):
+        live = np.asarray(score) > -np.inf
+        objects = np.asarray(objects)[live]
+        assert live.any() and np.all((objects < 0).sum(axis=1) == 1), (name, objects)
         assert np.all(np.sort(objects, axis=1)[:, 1:] >= 0)  # the other two name distinct objects
-        assert objects[np.argmax(np.asarray(ch.log_weight)[live])].tolist() == [0, 1, -1]
+        assert objects[np.argmax(np.asarray(score)[live])].tolist() == [0, 1, -1], name
 
 
 def _two_objects_three_detections():
@@ -628,12 +636,11 @@ def test_a_pose_belief_that_contradicts_every_association_is_flagged():
 
     two = _two_objects_three_detections()
     tight = np.diag([1e-4, 1e-4, 1e-6])
-    options = dict(capacity=2, samples=32, max_detections=3, max_steps=2, smoother="filter")
     flags = {}
     for shift in (0.0, 1.5):
         scenario = two.replace(robot_prior_mean=np.asarray(two.robot_prior_mean) + [0.0, shift, 0.0],
                                robot_prior_cov=tight)
-        run = run_estimator(scenario, "multimodal", **options)
+        run = run_estimator(scenario, "multimodal", **KNOWN)
         flags[shift] = bool(run.infos[0].inconsistent)
         if shift:
             assert any("contradicts the detections" in w for w in run.infos[0].warnings())
