@@ -166,22 +166,25 @@ def _children_by_key(belief, drop_slot=None):
     return out
 
 
-@pytest.mark.parametrize("branching", [{"exhaustive": True}, {"max_children": 512}])
-def test_an_unmapped_object_weighs_what_its_stored_classes_weigh(world, branching):
+def test_an_unmapped_object_weighs_what_its_stored_classes_weigh(world):
     """A component with no free object slot (two slots, two objects) weighs a detection's new-object
     hypothesis as an unmapped object: the same children and weights (to 1e-9) as the same component
     with one more slot, where that hypothesis stores the object once per class and those children
-    are summed (the class marginal of Sec. IV-D). The exhaustive table and the beam agree."""
+    are summed (the class marginal of Sec. IV-D). The exhaustive table and the beam agree: both
+    give the full component those children and weights (one program each, and the exhaustive
+    table's for the roomier component)."""
     scenario = world.replace(discovery=Discovery(2, -2.0, 9.87))
-    estimator = hs.make_estimator("hybrid", classifier="mirror", capacity=16, max_detections=2, weights="linearized",
-                                  smoother="filter", prune_ratio=1e300, **branching)
-    belief = estimator.init(scenario)
+    settings = {"classifier": "mirror", "capacity": 16, "max_detections": 2, "weights": "linearized",
+                "smoother": "filter", "prune_ratio": 1e300}
+    exhaustive = hs.make_estimator("hybrid", exhaustive=True, **settings)
+    beam = hs.make_estimator("hybrid", max_children=512, **settings)
+    belief = exhaustive.init(scenario)
     slots = hs.stack_steps(scenario, 2)
     inputs = [(jnp.asarray(slots.odometry[k]), hs.Detections(jnp.asarray(slots.geo[k]), jnp.asarray(slots.scores[k]),
                                                             jnp.asarray(slots.mask[k]))) for k in range(3)]
     key = jax.random.PRNGKey(0)
     for k in range(2):  # objects 0 and 1 are created by steps 1-2 (see test_full_object_slots_...)
-        belief, _ = STEP(estimator, belief, *inputs[k], key)
+        belief, _ = STEP(exhaustive, belief, *inputs[k], key)
     top = int(jnp.argmax(belief.log_weights))  # one parent with both slots used
     belief = eqx.tree_at(lambda b: b.log_weights, belief, jnp.full_like(belief.log_weights, -jnp.inf).at[top].set(0.0))
     assert int(belief.num_created[top]) == 2 and int(inputs[2][1].mask.sum()) == 1
@@ -190,13 +193,15 @@ def test_an_unmapped_object_weighs_what_its_stored_classes_weigh(world, branchin
     det = hs.Detections(inputs[2][1].geo.at[1].set(inputs[2][1].geo[0]), inputs[2][1].scores.at[1].set(
         inputs[2][1].scores[0]), jnp.asarray(two))
     for detections in (inputs[2][1], det):
-        full, info = STEP(estimator, belief, inputs[2][0], detections, key)
-        roomy, _ = STEP(estimator, _one_more_slot(belief), inputs[2][0], detections, key)
-        want, got = _children_by_key(roomy, drop_slot=2), _children_by_key(full)
-        assert got.keys() == want.keys() and any(-1 in h for h, _ in got)
-        for child, weight in want.items():
-            np.testing.assert_allclose(got[child], weight, rtol=1e-9, atol=1e-12)
-        assert int(info.dropped_capacity) == 0
+        roomy, _ = STEP(exhaustive, _one_more_slot(belief), inputs[2][0], detections, key)
+        want = _children_by_key(roomy, drop_slot=2)
+        for estimator in (exhaustive, beam):
+            full, info = STEP(estimator, belief, inputs[2][0], detections, key)
+            got = _children_by_key(full)
+            assert got.keys() == want.keys() and any(-1 in h for h, _ in got)
+            for child, weight in want.items():
+                np.testing.assert_allclose(got[child], weight, rtol=1e-9, atol=1e-12)
+            assert int(info.dropped_capacity) == 0 and int(info.dropped_budget) == 0
 
 
 def test_gating_with_all_objects_equals_exact_enumeration(world, exact):

@@ -374,10 +374,13 @@ def test_merge_keeps_the_mass_of_a_child_too_light_to_be_a_centre():
     """A child more than ``RELEVANT_NATS`` below the best (here 46 nats) becomes no centre, even with
     room for it (``K`` = 4), and is not smoothed; its mass joins the nearest centre, so the merged
     weights still sum to the children's. A dead child (-inf) is nobody's member."""
+    import equinox as eqx
     import jax.numpy as jnp
 
     from hybridslam.estimators.base import RELEVANT_NATS, relevant_children
     from hybridslam.estimators.multimodal import cluster
+
+    cluster = eqx.filter_jit(cluster)  # one program per call (op by op, each of its ops compiled alone)
 
     log_w = jnp.log(jnp.array([0.6, 0.4, 1e-20, 0.0]))
     mean = jnp.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [9.0, 0.0, 0.0], [5.0, 5.0, 0.0]])
@@ -526,28 +529,36 @@ def test_many_detection_slots_over_many_objects_are_accepted():
     assert state.history.shape[-1] == 16
 
 
+# A known map of two objects, three detection slots: one program for the runs of the step (the skip,
+# clutter-free, and pose-belief tests; the clutter run is a structure of its own).
+KNOWN = {"capacity": 2, "samples": 32, "max_detections": 3, "max_steps": 2, "smoother": "filter"}
+
+
 def test_a_known_map_step_with_more_detections_than_objects_skips_the_fewest():
     """Three detections, two mapped objects, no discovery: no injective assignment names all three.
-    The beam and the exhaustive enumeration both keep only the assignments that leave exactly one
-    detection unassociated (-1), the likeliest first, instead of losing the step."""
+    The beam (the step's children in a run, ``Details``) and the exhaustive enumeration both keep only
+    the assignments that leave exactly one detection unassociated (-1, counted in ``skipped``), the
+    likeliest first, instead of losing the step."""
     import jax
 
     from hybridslam.driver import inputs_from_scenario
     from hybridslam.estimators.multimodal import Multimodal, association_log_probabilities
     from hybridslam.estimators.smoothing import Filter
 
-    obj = _crowded().replace(discovery=None)
-    two = obj.replace(object_prior_means=obj.object_prior_means[:2], object_prior_covs=obj.object_prior_covs[:2],
-                      class_prior=obj.class_prior[:2])
+    two = _two_objects_three_detections()
+    run = run_estimator(two, "multimodal", **KNOWN)  # the beam (max_assignments 64), the pose-belief test's program
+    assert int(run.infos[0].skipped) == 1
+    details = run.infos[0].details
     detections = jax.tree.map(lambda a: a[0], inputs_from_scenario(two, 3).detections)
-    for width in (64, None):
-        est = Multimodal(capacity=2, samples=32, max_detections=3, max_steps=2, smoother=Filter(), max_assignments=width)
-        ch = association_log_probabilities(est.init(two), detections, jax.random.key(0))
-        live = np.asarray(ch.log_weight) > -np.inf
-        objects = np.asarray(ch.objects)[live]
-        assert live.any() and np.all((objects < 0).sum(axis=1) == 1), (width, objects)
+    est = Multimodal(capacity=2, samples=32, max_detections=3, max_steps=2, smoother=Filter(), max_assignments=None)
+    ch = association_log_probabilities(est.init(two), detections, jax.random.key(0))
+    for name, objects, score in (("beam", details.assoc_objects, details.assoc_log_probs),
+                                 ("exhaustive", ch.objects, ch.log_weight)):
+        live = np.asarray(score) > -np.inf
+        objects = np.asarray(objects)[live]
+        assert live.any() and np.all((objects < 0).sum(axis=1) == 1), (name, objects)
         assert np.all(np.sort(objects, axis=1)[:, 1:] >= 0)  # the other two name distinct objects
-        assert objects[np.argmax(np.asarray(ch.log_weight)[live])].tolist() == [0, 1, -1]
+        assert objects[np.argmax(np.asarray(score)[live])].tolist() == [0, 1, -1], name
 
 
 def _two_objects_three_detections():
@@ -625,12 +636,11 @@ def test_a_pose_belief_that_contradicts_every_association_is_flagged():
 
     two = _two_objects_three_detections()
     tight = np.diag([1e-4, 1e-4, 1e-6])
-    options = dict(capacity=2, samples=32, max_detections=3, max_steps=2, smoother="filter")
     flags = {}
     for shift in (0.0, 1.5):
         scenario = two.replace(robot_prior_mean=np.asarray(two.robot_prior_mean) + [0.0, shift, 0.0],
                                robot_prior_cov=tight)
-        run = run_estimator(scenario, "multimodal", **options)
+        run = run_estimator(scenario, "multimodal", **KNOWN)
         flags[shift] = bool(run.infos[0].inconsistent)
         if shift:
             assert any("contradicts the detections" in w for w in run.infos[0].warnings())
@@ -644,6 +654,7 @@ def test_a_pose_belief_that_contradicts_every_association_is_flagged():
 def test_contradicted_counts_skipped_and_far_detections_against_half_the_step():
     """``gating.contradicted`` against ``d²`` computed here: a step is contradicted when more than
     half of its detections are skipped or named beyond the 1e-6 bound."""
+    import jax
     import jax.numpy as jnp
 
     import hybridslam as hs
@@ -653,17 +664,19 @@ def test_contradicted_counts_skipped_and_far_detections_against_half_the_step():
     state = hs.make_estimator("multimodal", smoother="filter", max_detections=3).init(two)
     det = _first(inputs_from_scenario(two, 3).detections)
     mean, cov, sensor = state.mean[0], state.cov[0], state.model.sensor
+    # Jitted: one program each (op by op, every call's ops compiled one by one).
+    mahalanobis, contradicted = jax.jit(gating.mahalanobis), jax.jit(gating.contradicted)
     for m in (mean, mean.at[1].add(3.0)):  # as believed, and 3 m to the side (every association far)
         c = cov if m is mean else cov * 1e-3
-        d2 = np.asarray(gating.mahalanobis(sensor, m, c, det))
+        d2 = np.asarray(mahalanobis(sensor, m, c, det))
         for objects in ([0, 1, -1], [1, 0, -1], [-1, -1, -1], [0, -1, 1], [1, -1, -1]):
             for skipped in (False, True):
                 unassociated = np.array([o < 0 and skipped for o in objects])
                 bad = sum((o >= 0 and d2[j, o] > gating.CONTRADICTION_D2) or unassociated[j] for j, o in enumerate(objects))
-                got = gating.contradicted(sensor, m, c, det, jnp.asarray(objects), jnp.asarray(unassociated))
+                got = contradicted(sensor, m, c, det, jnp.asarray(objects), jnp.asarray(unassociated))
                 assert bool(got) == (2 * bad > 3), (objects, skipped)
-    assert bool(gating.contradicted(sensor, mean.at[1].add(3.0), cov * 1e-3, det, jnp.asarray([0, 1, -1]),
-                                    jnp.zeros(3, bool)))
+    assert bool(contradicted(sensor, mean.at[1].add(3.0), cov * 1e-3, det, jnp.asarray([0, 1, -1]),
+                             jnp.zeros(3, bool)))
 
 
 def _first(tree):

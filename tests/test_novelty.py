@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -13,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hybridslam.analysis.recall import closure_recall
-from hybridslam.driver import run_estimator
+from hybridslam.driver import compiled, inputs_from_scenario, run, scan, trace_record
 from hybridslam.estimators import novelty
 from hybridslam.estimators.registry import make_estimator
 from hybridslam.io.result import ComponentRecord, Result, StepRecord
@@ -64,10 +65,27 @@ def short_hallway():
     return hallway(0, steps=4)  # 12 detections of 8 landmarks, an unknown map
 
 
-def _objects(result: Result) -> tuple[int, int]:
-    """Distinct objects of the final top component, and its detections."""
-    a = np.concatenate([np.asarray(x) for x in result.steps[-1].components[0].associations])
+def _objects(record: StepRecord) -> tuple[int, int]:
+    """Distinct objects of a step record's top component, and its detections."""
+    a = np.concatenate([np.asarray(x) for x in record.components[0].associations])
     return len(set(a[a >= 0].tolist())), len(a)
+
+
+def _last_record(estimator, scenario, state) -> StepRecord:
+    """The last step's record of ``estimator`` run over ``scenario`` from ``state``: ``hs.run``'s loop,
+    inputs and compiled program (``driver.compiled`` finds the program of an equal estimator)."""
+    slots = jax.eval_shape(estimator.view, state).history.shape[-1]
+    inputs = jax.tree.map(np.asarray, inputs_from_scenario(scenario, slots))
+    key = jax.random.PRNGKey(0)
+    def one(k):
+        return jax.tree.map(lambda x: x[k : k + 1], inputs)
+
+    step, _ = compiled(scan, estimator, state, one(0), key, steps=scenario.num_steps)
+    for k in range(scenario.num_steps):
+        state, trace = step(estimator, state, one(k), key)
+    last = jax.tree.map(lambda x: np.asarray(x)[0], trace)
+    detections = [len(s.detections) for s in scenario.steps]
+    return trace_record(last, detections, scenario.true_robot_poses is not None)
 
 
 @pytest.mark.parametrize("name", [pytest.param(n, marks=() if n == "ml" else pytest.mark.slow) for n in ESTIMATORS])
@@ -82,8 +100,15 @@ def test_the_rule_decides_which_detections_are_new(name, short_hallway):
     options = dict(capacity=8, gate=3, weights="linearized") if name == "hybrid" else (
         {"capacity": 4} if name == "multimodal" else {})
     options["smoother"] = "filter"
-    count = {rule: _objects(run_estimator(short_hallway, name, seed=0, new_landmark=rule, **options).result)
-             for rule in ("density", "mahalanobis:1e-9", "mahalanobis:1e9")}
+    rules = ("density", "mahalanobis:1e-9", "mahalanobis:1e9")
+    estimators = {rule: make_estimator(name, new_landmark=rule, **options) for rule in rules}
+    count = {rule: _objects(run(estimators[rule], short_hallway).result.steps[-1]) for rule in rules[::2]}
+    tiny = estimators["mahalanobis:1e-9"]
+    if name == "hybrid":  # τ is a constant of the hybrid belief's step: a program of its own
+        count[tiny.new_landmark] = _objects(run(tiny, short_hallway).result.steps[-1])
+    else:  # τ is a state parameter (new_landmark_tau): the huge τ's program steps the tiny τ's state
+        count[tiny.new_landmark] = _objects(_last_record(estimators["mahalanobis:1e9"], short_hallway,
+                                                         tiny.init(short_hallway)))
     detections = count["density"][1]
     if name == "hybrid":
         assert count["mahalanobis:1e-9"][0] == count["density"][0]  # nothing inside τ: the density rule

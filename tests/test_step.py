@@ -1,5 +1,7 @@
 """Algorithm 1 end to end: marginals, lazy class realizations, tracing, determinism, overflow."""
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -7,6 +9,7 @@ import numpy as np
 import pytest
 
 import hybridslam as hs
+from hybridslam.driver import compiled, inputs_from_scenario, scan
 
 from .conftest import CAPACITY, SAMPLES, SLOTS
 
@@ -33,9 +36,9 @@ def _belief(scenario, classifier="mirror", prune_ratio=150.0, **settings):
     return estimator, estimator.init(scenario)
 
 
-# Geometry only, never pruned, half the shared capacity: several association hypotheses stay alive
-# and the belief overflows (test_capacity_overflow_is_counted_not_silent). One program for the
-# file's driver runs (the run_none fixture and the seed test).
+# Geometry only, never pruned, half the shared capacity: several association hypotheses stay alive and
+# the belief overflows (test_capacity_overflow_is_counted_not_silent). One program for the file's driver
+# runs: the run_none fixture, the seed and compile-once tests and the fallback test's step.
 RUN_NONE = dict(classifier="none", capacity=CAPACITY // 2, samples=SAMPLES, max_detections=SLOTS, prune_ratio=1e300,
                 smoother="filter")
 
@@ -98,31 +101,16 @@ def _first_detection_of(step, num_objects):
     return Step(step.odometry, dets)
 
 
-_TRACES: list[int] = []  # one entry per trace of _default_step
-
-
-@jax.jit
-def _default_step(*args):
-    """The default estimator's step with the filter (``_estimator(smoother="filter")``: neither test
-    below is about the smoother; the classifier and alpha live in the belief's model: traced),
-    jitted once for the module: test_step_is_traced_once_per_run counts its traces, and
-    test_unexplainable_detection_falls_back_to_likelihood runs the same compiled program."""
-    _TRACES.append(1)
-    return _estimator(smoother="filter").step(*args)
-
-
-def _default_belief(scenario, alpha=0.25):
-    return hs.Hybrid(classifier=hs.Mirror(alpha, 15.0), capacity=CAPACITY, max_detections=SLOTS,
-                     weights=hs.LaplaceIS(samples=SAMPLES), smoother=hs.Filter()).init(scenario)
-
-
-def test_step_is_traced_once_per_run(scenario, key):
-    """One compile per run, also when model parameters (alpha) change between runs."""
-    for alpha in (0.25, 0.4):
-        belief = _default_belief(scenario, alpha)
-        for k in range(scenario.num_steps):
-            belief, info = _default_step(belief, *_inputs(scenario, k), jax.random.fold_in(key, k))
-    assert len(_TRACES) == 1  # in this module's whole process: every other call reused the first trace
+def test_a_run_compiles_its_step_once_and_model_parameters_are_traced(scenario, run_none):
+    """One compile per run (the driver compiles the scan over one step ahead of time, and
+    ``lax.scan`` refuses a step whose state changes type), also when model parameters change between
+    runs: a run with another geometric covariance (it lives in the belief's model, as the classifier's
+    alpha and K do) reuses the program and computes with its own covariance."""
+    wider = scenario.replace(geometric_cov=2.0 * np.asarray(scenario.geometric_cov))
+    other = hs.run_estimator(wider, **RUN_NONE)
+    assert other.result.timing["compile_s"] == 0.0
+    weights = [[c.weight for s in r.result.steps for c in s.components] for r in (other, run_none)]
+    assert not np.allclose(*weights)
 
 
 def test_same_seed_same_result_and_different_seed_differs(scenario):
@@ -151,15 +139,18 @@ def test_history_overflow_is_refused(scenario):
         hs.run(estimator, scenario.replace(steps=scenario.steps + scenario.steps[:1], true_robot_poses=None))
 
 
-@pytest.mark.slow  # the extended suite, CI (after test_step_is_traced_once_per_run: no compile of its own)
-def test_unexplainable_detection_falls_back_to_likelihood(scenario, key):
+def test_unexplainable_detection_falls_back_to_likelihood(scenario, run_none):
     """The robot surely faces away from every object, yet detects two: no hypothesis has its
-    objects in view (a model violation). The step weighs by likelihood instead and stays finite."""
-    belief = _default_belief(scenario)
-    odometry, det = _inputs(scenario, 0)
-    det = hs.Detections(det.geo, det.scores, jnp.array([True, True]))
+    objects in view (a model violation). The step weighs by likelihood instead and stays finite.
+    (One step of the program ``hs.run`` compiled for the run fixture: no compile of its own.)"""
+    estimator = hs.make_estimator("hybrid", **RUN_NONE)
+    belief = estimator.init(scenario)
+    inputs = jax.tree.map(lambda a: np.asarray(a)[:1], inputs_from_scenario(scenario, SLOTS))  # as in hs.run
+    inputs = eqx.tree_at(lambda i: i.detections.mask, inputs, np.ones((1, SLOTS), bool))
     away = eqx.tree_at(lambda b: (b.mean, b.cov), belief, (belief.mean.at[:, 2].set(np.pi), belief.cov * 1e-4))
-    new, info = _default_step(away, odometry, det, key)
+    step, _ = compiled(scan, estimator, away, inputs, jax.random.PRNGKey(0), steps=1)
+    new, trace = step(estimator, away, inputs, jax.random.PRNGKey(0))
+    info = jax.tree.map(lambda a: np.asarray(a)[0], trace.info)
     assert bool(info.visibility_ignored)
     assert bool(jnp.all(jnp.isfinite(new.log_weights[new.alive])))
     np.testing.assert_allclose(new.weights[new.alive].sum(), 1.0)
@@ -243,8 +234,6 @@ def test_beam_children_and_weights_equal_the_exhaustive_enumeration(key):
 def _duplicated_detection():
     """The paper setup's first step with a spurious copy of its first detection (0.3 m farther) in
     slot 1, and the step's inputs over three slots."""
-    import dataclasses
-
     scenario = hs.simulate(2, steps=2, setup=hs.PaperSetup(max_detections=2, max_range=12.0))
     first = scenario.steps[0]
     assert len(first.detections) == 2
