@@ -78,19 +78,20 @@ def key() -> jax.Array:
     return jax.random.PRNGKey(0)
 
 
-# The test files that take longest, longest first (their CPU seconds in one run, 2026-11-27): the two
-# readme files about 200 s each, test_gradients about 170 s, the others 120 s and less. The two
-# workers take whole files in collection order (pyproject's `--dist loadfile --no-loadscope-reorder`):
-# starting the long ones first lets the short ones fill the gaps, so both workers finish together
-# (longest-processing-time-first scheduling). A file not listed runs after these, in name order; the
-# order changes nothing but the run's length.
+# The test files that take longest, longest first (their CPU seconds in one run, 2026-11-28): test_gradients
+# about 210 s, the readme files 150 and 90 s (with their subprocesses), test_planning (with its docs page)
+# and test_sweep about 120 s, the others 100 s and less. The two workers take whole files in collection
+# order (pyproject's `--dist loadfile --no-loadscope-reorder`): starting the long ones first lets the
+# short ones fill the gaps, so both workers finish together (longest-processing-time-first
+# scheduling). A file not listed runs after these, in name order; the order changes nothing but the
+# run's length.
 LONGEST_FIRST: tuple[str, ...] = (
-    "test_readme_run.py", "test_readme_python.py", "test_gradients.py", "test_step.py", "test_sweep.py",
-    "test_smoother.py", "test_discovery.py", "test_planning.py", "test_smoother_batch.py", "test_golden.py",
-    "test_hard_inputs.py", "test_cli.py", "test_batch_strategies.py", "test_profiles.py",
-    "test_clutter_default.py", "test_weights.py", "test_learned.py", "test_multimodal.py",
-    "test_laplace.py", "test_lag.py", "test_online_loop_closure.py", "test_update.py",
-    "test_consistency.py", "test_environment.py",
+    "test_gradients.py", "test_readme_run.py", "test_planning.py", "test_sweep.py", "test_readme_python.py",
+    "test_step.py", "test_multimodal.py", "test_novelty.py", "test_discovery.py", "test_golden.py",
+    "test_hard_inputs.py", "test_smoother.py", "test_online_loop_closure.py", "test_smoother_batch.py",
+    "test_batch_strategies.py", "test_cli.py", "test_learned.py", "test_clutter_default.py", "test_lag.py",
+    "test_mrclam.py", "test_laplace.py", "test_profiles.py", "test_environment.py", "test_consistency.py",
+    "test_loop_closure.py", "test_weights.py",
 )
 
 
