@@ -74,10 +74,11 @@ def range_bearing_jacobians(x: se2.Pose, obj: se2.Pose) -> tuple[Float[Array, "2
             jnp.concatenate([jac, jnp.zeros((2, 1), jac.dtype)], axis=1))
 
 
-def _viewpoint(x: se2.Pose, obj: se2.Pose):
+def _viewpoint(x: se2.Pose, obj: se2.Pose) -> tuple[Float[Array, "2"], Float[Array, ""]]:
+    """The unit vector of :func:`viewpoint` and ``‖v‖``."""
     vx, vy = _to_frame(obj, x[0] - obj[0], x[1] - obj[1])
     norm = jnp.sqrt(vx**2 + vy**2 + 1e-300)
-    return jnp.stack([vx / norm, vy / norm]), vx, vy, norm
+    return jnp.stack([vx / norm, vy / norm]), norm
 
 
 @jax.custom_jvp
@@ -95,7 +96,7 @@ def viewpoint(x: se2.Pose, obj: se2.Pose) -> Float[Array, "2"]:
 @viewpoint.defjvp
 def _viewpoint_jvp(primals, tangents):
     (x, obj), (dx, dobj) = primals, tangents
-    u, vx, vy, norm = _viewpoint(x, obj)
+    u, norm = _viewpoint(x, obj)
     perp = jnp.stack([-u[1], u[0]])
     # δu = u⊥ u⊥ᵀ δv / ‖v‖ with δv = R(θ_o)ᵀ(δp_x − δp_o) + [v_y, −v_x] δθ_o; u⊥ᵀ [v_y, −v_x] = −‖v‖.
     project = perp[:, None] * perp[None, :] @ se2.rotation(obj[2]).T / norm
