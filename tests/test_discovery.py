@@ -334,7 +334,8 @@ def test_create_object_with_apply_false_changes_nothing():
     np.testing.assert_array_equal(np.asarray(same_cov), np.asarray(cov))
     full = CREATE_OBJECT(mean, cov, *args)  # the program of test_create_object_covariance_matches_monte_carlo
     batched = jax.jit(jax.vmap(lambda a: create_object(mean, cov, *args, apply=a)))(jnp.asarray([True, False]))
-    np.testing.assert_array_equal(np.asarray(batched[1][0]), np.asarray(full[1]))
+    # Two programs (batched and not) that XLA fuses differently: equal up to the last bits.
+    np.testing.assert_allclose(np.asarray(batched[1][0]), np.asarray(full[1]), rtol=1e-13, atol=1e-15)
     np.testing.assert_array_equal(np.asarray(batched[1][1]), np.asarray(cov))
     assert not np.allclose(np.asarray(full[1]), np.asarray(cov))
 

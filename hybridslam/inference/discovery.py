@@ -23,6 +23,17 @@ def back_project(x: se2.Pose, geo: Float[Array, "2"]) -> Float[Array, "2"]:
     return x[:2] + se2.rotation(x[2]) @ local
 
 
+def back_project_jacobians(x: se2.Pose, geo: Float[Array, "2"]) -> tuple[Float[Array, "2 3"], Float[Array, "2 2"]]:
+    """``(∂p/∂x, ∂p/∂z)`` of :func:`back_project` in closed form: ``p = t + ρ [cos φ, sin φ]`` with
+    ``φ = θ + b`` (the inverse of Eq. 10), so ``∂p/∂t = I``, ``∂p/∂θ = ρ [−sin φ, cos φ]`` and
+    ``∂p/∂(ρ, b) = [[cos φ, −ρ sin φ], [sin φ, ρ cos φ]]``."""
+    c, s = jnp.cos(x[2] + geo[1]), jnp.sin(x[2] + geo[1])
+    one, zero = jnp.ones_like(c), jnp.zeros_like(c)
+    j_x = jnp.stack([jnp.stack([one, zero, -geo[0] * s]), jnp.stack([zero, one, geo[0] * c])])
+    j_z = jnp.stack([jnp.stack([c, -geo[0] * s]), jnp.stack([s, geo[0] * c])])
+    return j_x, j_z
+
+
 def create_object(
     mean: Float[Array, " D"],
     cov: Float[Array, "D D"],
@@ -50,8 +61,7 @@ def create_object(
     """
     dim = mean.shape[0]
     x = mean[:3]
-    j_x = jax.jacfwd(back_project, argnums=0)(x, geo)  # (2, 3)
-    j_z = jax.jacfwd(back_project, argnums=1)(x, geo)  # (2, 2)
+    j_x, j_z = back_project_jacobians(x, geo)  # (2, 3), (2, 2)
     start = jnp.asarray(3 + 3 * slot, jnp.int32)
     zero = jnp.zeros((), jnp.int32)
     pp = j_x @ cov[:3, :3] @ j_x.T + j_z @ geometric_cov @ j_z.T

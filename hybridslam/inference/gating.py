@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ..models.geometry import geometric_residual, range_bearing
+from ..models.geometry import geometric_residual, range_bearing, range_bearing_jacobians
 from ..models.measurement import Detections, SensorModel
 
 
@@ -46,7 +46,7 @@ class Innovations(eqx.Module):
 
 def _predicted(sensor: SensorModel, x: Float[Array, "3"], obj: Float[Array, "3"], block: Float[Array, "6 6"]):
     """Predicted range-bearing of one object, its Jacobians and its innovation covariance ``S``."""
-    jac_x, jac_o = jax.jacfwd(range_bearing, argnums=(0, 1))(x, obj)
+    jac_x, jac_o = range_bearing_jacobians(x, obj)
     jac = jnp.concatenate([jac_x, jac_o], axis=-1)
     return range_bearing(x, obj), jac_x, jac_o, jac @ block @ jac.T + sensor.geometric_cov
 

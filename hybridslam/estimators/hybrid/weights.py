@@ -51,7 +51,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ...inference.batching import fold_live, map_live
 from ...inference.laplace import laplace_is
 from ...models import se2
-from ...models.geometry import range_bearing
+from ...models.geometry import range_bearing, range_bearing_jacobians
 from ...models.measurement import (
     Detections,
     SensorModel,
@@ -224,9 +224,8 @@ def _log_mean(terms: Float[Array, " S"]) -> Float[Array, ""]:
 def _log_visibility_probability(sensor: SensorModel, local: Float[Array, "6"], local_cov: Float[Array, "6 6"]):
     """``log P(object in view)`` under the linearized Gaussian predictive of its range/bearing;
     ``local = [x, object]`` and its covariance (range and bearing depend on nothing else)."""
-    h = lambda s: range_bearing(s[:3], s[3:])  # noqa: E731
-    jac = jax.jacfwd(h)(local)
-    return log_visibility_probability(sensor, h(local), jnp.diagonal(jac @ local_cov @ jac.T))
+    jac = jnp.concatenate(range_bearing_jacobians(local[:3], local[3:]), axis=1)  # (2, 6), closed form (Eq. 10)
+    return log_visibility_probability(sensor, range_bearing(local[:3], local[3:]), jnp.diagonal(jac @ local_cov @ jac.T))
 
 
 class LinearTables(NamedTuple):
