@@ -158,11 +158,6 @@ class AlphaK(_AlphaK):
         super().__init__(alpha, K)
         self.dependence = jnp.asarray(dependence, dtype=float)
 
-    @classmethod
-    def of(cls, model: Mirror | Independent) -> AlphaK:
-        """The same model as an :class:`AlphaK`."""
-        return cls(model.alpha, model.K, 1.0 if isinstance(model, Mirror) else 0.0)
-
     def _parts(self) -> tuple[Mirror, Independent]:
         return Mirror(self.alpha, self.K), Independent(self.alpha, self.K)  # type: ignore[call-arg]
 

@@ -30,7 +30,7 @@ def motion_jacobians(x_prev: se2.Pose, odometry: se2.Pose) -> tuple[Float[Array,
     Eq. 2.3), so ``∂f/∂x = [[I, R'(θ) t_u], [0, 1]]`` with ``R'(θ) t_u = [−s u_x − c u_y,
     c u_x − s u_y]``; ``Exp(w) = [w_t, w_θ] + O(‖w‖²)``, so ``∂f/∂w = blockdiag(R(θ + θ_u), 1)``
     (the noise enters in the moved pose's frame). The same matrices as ``jax.jacfwd`` of the
-    composition (tests/test_models.py), a fraction of its program.
+    composition (tests/test_jacobians.py), a fraction of its program.
     """
     c, s = jnp.cos(x_prev[2]), jnp.sin(x_prev[2])
     cw, sw = jnp.cos(x_prev[2] + odometry[2]), jnp.sin(x_prev[2] + odometry[2])

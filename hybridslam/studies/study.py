@@ -294,12 +294,13 @@ def run_file_study(study: FileStudy, folder: str, *, mesh=None, on_cell: Progres
                     f"{max(g.num_steps for g in group)} steps"
             if on_cell:
                 on_cell(label, None)
-            estimator = batched(dataclasses.replace(study.estimator,  # type: ignore[call-arg]  # (as above)
-                                                    classifier=resolve_model(cell["run_as"])), group)
+            model = resolve_model(cell["run_as"])
+            chosen = dataclasses.replace(study.estimator, classifier=model)  # type: ignore[call-arg]
+            estimator = batched(chosen, group)
             run = run_batch(estimator, batch_inputs(estimator, group, [study.seed] * len(group)), mesh,
                             strategy=strategy)
             # The result files name the model (the batch may run it as an AlphaK: batch.shared_classifier).
-            named = dataclasses.replace(estimator, classifier=resolve_model(cell["run_as"]))  # type: ignore[call-arg]
+            named = dataclasses.replace(estimator, classifier=model)  # type: ignore[call-arg]
             _write_results(study, cell, group, run, named, folder)
             record = _record(cell, run, {"steps": [g.num_steps for g in group]})
             records.append(record)
