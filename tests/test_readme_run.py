@@ -26,8 +26,10 @@ lacks are supplied:
   steps, a run short enough for the quick compile (``hybridslam.compilation.QUICK_RUN_STEPS``; the
   main sweep's batch compiles fully), which halves the real-data commands' time. Nothing else of
   any command line is changed.
-* ``logs/``: the user's own scenario files for ``sweep --scenarios 'logs/*.json'``; here the two
-  files the MRCLAM page's ``import`` lines wrote.
+* ``logs/``: the user's own scenario files for ``sweep --scenarios 'logs/*.json'``; here two logs
+  of one robot on one map: the known-map file the MRCLAM page's ``import`` line wrote and the window
+  after it, imported the same way (:data:`LATER_WINDOW`). Files of one map run as one batch, which
+  is what a user's logs of one robot do.
 
 ``python3 experiments/...`` and ``python3 scripts/...`` lines (studies of minutes to hours) are
 checked against the script's own ``--help`` (the script run with ``--help`` in the same process):
@@ -148,6 +150,14 @@ def worker(workdir):
     worker.close()
 
 
+def _later_window() -> list[str]:
+    """The window after the pages' ``--start 20 --duration 100`` (on the excerpt: after its 10 s)."""
+    return ["--start", "120", "--duration", "100"] if os.environ.get("MRCLAM_DATASET") else ["--start", "10", "--duration", "10"]
+
+
+LATER_WINDOW = _later_window()
+
+
 def _on_excerpt(command: str) -> str:
     """The command as it runs here: on the excerpt, a window that lies inside it."""
     if not os.environ.get("MRCLAM_DATASET"):
@@ -198,8 +208,10 @@ def test_readme_command_runs(command, workdir, worker, monkeypatch):
         return _check_options(command, worker)
     if "logs/" in command:
         os.makedirs("logs", exist_ok=True)
-        for name in ("robot1.json", "robot1-slam.json"):
-            shutil.copy(name, Path("logs") / name)
+        shutil.copy("robot1.json", Path("logs") / "robot1.json")
+        later = ["import", "mrclam", "MRCLAM_Dataset7", "--robot", "1", *LATER_WINDOW, "-o", "logs/robot1-later.json"]
+        answer = worker.ask({"command": later}, " ".join(later))
+        assert answer is not None and answer["status"] == 0, answer
     argv = _arguments(_on_excerpt(command))
     if command in SHELL or argv is None:
         proc = subprocess.run(_shell_line(command), shell=True, capture_output=True, text=True, env=environment())
