@@ -60,13 +60,14 @@ def _as_xla_flags(options: dict[str, str | bool | int]) -> str:
                     for name, value in options.items())
 
 
-def use_elemental_emitters_everywhere() -> bool:
+def use_elemental_emitters_everywhere(extra: dict[str, str | bool | int] | None = None) -> bool:
     """Put :data:`CPU_COMPILER_OPTIONS` into ``XLA_FLAGS`` as well: then every compile of this process
     (not only :func:`compiled`'s) and of the processes it starts uses them. Call it before JAX starts
     its backend (XLA reads the flags then); the test suite and ``scripts/make_golden.py`` do. Only if
     this jaxlib knows the options (XLA aborts on an unknown flag: a probe in a subprocess, about a
-    second) and ``$HYBRIDSLAM_XLA_DEFAULTS`` is not ``1``. Returns whether the flags are set."""
-    flags, wanted = os.environ.get("XLA_FLAGS", ""), _as_xla_flags(CPU_COMPILER_OPTIONS)
+    second) and ``$HYBRIDSLAM_XLA_DEFAULTS`` is not ``1``. ``extra``: more XLA options for these
+    flags only (the test suite's). Returns whether the flags are set."""
+    flags, wanted = os.environ.get("XLA_FLAGS", ""), _as_xla_flags(CPU_COMPILER_OPTIONS | (extra or {}))
     if wanted in flags:
         return True
     if xla_defaults_from_environment():

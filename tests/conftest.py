@@ -12,6 +12,9 @@ Two settings make the compiles cheaper, for this process and for the CLI subproc
   in the flags it also reaches the tests' own ``jax.jit`` compiles and the CLI subprocesses, and
   the quick suite takes about half the time (``driver.use_elemental_emitters_everywhere``: only
   if this jaxlib knows the flag, and not with ``HYBRIDSLAM_XLA_DEFAULTS=1``).
+* LLVM's code generation in one piece per program (``TEST_XLA_OPTIONS``): split for the cores, as
+  XLA does by default, it costs 6-12% more CPU (hybrid, multimodal and ml programs, 2026-11-28), and
+  the suite's two workers already keep both cores busy.
 * One persistent compilation cache per test run, shared by the xdist workers and the
   subprocesses: a program that several of them compile (the CLI's step, the sweep's batched scan)
   is compiled once. It lives under the run's base temporary folder, so every run starts cold and
@@ -30,9 +33,12 @@ from jax.experimental.compilation_cache import compilation_cache
 import hybridslam as hs
 from hybridslam.driver import use_elemental_emitters_everywhere
 
+# XLA's code generation in one thread per program, not split over the cores (the module docstring).
+TEST_XLA_OPTIONS = {"xla_cpu_parallel_codegen_split_count": 1}
+
 hs.setup()  # float64 and the thread settings, before any JAX backend starts (hybridslam.config)
 os.environ["JAX_ENABLE_X64"] = "1"  # and float64 in the Python subprocesses the tests start
-use_elemental_emitters_everywhere()  # before any JAX backend starts (module docstring)
+use_elemental_emitters_everywhere(TEST_XLA_OPTIONS)  # before any JAX backend starts (module docstring)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1"
 jax.config.update("jax_disable_most_optimizations", True)
