@@ -350,14 +350,16 @@ def test_functionals():
 # ml and gpda share max-mixture's single-Gaussian step and its class update (checked by hand: 2e-8 to
 # 4e-8 filter, 4e-6 full; docs/gradients.md), left out for the suite's time. The smoother's own
 # implicit derivative (the solve's custom_jvp rule, its transpose and the marginal) is checked where it
-# lives, tests/test_smoother.py::test_derivatives_of_a_nonlinear_solution_and_its_marginal_match_finite_differences;
-# each case here adds an estimator's path into and out of it: the hybrid belief's per-component solve in
-# reverse mode (what jax.grad does, transposed through the scan, the graph built from the histories and
-# the smoothed marginal's use in the weights), the fixed-lag window with its marginalized prior
-# (`Lag(1)`: the window slides at step 2), the single-Gaussian estimators' max-mixture factors and
-# multimodal's clusters. Forward mode takes one random direction (a jvp, no batching: the smallest
-# program that checks the tangents); reverse mode one pullback of a combination of the functionals.
-SMOOTHED = {"hybrid, full": ("hybrid", "full", "reverse"), "hybrid, lag:1": ("hybrid", "lag:1", "forward"),
+# lives, tests/test_smoother.py::test_derivatives_of_a_nonlinear_solution_and_its_marginal_match_finite_differences
+# (reverse mode there: the transpose of that rule); each case here adds an estimator's path into and out of
+# it: the hybrid belief's per-component solve (the graph built from the histories and the smoothed
+# marginal's use in the weights), the fixed-lag window with its marginalized prior (`Lag(1)`: the window
+# slides at step 2), the single-Gaussian estimators' max-mixture factors and multimodal's clusters. All in
+# forward mode, one random direction (a jvp, no batching: the smallest program that checks the tangents;
+# half the compile of the pullback). Reverse mode through the hybrid scan (what jax.grad does, transposed
+# through the scan) is checked by ``test_gradients_match_finite_differences[sampled]``; ``"reverse"`` in
+# ``SMOOTHED`` still selects one pullback per functional.
+SMOOTHED = {"hybrid, full": ("hybrid", "full", "forward"), "hybrid, lag:1": ("hybrid", "lag:1", "forward"),
             "max-mixture, full": ("max-mixture", "full", "forward"),
             "multimodal, full": ("multimodal", "full", "forward")}
 
