@@ -2,7 +2,7 @@
 thread pool: ``hybridslam.config``); tests share a few small shapes
 so that each compiled step is reused across tests (JAX compiles dominate the suite's time).
 
-Two settings make the compiles cheaper, for this process and for the CLI subprocesses it starts
+Several settings make the compiles cheaper, for this process and for the CLI subprocesses it starts
 (through the environment):
 
 * XLA's optimizations are off (``jax_disable_most_optimizations``): the programs under test are
@@ -12,6 +12,12 @@ Two settings make the compiles cheaper, for this process and for the CLI subproc
   in the flags it also reaches the tests' own ``jax.jit`` compiles and the CLI subprocesses, and
   the quick suite takes about half the time (``driver.use_elemental_emitters_everywhere``: only
   if this jaxlib knows the flag, and not with ``HYBRIDSLAM_XLA_DEFAULTS=1``).
+* The driver's own compiles at XLA's optimization level 0 as well (``HYBRIDSLAM_XLA_DEFAULTS=1``, set
+  after the flags above: the driver then passes no options of its own, and its compiles take the
+  flags and ``jax_disable_most_optimizations`` like every other). The driver compiles a study's
+  batch and a run of more than ``QUICK_RUN_STEPS`` steps at level 1 for users, whose runs are long;
+  the tests' runs are tiny (the sweep, batching and export tests 174 -> 144 CPU s, 2026-11-28).
+  ``tests/test_compile_options.py`` unsets it to check the options the driver passes.
 * LLVM's code generation in one piece per program (``TEST_XLA_OPTIONS``): split for the cores, as
   XLA does by default, it costs 6-12% more CPU (hybrid, multimodal and ml programs, 2026-11-28), and
   the suite's two workers already keep both cores busy.
@@ -31,7 +37,7 @@ import pytest
 from jax.experimental.compilation_cache import compilation_cache
 
 import hybridslam as hs
-from hybridslam.driver import use_elemental_emitters_everywhere
+from hybridslam.driver import XLA_DEFAULTS_ENV, use_elemental_emitters_everywhere
 
 # XLA's code generation in one thread per program, not split over the cores (the module docstring).
 TEST_XLA_OPTIONS = {"xla_cpu_parallel_codegen_split_count": 1}
@@ -39,6 +45,7 @@ TEST_XLA_OPTIONS = {"xla_cpu_parallel_codegen_split_count": 1}
 hs.setup()  # float64 and the thread settings, before any JAX backend starts (hybridslam.config)
 os.environ["JAX_ENABLE_X64"] = "1"  # and float64 in the Python subprocesses the tests start
 use_elemental_emitters_everywhere(TEST_XLA_OPTIONS)  # before any JAX backend starts (module docstring)
+os.environ[XLA_DEFAULTS_ENV] = "1"  # after the line above: the driver's compiles too at level 0 (module docstring)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1"
 jax.config.update("jax_disable_most_optimizations", True)

@@ -6,7 +6,8 @@ odometry that disagrees with everything seen after it, flat scores, near-singula
 covariances, a detection at zero range, no ground truth. Every estimator runs them through the
 ``hybridslam run`` command (in-process): it exits 0 with a valid result file whose every step holds
 at least one component, all numbers finite (the files are valid, so an error line would be a loss). Every file has the same
-shapes (4 objects, 6 steps, 12 detection slots: ``--max-detections 12``); three of the estimators
+shapes (4 objects, 6 steps, 12 detection slots: ``--max-detections 12 --max-steps 6``, which also
+sizes a smoother's data log by the slots, not by the file's detections); three of the estimators
 run them on an unknown map (no objects, a discovery section), two on the known one, so each
 estimator compiles once for the whole test.
 """
@@ -113,7 +114,7 @@ def test_hard_files_end_in_a_result_or_one_line(estimator, args, tmp_path_factor
     path, out = folder / "s.json", folder / "r.json"
     save_scenario(scenario, path)
     argv = ["run", str(path), "-o", str(out), "--estimator", estimator, "--max-detections", str(SLOTS),
-            *SMALL.get(estimator, [])]
+            "--max-steps", str(STEPS), *SMALL.get(estimator, [])]
     status = cli.main(argv)
     err = capsys.readouterr().err
     assert "Traceback" not in err

@@ -107,9 +107,9 @@ EXPECT: dict[str, tuple[list[str], object]] = {
     "hybridslam run scenario.json -o result.json": (
         [r"estimator=hybrid;.*smoother=full", *RUN_TABLE, r"^wrote result.json$"],
         lambda: _result("result.json", smoother="full")),
-    "hybridslam run scenario.json -o ml.json --estimator ml --smoother filter": (
-        [r"estimator=ml;.*smoother=filter", *RUN_TABLE[:2], r"^wrote ml.json$"],
-        lambda: _result("ml.json", smoother="filter", trajectory=False)),
+    "hybridslam run scenario.json -o ml.json --estimator ml": (
+        [r"estimator=ml;.*smoother=full", *RUN_TABLE, r"^wrote ml.json$"],
+        lambda: _result("ml.json", smoother="full")),
     "hybridslam plot result.json --scenario scenario.json": (
         [r"^wrote result.png$"],
         lambda: Path("result.png").stat()),
