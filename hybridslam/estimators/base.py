@@ -331,7 +331,7 @@ class AbstractEstimator(eqx.Module):
         """This estimator as its compiled step sees it: :attr:`init_settings` at their defaults. The
         driver and the studies compile and call the step with it, so that estimators that differ
         only in what ``init`` wrote into the state share one program."""
-        defaults = {f.name: f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
+        defaults = {f.name: f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc,operator]
                     for f in dataclasses.fields(self) if f.name in self.init_settings}
         return dataclasses.replace(self, **defaults) if defaults else self
 
