@@ -218,14 +218,15 @@ def run(
     def one(k: int) -> Inputs:
         return jax.tree.map(lambda x: x[k : k + 1], inputs)
 
-    step_fn, compile_s = (compiled(scan, estimator, state, one(0), key, steps=scenario.num_steps)
+    stepper = estimator.stepping()  # what init alone reads left out: estimators that differ only there share a program
+    step_fn, compile_s = (compiled(scan, stepper, state, one(0), key, steps=scenario.num_steps)
                           if scenario.num_steps else (scan, 0.0))
     records, infos, step_s = [], [], []
     link = None if keep_associations else HistoryLinker()
     for k in range(scenario.num_steps):
         xs = one(k)
         t0 = time.perf_counter()
-        state, trace = jax.block_until_ready(step_fn(estimator, state, xs, key))
+        state, trace = jax.block_until_ready(step_fn(stepper, state, xs, key))
         step_s.append(time.perf_counter() - t0)
         trace = _first(trace)
         # A record is k · K lists of ints (no cycles: freed by their counts). Their number alone sets

@@ -317,10 +317,23 @@ class AbstractEstimator(eqx.Module):
     # The fields the estimator text shows, in order (None: every field in field order, but those
     # that only size the compiled step); classifier comes first either way.
     described: ClassVar[tuple[str, ...] | None] = None
+    # The settings only ``init`` reads: it writes their effect into the state (a traced value, such
+    # as a clutter density or the new-landmark threshold, or the state's static structure), and the
+    # step reads it there. Estimators that differ only in these share one compiled step
+    # (:meth:`stepping`), so a sweep over them never recompiles.
+    init_settings: ClassVar[tuple[str, ...]] = ()
 
     def __check_init__(self):
         # Every estimator computes in float64 (hybridslam.config): refused when built, not a float32 run.
         require_x64(f"{type(self).__name__}()")
+
+    def stepping(self) -> AbstractEstimator:
+        """This estimator as its compiled step sees it: :attr:`init_settings` at their defaults. The
+        driver and the studies compile and call the step with it, so that estimators that differ
+        only in what ``init`` wrote into the state share one program."""
+        defaults = {f.name: f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc,operator]
+                    for f in dataclasses.fields(self) if f.name in self.init_settings}
+        return dataclasses.replace(self, **defaults) if defaults else self
 
     @abc.abstractmethod
     def init(self, scenario: Scenario) -> Any:

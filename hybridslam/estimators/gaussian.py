@@ -86,7 +86,6 @@ class Structure:
     discovery: bool  # the null hypothesis creates objects (scenario has a "discovery" section)
     num_candidates: int  # G, at most the object capacity
     clutter: bool = False  # a known map's null hypothesis is clutter (Params.clutter_log_density)
-    mahalanobis_new: bool = False  # new_landmark="mahalanobis:TAU" (Params.new_landmark_tau; .novelty)
 
 
 class Params(eqx.Module):
@@ -97,7 +96,7 @@ class Params(eqx.Module):
     new_object_orientation_var: Float[Array, ""]
     new_class_log_prior: Float[Array, " M"]  # uniform: a new object's class prior
     clutter_log_density: Float[Array, ""]  # -inf without a clutter hypothesis
-    new_landmark_tau: Float[Array, ""]  # τ of new_landmark="mahalanobis:TAU" (inf under "density")
+    new_landmark_tau: Float[Array, ""]  # τ of new_landmark="mahalanobis:TAU" (inf: the "density" rule)
 
 
 class GaussianState(eqx.Module):
@@ -199,6 +198,7 @@ class SingleGaussian(AbstractEstimator):
                                             metadata=setting(note="a known map only"))
     new_landmark: str = eqx.field(default=novelty.DENSITY, static=True)
 
+    init_settings = ("gate_probability", "clutter", "new_landmark", "classifier")
     described = ("candidates", "gate_probability", "gn_max_steps", "max_hypotheses", "smoother", "clutter",
                  "new_landmark")
     factor_mode: ClassVar[Literal["sum", "max"]] = "sum"  # how the smoother reads a detection's candidates (max-mixtures: "max")
@@ -257,7 +257,7 @@ class SingleGaussian(AbstractEstimator):
             class_log_post=f(class_log_post), observed=put(np.zeros(n_max, dtype=bool)),
             history=put(np.full((steps, slots), -1, dtype=np.int32)),
             k=put(np.zeros((), dtype=np.int32)), model=model, params=params,
-            structure=Structure(disc is not None, g, clutter is not None, disc is not None and tau is not None),
+            structure=Structure(disc is not None, g, clutter is not None),
         )
         if not self.smoother.smooths:
             return state
@@ -350,10 +350,13 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
     candidate_ok = (d2 <= params.gate) & detections.mask[:, None]
     # The thesis's new-landmark rule (Sec. 3.2.1, .novelty): candidates within τ only, and "new" only
     # where none is (the nearest G hold the nearest object, so none inside the G means none at all).
+    # τ is traced (inf under the density rule, where both lines change nothing), so every rule and τ
+    # share one compiled step.
     near = jnp.zeros(dmax, bool)
-    if cfg.mahalanobis_new:
-        candidate_ok &= d2 <= params.new_landmark_tau
-        near = jnp.any(candidate_ok, axis=-1)
+    if cfg.discovery:
+        rule = jnp.isfinite(params.new_landmark_tau)
+        candidate_ok &= (d2 <= params.new_landmark_tau) | ~rule
+        near = jnp.any(candidate_ok, axis=-1) & rule
 
     # Semantic terms (Eq. 4.13 / 2.14): per object, and under the null hypothesis.
     classifier = sensor.classifier

@@ -278,8 +278,12 @@ class Refined(eqx.Module):
 
 @eqx.filter_jit
 def _refine(plan, params0, keys, step_length, max_turn, logdet_weight, max_steps: int):
-    def fn(params, _):
+    @jax.jit  # traced once: BFGS differentiates its jaxpr, and the two ends below call it again
+    def objective_of(params):
         return expected_objective(plan, turn_actions(params, step_length, max_turn), keys, logdet_weight)
+
+    def fn(params, _):
+        return objective_of(params)
 
     solver = optx.BFGS(rtol=1e-4, atol=1e-4)
     sol = optx.minimise(fn, solver, params0, max_steps=max_steps, throw=False)

@@ -216,7 +216,7 @@ def run_batch(estimator: AbstractEstimator, batch: Batch, mesh: Mesh | None = No
     track 0 (dropped from the result). Each track's numbers depend only on its own inputs (its PRNG
     key included), not on the batch it runs in, the slicing or the number of devices.
     """
-    estimator = estimator.with_batch_axis(BATCH_AXIS)
+    estimator = estimator.with_batch_axis(BATCH_AXIS).stepping()  # the states carry what init read
     mesh = device_mesh() if mesh is None else mesh
     strategy = default_strategy() if strategy is None else strategy
     if isinstance(strategy, MapBatches):

@@ -39,7 +39,7 @@ def _compile_fully(estimator: AbstractEstimator, scenario: Scenario, seed: int) 
     state = estimator.init(scenario)
     slots = jax.eval_shape(estimator.view, state).history.shape[-1]
     inputs = jax.tree.map(lambda x: np.asarray(x)[:1], inputs_from_scenario(scenario, slots))
-    return driver.compiled(scan, estimator, state, inputs, jax.random.PRNGKey(seed))[1]
+    return driver.compiled(scan, estimator.stepping(), state, inputs, jax.random.PRNGKey(seed))[1]
 
 
 def run_many(estimator: AbstractEstimator, scenarios: Sequence[Scenario], *, seed: int | Sequence[int] = 0,

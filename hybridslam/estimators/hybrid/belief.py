@@ -56,6 +56,9 @@ class Belief(eqx.Module):
     # What the smoother keeps (Hybrid(smoother=Full() or Lag(L))): each component's trajectory
     # x_0..x_T, the data so far, with Lag(L) each component's window prior; empty under Filter().
     smoothing: SmootherState = SmootherState()
+    # Unknown maps: τ of new_landmark="mahalanobis:TAU" (thesis Sec. 3.2.1, ..novelty), inf under
+    # the density rule; traced, so every rule and τ share one compiled step.
+    new_landmark_tau: Float[Array, ""] | None = None
 
     @property
     def alive(self) -> Bool[Array, " K"]:

@@ -128,6 +128,7 @@ class Hybrid(AbstractEstimator):
     name: ClassVar[str] = "hybrid"
     title: ClassVar[str] = "hybrid belief"
     reference: ClassVar[str] = "Tchuiev et al. 2019, Alg. 1"
+    init_settings = ("prune_ratio", "clutter", "new_landmark", "classifier", "visibility_temperature")
     described = ("weights", "capacity", "prune_ratio", "gate", "branching", "clutter", "new_landmark", "smoother")
 
     def __check_init__(self):
@@ -166,8 +167,10 @@ class Hybrid(AbstractEstimator):
         slots = detection_slots(self.max_detections, scenario)
         steps = history_length(self.max_steps, scenario)
         belief = init_belief(priors_from_scenario(scenario), model, self.capacity, steps, slots)
-        return dataclasses.replace(belief, smoothing=self.smoother.init(scenario, steps, slots, belief.num_objects,
-                                                                        self.max_steps, self.capacity))
+        tau = novelty.parse_new_landmark("Hybrid", self.new_landmark)
+        return dataclasses.replace(
+            belief, smoothing=self.smoother.init(scenario, steps, slots, belief.num_objects, self.max_steps, self.capacity),
+            new_landmark_tau=None if scenario.discovery is None else jnp.asarray(math.inf if tau is None else tau, dtype=float))
 
     def step(
         self, state: Belief, odometry: Float[Array, "3"], detections: Detections, key: PRNGKeyArray

@@ -59,8 +59,6 @@ class HybridSettings(Protocol):
     @property
     def gate(self) -> int | None: ...
     @property
-    def new_landmark(self) -> str: ...
-    @property
     def gn_max_steps(self) -> int: ...
     @property
     def smoother(self) -> Smoother: ...
@@ -147,16 +145,18 @@ class _Scored(NamedTuple):
     dropped: Int[Array, ""]
 
 
-def _near_known(settings, belief: Belief, mean, cov, detections: Detections) -> Bool[Array, "K Dmax"] | None:
+def _near_known(belief: Belief, mean, cov, detections: Detections) -> Bool[Array, "K Dmax"] | None:
     """Under ``new_landmark="mahalanobis:TAU"`` (thesis Sec. 3.2.1, :mod:`..novelty`): per component
-    and detection, whether a created object lies within ``d² <= τ``, where "new" is no hypothesis.
-    ``None`` under the density rule. A step whose every child would break the rule keeps its parents
-    and skips its detections (counted), as a step no child explains."""
-    tau = novelty.parse_new_landmark("Hybrid", settings.new_landmark)
+    and detection, whether a created object lies within ``d² <= τ``, where "new" is no hypothesis;
+    nowhere under the density rule (``τ = inf``; traced: one compiled step for every rule and τ).
+    ``None`` on a known map. A step whose every child would break the rule keeps its parents and
+    skips its detections (counted), as a step no child explains."""
+    tau = belief.new_landmark_tau
     if tau is None or belief.model.discovery is None:
         return None
     d2 = jax.vmap(mahalanobis, (None, 0, 0, None))(belief.model.sensor, mean, cov, detections)  # (K, Dmax, N)
-    return jax.vmap(novelty.known_within, (0, 0, None))(d2, belief.num_created, tau)
+    near = jax.vmap(novelty.known_within, (0, 0, None))(d2, belief.num_created, tau)
+    return near & jnp.isfinite(tau)
 
 
 def _exhaustive(settings, belief: Belief, mean, cov, detections: Detections, candidates, realize, discovery, key):
@@ -173,7 +173,7 @@ def _exhaustive(settings, belief: Belief, mean, cov, detections: Detections, can
     prior = belief.log_weights[:, None, None] + kids.log_prior
     if discovery:
         prior = prior + _new_object_terms(belief, mean, cov, detections, kids,
-                                          _near_known(settings, belief, mean, cov, detections))
+                                          _near_known(belief, mean, cov, detections))
     ctx = Context(model.sensor, belief.alive, mean, cov, detections, table, kids, prior, settings.gn_max_steps,
                   settings.batch_axis)
     log_lik, log_lik_free, ess, converged = settings.weights.weigh(ctx, key)
@@ -194,7 +194,7 @@ def _beam(settings, belief: Belief, mean, cov, detections: Detections, candidate
     if discovery:
         new_terms = jax.vmap(new_object_log_likelihood, (None, 0, 0, None, None))(
             model.sensor, mean[:, :3], cov[:, :3, :3], detections, model.discovery)  # (K, Dmax, M)
-        near = _near_known(settings, belief, mean, cov, detections)
+        near = _near_known(belief, mean, cov, detections)
         if near is not None:  # the Mahalanobis rule: no "new" where a known object lies within τ
             new_terms = jnp.where(near[..., None], -jnp.inf, new_terms)
     clutter_terms = None
@@ -343,6 +343,7 @@ def hybrid_step(
         model=model,
         num_created=num_created,
         smoothing=kept,
+        new_landmark_tau=belief.new_landmark_tau,
     )
     kept_ess = jnp.where(alive, ess, jnp.nan)
     best = best_slot(new_log_w)

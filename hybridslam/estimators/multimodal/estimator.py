@@ -72,6 +72,7 @@ class Multimodal(AbstractEstimator):
                                             metadata=setting(note="a known map only"))
     new_landmark: str = eqx.field(default=novelty.DENSITY, static=True)
 
+    init_settings: ClassVar[tuple[str, ...]] = ("merge_threshold", "clutter", "new_landmark", "classifier")
     name: ClassVar[str] = "multimodal"
     title: ClassVar[str] = "multimodal sum-mixture semantic SLAM"
     reference: ClassVar[str] = "Doherty thesis Ch. 5, Eq. 5.9-5.11"
@@ -114,8 +115,7 @@ class Multimodal(AbstractEstimator):
         children = min(2 * self.capacity if self.children is None else self.children, self.capacity * assignments)
         return Structure(self.capacity, n_max, slots, history_length(self.max_steps, scenario), self.samples, candidates, children,
                          self.gn_max_steps, scenario.discovery is not None, self.association_prior, self.proposal,
-                         self.max_assignments, clutter is not None,
-                         scenario.discovery is not None and novelty.parse_new_landmark("Multimodal", self.new_landmark) is not None)
+                         self.max_assignments, clutter is not None)
 
     def init(self, scenario: Scenario) -> State:
         """One component of weight 1: the robot and object priors, uncreated slots ``N(0, I)`` (Eq. 3)."""

@@ -50,7 +50,6 @@ class Structure:
     proposal: str  # "posterior" (importance sampling) or "prior" (Eq. 5.10 as written)
     beam: int | None = None  # joint assignments kept per component while they are built (None: all)
     clutter: bool = False  # a known map's null choice is a clutter detection (scored), not a skip
-    mahalanobis_new: bool = False  # new_landmark="mahalanobis:TAU" (Params.new_landmark_tau; .novelty)
 
 
 class Params(eqx.Module):
@@ -60,7 +59,7 @@ class Params(eqx.Module):
     orientation_var: Float[Array, ""]
     merge_threshold: Float[Array, ""]
     clutter_log_density: Float[Array, ""]  # used where Structure.clutter
-    new_landmark_tau: Float[Array, ""]  # τ of new_landmark="mahalanobis:TAU" (inf under "density")
+    new_landmark_tau: Float[Array, ""]  # τ of new_landmark="mahalanobis:TAU" (inf: the "density" rule)
 
 
 class State(eqx.Module):
