@@ -57,6 +57,12 @@ def test_the_rules_primitives_against_brute_force(seed, created, tau):
         want = [c if c >= 0 and d2[j, c] <= tau else -1 for c in cand[j]]
         np.testing.assert_array_equal(kept[j], want)
         assert near[j] == any(c >= 0 for c in want)
+    # τ = inf is the density rule (novelty.threshold): no candidate dropped, "new" never ruled out.
+    density = novelty.threshold("X", "density")
+    assert not np.any(np.asarray(novelty.known_within(jnp.asarray(d2), jnp.asarray(created), jnp.asarray(density))))
+    kept, near = (np.asarray(a) for a in novelty.restrict(jnp.asarray(cand), jnp.asarray(d2), jnp.asarray(density)))
+    np.testing.assert_array_equal(kept, cand)
+    assert not near.any() and np.asarray(novelty.allowed(jnp.asarray(d2), density)).all()
 
 
 @pytest.fixture(scope="module")

@@ -226,7 +226,6 @@ class SingleGaussian(AbstractEstimator):
         n_max = object_slots(scenario)
         slots = detection_slots(self.max_detections, scenario)
         clutter = self._clutter(scenario)
-        tau = novelty.parse_new_landmark(type(self).__name__, self.new_landmark)
         model = model_from_scenario(scenario.replace(discovery=None), self.classifier)
         uniform = np.full(m, -math.log(m))
         class_log_post = np.tile(uniform, (n_max, 1))
@@ -248,7 +247,7 @@ class SingleGaussian(AbstractEstimator):
             new_object_orientation_var=f(1.0 if disc is None else disc.new_object_orientation_var),
             new_class_log_prior=f(uniform),
             clutter_log_density=f(-np.inf if clutter is None else clutter),
-            new_landmark_tau=f(np.inf if tau is None else tau),
+            new_landmark_tau=f(novelty.threshold(type(self).__name__, self.new_landmark)),
         )
         steps = history_length(self.max_steps, scenario)
         g = min(self.candidates, n_max)
@@ -350,13 +349,11 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
     candidate_ok = (d2 <= params.gate) & detections.mask[:, None]
     # The thesis's new-landmark rule (Sec. 3.2.1, .novelty): candidates within τ only, and "new" only
     # where none is (the nearest G hold the nearest object, so none inside the G means none at all).
-    # τ is traced (inf under the density rule, where both lines change nothing), so every rule and τ
-    # share one compiled step.
+    # (τ traced, inf under the density rule: novelty.threshold.)
     near = jnp.zeros(dmax, bool)
     if cfg.discovery:
-        rule = jnp.isfinite(params.new_landmark_tau)
-        candidate_ok &= (d2 <= params.new_landmark_tau) | ~rule
-        near = jnp.any(candidate_ok, axis=-1) & rule
+        candidate_ok &= novelty.allowed(d2, params.new_landmark_tau)
+        near = jnp.any(candidate_ok, axis=-1) & jnp.isfinite(params.new_landmark_tau)
 
     # Semantic terms (Eq. 4.13 / 2.14): per object, and under the null hypothesis.
     classifier = sensor.classifier

@@ -20,6 +20,9 @@ Two rules (the estimators' ``new_landmark`` setting):
 
 The new hypothesis's weight is the density under both rules: the rule decides which hypotheses
 exist, not how much "new" weighs against them where it exists.
+
+In a state the rule is one traced number, :func:`threshold`: ``τ``, or ``inf`` for the density rule,
+under which the primitives below change nothing. Every rule and ``τ`` then share one compiled step.
 """
 
 from __future__ import annotations
@@ -49,21 +52,35 @@ def parse_new_landmark(owner: str, value: object) -> float | None:
                      f"(a squared Mahalanobis distance, e.g. 'mahalanobis:9.21'), got {value!r}")
 
 
+def threshold(owner: str, value: object) -> float:
+    """The rule as the state's traced number: ``τ`` of ``"mahalanobis:TAU"``, ``inf`` for ``"density"``
+    (checked as :func:`parse_new_landmark` does)."""
+    tau = parse_new_landmark(owner, value)
+    return math.inf if tau is None else tau
+
+
+def allowed(d2: Float[Array, "..."], tau: float | Float[Array, ""]) -> Bool[Array, "..."]:
+    """Where an object may be associated under the rule: within ``d² <= τ``; everywhere under the
+    density rule (``τ = inf``, whatever ``d2`` holds)."""
+    return (d2 <= tau) | ~jnp.isfinite(tau)
+
+
 def known_within(d2: Float[Array, "Dmax N"], num_created: Int[Array, ""] | None,
                  tau: float | Float[Array, ""]) -> Bool[Array, " Dmax"]:
     """Per detection, whether some created object (index ``< num_created``; all if ``None``) lies
-    within ``d² <= τ``: where the Mahalanobis rule rules "new" out."""
+    within ``d² <= τ``: where the Mahalanobis rule rules "new" out (nowhere under the density rule)."""
     inside = d2 <= tau
     if num_created is not None:
         inside &= jnp.arange(d2.shape[1])[None, :] < num_created
-    return jnp.any(inside, axis=-1)
+    return jnp.any(inside, axis=-1) & jnp.isfinite(tau)
 
 
 def restrict(cand: Int[Array, "Dmax G"], d2: Float[Array, "Dmax N"], tau: float | Float[Array, ""]
              ) -> tuple[Int[Array, "Dmax G"], Bool[Array, " Dmax"]]:
     """The Mahalanobis rule on a gate of ``G`` objects per detection (``-1``: none): the candidates
-    beyond ``τ`` dropped (``-1``), and per detection whether one is left (then "new" breaks the rule).
+    beyond ``τ`` dropped (``-1``), and per detection whether one is left (then "new" breaks the rule;
+    under the density rule every candidate stays and "new" breaks nothing).
     ``d2``: every object's squared Mahalanobis distance to each detection."""
     d2_cand = jnp.take_along_axis(d2, jnp.maximum(cand, 0), axis=1)
-    cand = jnp.where((cand >= 0) & (d2_cand <= tau), cand, -1)
-    return cand, jnp.any(cand >= 0, axis=-1)
+    cand = jnp.where((cand >= 0) & allowed(d2_cand, tau), cand, -1)
+    return cand, jnp.any(cand >= 0, axis=-1) & jnp.isfinite(tau)

@@ -167,10 +167,10 @@ class Hybrid(AbstractEstimator):
         slots = detection_slots(self.max_detections, scenario)
         steps = history_length(self.max_steps, scenario)
         belief = init_belief(priors_from_scenario(scenario), model, self.capacity, steps, slots)
-        tau = novelty.parse_new_landmark("Hybrid", self.new_landmark)
+        tau = None if scenario.discovery is None else jnp.asarray(novelty.threshold("Hybrid", self.new_landmark), dtype=float)
         return dataclasses.replace(
             belief, smoothing=self.smoother.init(scenario, steps, slots, belief.num_objects, self.max_steps, self.capacity),
-            new_landmark_tau=None if scenario.discovery is None else jnp.asarray(math.inf if tau is None else tau, dtype=float))
+            new_landmark_tau=tau)
 
     def step(
         self, state: Belief, odometry: Float[Array, "3"], detections: Detections, key: PRNGKeyArray

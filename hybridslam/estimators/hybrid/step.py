@@ -155,8 +155,7 @@ def _near_known(belief: Belief, mean, cov, detections: Detections) -> Bool[Array
     if tau is None or belief.model.discovery is None:
         return None
     d2 = jax.vmap(mahalanobis, (None, 0, 0, None))(belief.model.sensor, mean, cov, detections)  # (K, Dmax, N)
-    near = jax.vmap(novelty.known_within, (0, 0, None))(d2, belief.num_created, tau)
-    return near & jnp.isfinite(tau)
+    return jax.vmap(novelty.known_within, (0, 0, None))(d2, belief.num_created, tau)
 
 
 def _exhaustive(settings, belief: Belief, mean, cov, detections: Detections, candidates, realize, discovery, key):

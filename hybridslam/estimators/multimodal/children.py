@@ -102,10 +102,8 @@ def hypotheses(
         if cfg.clutter:  # the chi-square gate (Sec. 3.2.1): an object beyond it leaves the detection to clutter
             cand, _ = novelty.restrict(cand, pred.d2, CLUTTER_GATE)
         near = jnp.zeros(cfg.max_detections, bool)  # a known object within τ: "new" breaks the rule (.novelty)
-        if cfg.discovery:  # τ traced (inf: the density rule, which keeps every candidate): one step for every τ
-            rule = jnp.isfinite(params.new_landmark_tau)
-            within, near = novelty.restrict(cand, pred.d2, params.new_landmark_tau)
-            cand, near = jnp.where(rule, within, cand), near & rule
+        if cfg.discovery:  # τ traced (inf: the density rule, under which this changes nothing)
+            cand, near = novelty.restrict(cand, pred.d2, params.new_landmark_tau)
         if cfg.beam is not None:  # built one detection at a time, the `beam` best kept (inference.beam), scored sequentially
             terms = slot_terms(sensor, params, pred, m, c, class_lp, cand, detections, cfg.clutter)
             if 3 + 3 * cand.size < m.shape[0]:  # static: the candidates' rows are fewer than the map's

@@ -141,7 +141,7 @@ class Multimodal(AbstractEstimator):
             f(disc.new_object_orientation_var if disc else 1.0),
             f(float(self.merge_threshold)),
             f(-np.inf if (clutter := self._clutter(scenario)) is None else clutter),
-            f(tau if (tau := novelty.parse_new_landmark("Multimodal", self.new_landmark)) is not None else np.inf),
+            f(novelty.threshold("Multimodal", self.new_landmark)),
         )
         # The class prior padded to Nmax rows: runs with the same capacities share one compiled step.
         model = eqx.tree_at(lambda mo: mo.class_prior, model, put(np.exp(class_lp)))
