@@ -353,7 +353,7 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
     near = jnp.zeros(dmax, bool)
     if cfg.discovery:
         candidate_ok &= novelty.allowed(d2, params.new_landmark_tau)
-        near = jnp.any(candidate_ok, axis=-1) & jnp.isfinite(params.new_landmark_tau)
+        near = novelty.known_within(jnp.where(candidate_ok, d2, jnp.inf), None, params.new_landmark_tau)
 
     # Semantic terms (Eq. 4.13 / 2.14): per object, and under the null hypothesis.
     classifier = sensor.classifier

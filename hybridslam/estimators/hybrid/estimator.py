@@ -167,7 +167,8 @@ class Hybrid(AbstractEstimator):
         slots = detection_slots(self.max_detections, scenario)
         steps = history_length(self.max_steps, scenario)
         belief = init_belief(priors_from_scenario(scenario), model, self.capacity, steps, slots)
-        tau = None if scenario.discovery is None else jnp.asarray(novelty.threshold("Hybrid", self.new_landmark), dtype=float)
+        tau = (None if scenario.discovery is None
+               else jnp.asarray(novelty.threshold("Hybrid", self.new_landmark), dtype=float))
         return dataclasses.replace(
             belief, smoothing=self.smoother.init(scenario, steps, slots, belief.num_objects, self.max_steps, self.capacity),
             new_landmark_tau=tau)
