@@ -30,7 +30,10 @@ loop-closing re-detection right, the runs where some kept component does, and th
 
 ``--estimators`` also takes ``hybrid+loops`` and ``multimodal+loops``: the hybrid belief or
 ``multimodal`` with loop closure during the run
-(:class:`hybridslam.estimators.loop_online.OnlineLoopClosure`, the pass's default settings).
+(:class:`hybridslam.estimators.loop_online.OnlineLoopClosure`, the pass's default settings);
+``--loop-threshold X`` sets its least log odds of a closure against the component searched
+(``LoopClosureSettings.threshold``, default 0; -5.01 = -log 150 adds every closure the hybrid
+belief's pruning would keep).
 """
 
 from __future__ import annotations
@@ -77,6 +80,7 @@ SETTINGS: dict[str, dict] = {
 
 
 NEW_LANDMARK = "density"  # main(new_landmark=...): every estimator's rule for a new object (.novelty)
+LOOPS = LoopClosureSettings()  # main(loop_threshold=...): the settings of loop closure during the run
 SMOOTHER = "full"  # main(smoother=...): "full" (the papers' smoothers, the default) or "filter"
 # Not estimators of their own: the hybrid belief or multimodal with loop closure during the run
 # (merge hypotheses added between steps, hybridslam.estimators.loop_online; full smoother only).
@@ -109,7 +113,7 @@ def run_cell(folder: str, name: str, trace: float, seed: int, steps: int | None,
     stem = os.path.splitext(os.path.basename(path))[0]
     warnings: list[str] = []
     est = estimator(name, max_detections)
-    hook = OnlineLoopClosure(est, scenario) if name in ONLINE_NAMES else None
+    hook = OnlineLoopClosure(est, scenario, LOOPS) if name in ONLINE_NAMES else None
     run = driver.run(est, scenario, seed=seed, on_step=lambda r, info, s: warnings.extend(info.warnings()),
                      between_steps=hook)
     result_path = os.path.join(folder, "results", name, stem + ".json")
@@ -151,7 +155,7 @@ def _cell(name: str, trace: float, seed: int) -> dict:
     """
     settings = {k: v for k, v in estimator(name).settings().items() if k != "max_detections"}
     if name in ONLINE_NAMES:
-        settings["loop_closure"] = dataclasses.asdict(LoopClosureSettings())
+        settings["loop_closure"] = dataclasses.asdict(LOOPS)
     return {"estimator": name, "trace": trace, "seed": seed, "settings": settings}
 
 
@@ -306,9 +310,10 @@ def plot_examples(folder: str, records: list[dict], estimators: list[str]) -> st
 
 def main(output: str = os.path.join("runs", "hallway"), seeds: int = 3, estimators=DEFAULT_ESTIMATORS,
          levels=hallway.LEVELS, steps: int | None = None, smoother: str = "full", first_seed: int = 0,
-         new_landmark: str = "density") -> list[dict]:
-    global SMOOTHER, NEW_LANDMARK
+         new_landmark: str = "density", loop_threshold: float = 0.0) -> list[dict]:
+    global SMOOTHER, NEW_LANDMARK, LOOPS
     SMOOTHER, NEW_LANDMARK = smoother, new_landmark
+    LOOPS = LoopClosureSettings(threshold=loop_threshold)
     estimators, levels = list(estimators), [float(t) for t in levels]
     unknown = [n for n in estimators if n not in ESTIMATORS and n not in ONLINE_NAMES]
     if unknown:
@@ -349,6 +354,8 @@ if __name__ == "__main__":
     parser.add_argument("--first-seed", type=int, default=0, help="the first seed (default 0)")
     parser.add_argument("--new-landmark", default="density",
                         help="every estimator's new-landmark rule: density (default) or mahalanobis:TAU")
+    parser.add_argument("--loop-threshold", type=float, default=0.0,
+                        help="+loops: the least log odds of a closure against the component searched (default 0)")
     a = parser.parse_args()
     main(a.output, a.seeds, a.estimators.split(","), [float(t) for t in a.levels.split(",")], a.steps, a.smoother,
-         a.first_seed, a.new_landmark)
+         a.first_seed, a.new_landmark, a.loop_threshold)

@@ -5,6 +5,8 @@ the merge hypotheses added between steps, and the same search for ``multimodal``
 
 from __future__ import annotations
 
+import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -71,6 +73,36 @@ def test_merge_hypotheses_close_a_loop_the_belief_misses(drifted_loop):
         named = np.asarray(state.history[i])
         assert named.max() < int(state.num_created[i])
         assert np.all(np.asarray(state.classes[i])[int(state.num_created[i]):] == -1)
+
+
+def test_a_negative_threshold_adds_less_likely_closures_the_belief_would_keep(drifted_loop):
+    """``threshold=-log(prune_ratio)``: a closure less likely than the component it came from is added
+    as a hypothesis of its own (the loop still closes); with a threshold that lets every verified set
+    through, a full belief of equal weights takes none that is no likelier than its weakest component:
+    each is declined and counted."""
+    scenario, estimator, _ = drifted_loop
+    hook = OnlineLoopClosure(estimator, scenario, loop_settings.LoopClosureSettings(gap=10, threshold=-5.01))
+    run = hs.run(estimator, scenario, between_steps=hook)
+    assert any(c.log_odds < 0 for c in hook.closures) and all(c.log_odds > -5.01 for c in hook.closures)
+    assert error_summary(run.result, scenario)["final_smoothed"] < 0.5
+
+    def equal_weights(belief):
+        log_w = np.asarray(belief.log_weights)
+        alive = log_w > -np.inf
+        return eqx.tree_at(lambda b: b.log_weights, belief,
+                           jnp.asarray(np.where(alive, -np.log(alive.sum()), -np.inf)))
+
+    full = []
+    anything = OnlineLoopClosure(estimator, scenario, loop_settings.LoopClosureSettings(gap=10, threshold=-1e9))
+
+    def between(k, belief):
+        belief = equal_weights(belief)
+        full.append(bool(np.all(np.asarray(belief.log_weights) > -np.inf)))
+        return anything(k, belief)
+
+    hs.run(estimator, scenario, between_steps=between)
+    assert all(full[10:]) and anything.declined > 0
+    assert all(c.log_odds > 0 for c in anything.closures)  # likelier than the parent, so than the weakest
 
 
 def test_online_loop_closure_refuses_what_it_cannot_do(drifted_loop):

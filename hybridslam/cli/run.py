@@ -71,7 +71,9 @@ def closure_summary(hook) -> str:
     changes against its parent (:class:`~hybridslam.estimators.loop_online.ClosureHypothesis`)."""
     added = "; ".join(str(c) for c in hook.closures)
     return (f"loop closure during the run: {len(hook.closures)} hypotheses added"
-            f"{': ' + added if added else ''}; its searches took {hook.seconds:.2f} s")
+            f"{': ' + added if added else ''}"
+            + (f"; {hook.declined} declined (no likelier than a full belief's weakest component)" if hook.declined else "")
+            + f"; its searches took {hook.seconds:.2f} s")
 
 
 def long_run_note(estimator: AbstractEstimator, scenario: Scenario) -> str | None:

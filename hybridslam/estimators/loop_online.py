@@ -13,13 +13,15 @@ associate against the closed map:
    new-object density) plus the negative information of its re-solved graph, and verified by the
    re-solved cost's rise (:mod:`.loop_search`, :mod:`.loop_verify`);
 3. the best set that differs from the component itself (which is the reference with every
-   stretch merged back) becomes a component: its associations with the objects renumbered in
+   stretch merged back), if its log odds against the component exceed ``settings.threshold``,
+   becomes a component: its associations with the objects renumbered in
    creation order, re-solved by the estimator's own factor graph, of log weight
    ``log w + (score of the set − score of the component)``.
 
 The component stays, with its weight: the belief carries both and later detections decide, as they
 decide every other association. The new one takes an empty slot, else the lowest-weight component
-other than its parent (counted in :attr:`OnlineLoopClosure.replaced`). A set whose associations an
+other than its parent (counted in :attr:`OnlineLoopClosure.replaced`), if it is likelier than that
+one (else it is counted in :attr:`OnlineLoopClosure.declined`). A set whose associations an
 alive component already has is not added again. The search runs on the host between two compiled
 steps (``hybridslam.run(..., between_steps=...)``); its solves compile once per run.
 
@@ -142,7 +144,16 @@ class OnlineLoopClosure:
     ``settings.gap + 1`` on, search the top component's map for loop closures and add the best
     verified merge set as a hypothesis (every ``every`` steps). ``closures`` lists what was added
     (:class:`ClosureHypothesis`: what it changes against its parent); ``replaced`` counts components
-    dropped to make room; ``seconds`` the time the searches took."""
+    dropped to make room; ``declined`` counts the best sets not added because a full belief held
+    only likelier components (possible only with a negative ``settings.threshold``); ``seconds`` the
+    time the searches took.
+
+    ``settings.threshold`` is the least log odds of the new hypothesis against its parent (the top
+    component). The default, 0, adds only a closure likelier than the component it came from; a
+    negative one keeps the hybrid belief's promise of holding the right answer before it is the
+    likeliest: ``-log(prune_ratio)`` (-5.01 for the default 150) adds any closure the belief's
+    pruning would keep (docs/studies/hallway.md measures both).
+    """
 
     estimator: AbstractEstimator  # one with a LoopClosureAccess and a whole-trajectory smoother: checked
     scenario: Scenario
@@ -150,6 +161,7 @@ class OnlineLoopClosure:
     every: int = 1
     closures: list[ClosureHypothesis] = dataclasses.field(default_factory=list)
     replaced: int = 0
+    declined: int = 0
     seconds: float = 0.0  # wall time spent searching, summed over the steps
 
     def __post_init__(self) -> None:
@@ -239,6 +251,11 @@ class OnlineLoopClosure:
         if best is None or len(log_w) < 2:  # a belief of one component has no room for a second hypothesis
             return belief
         odds, merges, component = best
+        if log_w[i] + odds <= np.min(np.where(np.arange(len(log_w)) == i, np.inf, log_w)):
+            # Below a negative threshold: no likelier than the weakest component of a full belief,
+            # which it would replace (the belief keeps its most probable components).
+            self.declined += 1
+            return belief
         self.closures.append(_closure(k, merges, origin, range(num, num_r), odds))
         return self._insert(belief, i, log_w[i] + odds, component)
 

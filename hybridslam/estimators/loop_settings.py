@@ -17,7 +17,9 @@ class LoopClosureSettings:
     20); ``gate``: squared Mahalanobis distance of a candidate pair's position difference (default
     25, wide: the pass is about drift of several sd); ``candidates``: old objects kept per late object
     (default 8); ``beam``: partial joint assignments kept (default 256); ``threshold``: the least log
-    posterior odds to accept (default 0: more likely closed than not); ``revisit_log_odds``: the
+    posterior odds to accept (default 0: more likely closed than not; during the run, against the
+    component searched, and a negative value adds less likely closures as hypotheses of their own:
+    :class:`~.loop_online.OnlineLoopClosure`); ``revisit_log_odds``: the
     prior log odds, per merge, that a late object is an old one rather than new (default 0: the
     estimators' own model, in which a detection is a new object or a known one with no prior
     preference; a positive value says the robot expects to revisit, e.g. once the map is complete);
