@@ -330,6 +330,7 @@ def smooth_lag(
     window prior. Non-finite results fall back as in :func:`smooth` (the window prior then stays the
     old one, moved to the window's new first pose: an approximation, counted as ``nonfinite``)."""
     length = settings.length
+    cost_atol = step_tolerance(settings, log, k)
     start = poses.at[k].set(mean[:3])
     objects = mean[3:].reshape(-1, 3)
     old, new = jnp.maximum(k - 1 - length, 0), jnp.maximum(k - length, 0)
@@ -346,7 +347,7 @@ def smooth_lag(
     prior = jax.tree.map(lambda a, b: jnp.where(slide, a, b), WindowPrior(m_mean, m_info), window)
     g = window_graph(log, factors, k, new, length, num_created, sensor, motion_cov, semantic, mode, prior)
     sol = sm.solve(g, jax.lax.dynamic_slice_in_dim(start, new, length + 1), objects, max_steps=settings.max_steps,
-                   cost_atol=step_tolerance(settings, log, k))
+                   cost_atol=cost_atol)
     m, c = sm.marginal(sol, k - new)
     finite = lambda *a: jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in a]))  # noqa: E731
     ok = finite(sol.poses, m, c, prior.mean, prior.info)
