@@ -188,8 +188,10 @@ def run_cell(s: Scenario, name: str, models: dict[str, str]) -> tuple[dict, Resu
     model = model or "learned"
     classifier = Classifier("none") if model == "none" else Classifier("learned", path=os.path.abspath(models[model]))
     options = dict(SETTINGS[est])
-    if est in CLUTTER and s.discovery is None:
-        options["clutter"] = -math.log(s.max_range * s.fov)  # uniform over the sensor footprint
+    # The study's clutter hypothesis: the hybrid belief and multimodal on a known map, uniform over the
+    # sensor footprint (the importer's default density); none for the others and on an unknown map
+    # (there a detection is a known object or a new one), whatever the file declares.
+    options["clutter"] = -math.log(s.max_range * s.fov) if est in CLUTTER and s.discovery is None else "none"
     scenario = s.replace(classifier=classifier)
     run = driver.run(make_estimator(est, **options), scenario)
     return evaluate(scenario, run.result), run.result

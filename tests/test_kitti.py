@@ -149,6 +149,22 @@ def test_objects_are_the_static_tracks_and_moving_ones_are_clutter(folder):
     assert unknown.num_objects == 0 and len(unknown.true_objects) == 2
 
 
+def test_the_file_declares_clutter_and_sizes_an_unknown_map_without_the_labels(folder):
+    """The moving car and the false pedestrian are clutter to a static map: the file says so
+    (``-log(max_range · fov)``, uniform over the footprint) unless told ``"none"``; an unknown map's
+    object slots come from the detections (the busiest step's 4 + 20), not from the 2 labelled objects."""
+    s = import_kitti(folder, 1)
+    assert s.clutter_log_density == pytest.approx(-math.log(s.max_range * s.fov))
+    assert s.metadata["generator"]["clutter"] == {"log_density": s.clutter_log_density, "from": "default"}
+    assert import_kitti(folder, 1, clutter_log_density="none").clutter_log_density is None
+    assert import_kitti(folder, 1, clutter_log_density=-5.0).clutter_log_density == -5.0
+    with pytest.raises(KITTIError, match="clutter_log_density"):
+        import_kitti(folder, 1, clutter_log_density="high")
+    unknown = import_kitti(folder, 1, unknown_map=True)
+    assert unknown.discovery.max_objects == unknown.max_detections + 20 == 24
+    assert import_kitti(folder, 1, unknown_map=True, max_objects=7).discovery.max_objects == 7
+
+
 def test_detectors_are_merged_into_one_score_vector(folder):
     s = import_kitti(folder, 1)
     d = next(x for x in s.steps[0].detections if x.true_object == 0)
@@ -195,6 +211,7 @@ def test_cli_end_to_end(folder, tmp_path, capsys):
     assert cli.main(["import", "kitti-tracking", folder, "--sequence", "1", "-o", str(out)]) == 0
     text = capsys.readouterr().out
     assert "known map of 2 static objects" in text and "1 moving tracks" in text
+    assert f"clutter log density {-math.log(30.0 * 1.6):.3g}" in text
     s = hs.load_scenario(str(out))
     assert s.num_classes == 3 and s.num_steps == FRAMES - 1 and s.num_objects == 2
     assert cli.main(["import", "kitti-tracking", folder, "--sequence", "7", "-o", str(out)]) == 2

@@ -223,7 +223,9 @@ def kitti_summary(path: str, s: Scenario) -> str:
         f"types, {c['unmatched']} matching no label); dropped {c['beyond_sensor']} beyond the sensor, "
         f"{c['below_min_logit']} below --min-logit; {c['raw_detections']} raw, {c['merged_detections']} "
         "after merging the three detectors"),
-        f"sensor: max_range {s.max_range:g} m, fov {s.fov:g} rad",
+        (f"sensor: max_range {s.max_range:g} m, fov {s.fov:g} rad; clutter log density "
+         + ("none" if s.clutter_log_density is None else f"{s.clutter_log_density:.3g}")
+         + ("" if s.discovery is None else f"; {s.discovery.max_objects} object slots (--max-objects)")),
         f"motion_cov ({cal['motion_cov']}): sd {_sds(s.motion_cov)} (m, m, rad per step)",
         f"geometric_cov ({cal['geometric_cov']}): sd {_sds(s.geometric_cov)} (m, rad)",
         (f"dead reckoning at the end: {g['dead_reckoning']['final_position_error_m']:.2f} m off the ground truth "
@@ -237,7 +239,8 @@ def cmd_import_kitti(args: argparse.Namespace) -> int:
         args.dataset, args.sequence, unknown_map=args.unknown_map, start=args.start, end=args.end,
         every=args.every, odometry=args.odometry, seed=args.seed, max_range=args.max_range, fov=args.fov,
         min_logit=args.min_logit, merge_radius=args.merge_radius, match_iou=args.match_iou,
-        static_tolerance=args.static_tolerance, max_objects=args.max_objects, **covs), KITTIError, kitti_summary)
+        static_tolerance=args.static_tolerance, max_objects=args.max_objects,
+        clutter_log_density=args.clutter_log_density, **covs), KITTIError, kitti_summary)
 
 
 def register_kitti(sources: argparse._SubParsersAction) -> None:
@@ -252,7 +255,10 @@ def register_kitti(sources: argparse._SubParsersAction) -> None:
     k.add_argument("--unknown-map", action="store_true",
                    help="no prior objects: a discovery section, the static objects under true_objects")
     k.add_argument("--max-objects", type=int, default=None, metavar="N",
-                   help="with --unknown-map: object slots (default: the static objects + 20)")
+                   help="with --unknown-map: object slots (default: the most detections in one step + 20)")
+    k.add_argument("--clutter-log-density", type=clutter_density, default=None, metavar="{D,none}",
+                   help="sensor.clutter_log_density written (default: -log(max_range * fov), uniform over the "
+                        "sensor's footprint); 'none' writes no clutter hypothesis")
     k.add_argument("--start", type=int, default=0, help="frame of x_0 (default 0)")
     k.add_argument("--end", type=int, default=None, help="last frame (default: the sequence's last)")
     k.add_argument("--every", type=int, default=1, help="frames per step (default 1: 10 Hz)")

@@ -47,7 +47,12 @@ each file comes from):
   types, or matched to no label have none: to a static map they are clutter, and the
   ``generator.counts`` say how many of each.
 * **Map.** Known: every static object with ``prior_mean`` its label pose and ``prior_cov``
-  ``diag(prior_sd)²``. Unknown: a ``discovery`` section and the objects under ``true_objects``.
+  ``diag(prior_sd)²``. Unknown: a ``discovery`` section (object slots: the most detections in one
+  step + 20, read off the detections, not the labels) and the objects under ``true_objects``.
+* **Clutter.** ``sensor.clutter_log_density`` is ``-log(max_range · fov)``, uniform over the
+  sensor's footprint in range and bearing: the moving cars and the unmatched detections are
+  clutter to a static map, and without a clutter hypothesis an estimator must make each of them
+  some object's.
 * **Noise.** ``geometric_cov`` from the range and bearing residuals of the matched detections
   against their labels' boxes (the same robust rule), floored.
 * ``classifier`` is ``none``; a study puts its model in (``experiments/kitti.py``).
@@ -253,8 +258,17 @@ def import_kitti(
     static_tolerance: float = 1.0, prior_sd: tuple[float, float, float] = (0.3, 0.3, 0.2),
     motion_cov: np.ndarray | None = None, geometric_cov: np.ndarray | None = None,
     max_objects: int | None = None, new_object_orientation_var: float = math.pi**2,
+    clutter_log_density: float | str | None = None,
 ) -> Scenario:
-    """One KITTI tracking sequence as a scenario (the module docstring says how)."""
+    """One KITTI tracking sequence as a scenario (the module docstring says how).
+
+    ``clutter_log_density``: ``sensor.clutter_log_density`` written (default ``-log(max_range · fov)``,
+    uniform over the sensor's footprint in range and bearing; ``"none"``: no clutter hypothesis).
+    ``max_objects``: an unknown map's object slots (default: the most detections in one step + 20)."""
+    if isinstance(clutter_log_density, str) and clutter_log_density != "none":
+        raise KITTIError(f"clutter_log_density: expected a finite number or 'none', got {clutter_log_density!r}")
+    if isinstance(clutter_log_density, (int, float)) and not math.isfinite(clutter_log_density):
+        raise KITTIError(f"clutter_log_density: expected a finite number or 'none', got {clutter_log_density!r}")
     if odometry not in ODOMETRY_SOURCES:
         raise KITTIError(f"odometry: expected one of {', '.join(ODOMETRY_SOURCES)}, got {odometry!r}")
     for name, value in (("max_range", max_range), ("fov", fov), ("merge_radius", merge_radius),
@@ -341,6 +355,8 @@ def import_kitti(
     steps = tuple(Step(np.asarray(a, dtype=float), d) for a, d in zip(u, steps_dets))
 
     moving = sorted(t for t, i in info.items() if not i.static and i.cls is not None)
+    clutter = (-math.log(max_range * fov) if clutter_log_density is None
+               else None if clutter_log_density == "none" else float(clutter_log_density))
     generator: dict[str, Any] = {
         "dataset": "kitti-tracking", "sequence": seq.name, "frames": {"start": int(frames[0]),
         "end": int(frames[-1]), "every": int(every)}, "map": "unknown" if unknown_map else "known",
@@ -360,17 +376,20 @@ def import_kitti(
                         "motion_cov": motion_source, "motion_sd": np.sqrt(np.diag(motion_cov)).tolist()},
         "dead_reckoning": {"final_position_error_m": float(np.hypot(*(dr[-1][:2] - truth[-1, :2]))),
                            "path_length_m": float(np.sum(np.hypot(*np.diff(truth[:, :2], axis=0).T)))},
+        "clutter": {"log_density": clutter, "from": "default" if clutter_log_density is None else "given"},
     }
     common: dict[str, Any] = dict(  # noqa: C408 - keyword arguments of Scenario
         num_classes=len(CLASSES), robot_prior_mean=truth[0].copy(), robot_prior_cov=ROBOT_PRIOR_VAR * np.eye(3),
         motion_cov=np.asarray(motion_cov, dtype=float), geometric_cov=np.asarray(geometric_cov, dtype=float),
         classifier=Classifier("none"), max_range=float(max_range), fov=float(fov), steps=steps,
-        true_robot_poses=truth.copy(), metadata={"generator": generator})
+        true_robot_poses=truth.copy(), clutter_log_density=clutter, metadata={"generator": generator})
     if unknown_map:
+        # Object slots from the data, not from the labels: the busiest step's detections + 20.
+        slots = max(map(len, steps_dets), default=0) + 20 if max_objects is None else int(max_objects)
         return Scenario(
             object_prior_means=np.zeros((0, 3)), object_prior_covs=np.zeros((0, 3, 3)),
             class_prior=np.zeros((0, len(CLASSES))),
-            discovery=Discovery(len(ids) + 20 if max_objects is None else int(max_objects),
+            discovery=Discovery(slots,
                                 -math.log(max_range * fov), float(new_object_orientation_var)),
             true_objects=tuple((p, int(c)) for p, c in zip(poses, classes)), **common)
     cov = np.diag(np.square(prior_sd))
