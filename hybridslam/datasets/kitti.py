@@ -69,6 +69,7 @@ from typing import Any
 import numpy as np
 
 from ..io.scenario import Classifier, Detection, Discovery, Scenario, Step
+from .clutter import declared_clutter
 from .kitti_files import (
     CLASSES,
     Boxes,
@@ -265,16 +266,14 @@ def import_kitti(
     ``clutter_log_density``: ``sensor.clutter_log_density`` written (default ``-log(max_range · fov)``,
     uniform over the sensor's footprint in range and bearing; ``"none"``: no clutter hypothesis).
     ``max_objects``: an unknown map's object slots (default: the most detections in one step + 20)."""
-    if isinstance(clutter_log_density, str) and clutter_log_density != "none":
-        raise KITTIError(f"clutter_log_density: expected a finite number or 'none', got {clutter_log_density!r}")
-    if isinstance(clutter_log_density, (int, float)) and not math.isfinite(clutter_log_density):
-        raise KITTIError(f"clutter_log_density: expected a finite number or 'none', got {clutter_log_density!r}")
     if odometry not in ODOMETRY_SOURCES:
         raise KITTIError(f"odometry: expected one of {', '.join(ODOMETRY_SOURCES)}, got {odometry!r}")
     for name, value in (("max_range", max_range), ("fov", fov), ("merge_radius", merge_radius),
                         ("static_tolerance", static_tolerance)):
         if not (math.isfinite(value) and value > 0):
             raise KITTIError(f"{name}: expected a positive number, got {value!r}")
+    footprint = -math.log(max_range * fov)  # log of a density uniform over the sensor's footprint, 1 / (m rad)
+    clutter = declared_clutter(clutter_log_density, footprint, KITTIError)
     seq = read_sequence(folder, sequence, orbslam=odometry == "orbslam3")
     frames = window_frames(len(seq.truth), start, end, every)
     truth = seq.truth[frames]
@@ -355,8 +354,6 @@ def import_kitti(
     steps = tuple(Step(np.asarray(a, dtype=float), d) for a, d in zip(u, steps_dets))
 
     moving = sorted(t for t, i in info.items() if not i.static and i.cls is not None)
-    clutter = (-math.log(max_range * fov) if clutter_log_density is None
-               else None if clutter_log_density == "none" else float(clutter_log_density))
     generator: dict[str, Any] = {
         "dataset": "kitti-tracking", "sequence": seq.name, "frames": {"start": int(frames[0]),
         "end": int(frames[-1]), "every": int(every)}, "map": "unknown" if unknown_map else "known",
@@ -389,8 +386,7 @@ def import_kitti(
         return Scenario(
             object_prior_means=np.zeros((0, 3)), object_prior_covs=np.zeros((0, 3, 3)),
             class_prior=np.zeros((0, len(CLASSES))),
-            discovery=Discovery(slots,
-                                -math.log(max_range * fov), float(new_object_orientation_var)),
+            discovery=Discovery(slots, footprint, float(new_object_orientation_var)),
             true_objects=tuple((p, int(c)) for p, c in zip(poses, classes)), **common)
     cov = np.diag(np.square(prior_sd))
     return Scenario(

@@ -118,6 +118,7 @@ import numpy as np
 from ..io.scenario import Classifier, Discovery, Scenario
 from .mrclam_calibration import MIN_BLOCKS, _drift, _drift_block, _stats, compose, measurement_residuals, wrap
 from .mrclam_detections import Window, default_sensor, make_window, merge_repeats_of
+from .clutter import declared_clutter
 from .mrclam_files import MRCLAMError, RobotLog, covariance, finite, read_barcodes, read_landmarks, read_robot
 from .mrclam_track import Noise, Track, assemble_track, calibrate, scenario_steps
 
@@ -333,13 +334,8 @@ def default_motion_noise(clutter: bool, steps: int, dt: float) -> str:
 def _clutter_density(value: float | str | None, identity_filter: bool, max_range: float, fov: float) -> float | None:
     """``sensor.clutter_log_density`` to write: ``value`` (a number; ``"none"``: none), or by default
     ``log(CLUTTER_FRACTION / (max_range · fov))`` (none with the identity filter)."""
-    if isinstance(value, str):
-        if value != "none":
-            raise MRCLAMError(f"clutter_log_density: expected a finite number or 'none', got {value!r}")
-        return None
-    if value is not None:
-        return finite(value, "clutter_log_density", "nats", positive=False)
-    return None if identity_filter else round(math.log(CLUTTER_FRACTION / (max_range * fov)), 9)
+    default = None if identity_filter else round(math.log(CLUTTER_FRACTION / (max_range * fov)), 9)
+    return declared_clutter(value, default, MRCLAMError)
 
 
 def _generator(folder: str, settings: dict[str, Any], window: Window, track: Track, noise: Noise,

@@ -251,16 +251,15 @@ class OnlineLoopClosure:
         if best is None or len(log_w) < 2:  # a belief of one component has no room for a second hypothesis
             return belief
         odds, merges, component = best
-        if log_w[i] + odds <= np.min(np.where(np.arange(len(log_w)) == i, np.inf, log_w)):
-            # Below a negative threshold: no likelier than the weakest component of a full belief,
-            # which it would replace (the belief keeps its most probable components).
-            self.declined += 1
-            return belief
-        self.closures.append(_closure(k, merges, origin, range(num, num_r), odds))
-        return self._insert(belief, i, log_w[i] + odds, component)
+        inserted = self._insert(belief, i, log_w[i] + odds, component)
+        if inserted is not belief:
+            self.closures.append(_closure(k, merges, origin, range(num, num_r), odds))
+        return inserted
 
     def _insert(self, belief, parent: int, log_weight: float, component: MergedComponent):
-        """``belief`` with the merged component in an empty slot (else the weakest but the parent's)."""
+        """``belief`` with the merged component in an empty slot, else in the weakest but the parent's
+        if it is likelier than that one; else ``belief`` itself, the set counted as declined (the belief
+        keeps its most probable components; only a negative ``threshold`` lets such a set this far)."""
         log_w = np.asarray(belief.log_weights).copy()
         dead = np.flatnonzero(log_w == -np.inf)
         if dead.size:
@@ -268,6 +267,9 @@ class OnlineLoopClosure:
         else:
             order = np.argsort(log_w)
             j = int(order[0] if order[0] != parent else order[1])
+            if log_weight <= log_w[j]:
+                self.declined += 1
+                return belief
             self.replaced += 1
         log_w[j] = log_weight
         log_w = log_w - np.logaddexp.reduce(log_w[log_w > -np.inf])
