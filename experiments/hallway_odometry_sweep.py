@@ -310,10 +310,10 @@ def plot_examples(folder: str, records: list[dict], estimators: list[str]) -> st
 
 def main(output: str = os.path.join("runs", "hallway"), seeds: int = 3, estimators=DEFAULT_ESTIMATORS,
          levels=hallway.LEVELS, steps: int | None = None, smoother: str = "full", first_seed: int = 0,
-         new_landmark: str = "density", loop_threshold: float = 0.0) -> list[dict]:
+         new_landmark: str = "density", loop_threshold: float = 0.0, loop_tries: int = 8) -> list[dict]:
     global SMOOTHER, NEW_LANDMARK, LOOPS
     SMOOTHER, NEW_LANDMARK = smoother, new_landmark
-    LOOPS = LoopClosureSettings(threshold=loop_threshold)
+    LOOPS = LoopClosureSettings(threshold=loop_threshold, tries=loop_tries)
     estimators, levels = list(estimators), [float(t) for t in levels]
     unknown = [n for n in estimators if n not in ESTIMATORS and n not in ONLINE_NAMES]
     if unknown:
@@ -356,6 +356,8 @@ if __name__ == "__main__":
                         help="every estimator's new-landmark rule: density (default) or mahalanobis:TAU")
     parser.add_argument("--loop-threshold", type=float, default=0.0,
                         help="+loops: the least log odds of a closure against the component searched (default 0)")
+    parser.add_argument("--loop-tries", type=int, default=8,
+                        help="+loops: the merge sets re-solved and verified per round (default 8)")
     a = parser.parse_args()
     main(a.output, a.seeds, a.estimators.split(","), [float(t) for t in a.levels.split(",")], a.steps, a.smoother,
-         a.first_seed, a.new_landmark, a.loop_threshold)
+         a.first_seed, a.new_landmark, a.loop_threshold, a.loop_tries)

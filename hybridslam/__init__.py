@@ -53,6 +53,7 @@ from .estimators.hybrid.branching import Exhaustive as Exhaustive
 from .estimators.hybrid.weighers import make_weigher as make_weigher
 from .estimators.smoothing import Filter as Filter
 from .estimators.smoothing import Full as Full
+from .estimators.smoothing import Incremental as Incremental
 from .estimators.smoothing import Lag as Lag
 from .estimators.hybrid.belief import Belief as Belief
 from .estimators.hybrid.belief import Priors as Priors

@@ -28,7 +28,10 @@ body-frame tangent space; the scenario's and the result's are over the world-fra
 so both are rotated by ``blockdiag(R(theta), 1)``. ``--true-associations`` uses each detection's
 ``true_object`` (the oracle; on an unknown map a true object's first detection creates its landmark).
 ``--batch`` re-solves the whole final graph with Levenberg-Marquardt (from the iSAM2 estimate) as the
-converged reference for the smoothed ``trajectory`` and ``objects``.
+converged reference for the smoothed ``trajectory`` and ``objects``. ``--associations-from RESULT``
+uses the associations of another estimator's result file (its last step's top component) instead of
+nearest neighbour: with ``--batch``, the batch solution of that estimator's final graph, against
+which ``scripts/bench_whole_log.py`` checks the smoothers.
 
 Result files: one component of weight 1 per step; ``associations`` index the scenario's objects, then
 the created ones in creation order; ``classes`` all -1 (one per object so far); ``pose_mean`` /
@@ -44,6 +47,7 @@ Usage::
 
     python3 scripts/isam2_baseline.py /tmp/hallway/*.json -o runs/isam2 [--true-associations] [--batch]
     python3 scripts/isam2_baseline.py scenario.json -o result.json --gate 0.99 --extra-updates 0
+    python3 scripts/isam2_baseline.py scenario.json -o batch.json --associations-from ours.json --batch
 """
 
 from __future__ import annotations
@@ -91,8 +95,12 @@ def predicted_joint(isam: gtsam.ISAM2, k: int, u: gtsam.Pose2, motion_cov: np.nd
 
 
 def run(scenario: Scenario, gate: float = 0.999, true_associations: bool = False, extra_updates: int = 1,
-        batch: bool = False) -> tuple[dict, dict]:
-    """Run the baseline on one scenario: the result file's JSON object and a row of summary numbers."""
+        batch: bool = False, given: list[list[int]] | None = None) -> tuple[dict, dict]:
+    """Run the baseline on one scenario: the result file's JSON object and a row of summary numbers.
+
+    ``given``: per step, per detection, the landmark to use (−1: none; on an unknown map a landmark
+    index met for the first time is created there, back-projected), instead of nearest neighbour:
+    with ``batch``, the batch solution of another estimator's final graph."""
     gate_d2 = -2.0 * math.log(1.0 - gate)  # chi-square quantile, 2 dof
     unknown_map = scenario.discovery is not None
     params = gtsam.ISAM2Params()
@@ -130,7 +138,17 @@ def run(scenario: Scenario, gate: float = 0.999, true_associations: bool = False
         joint: dict[int, np.ndarray] = {}  # predicted covariance of (x_k, l), when first needed
         chosen: list[int] = []
         for det in step.detections:
-            if true_associations:
+            if given is not None:
+                j = given[k - 1][len(chosen)]
+                if j >= num_landmarks and not unknown_map:
+                    raise ValueError(f"--associations-from: steps[{k - 1}] names landmark {j} of a known map of "
+                                     f"{num_landmarks}")
+                if j > num_landmarks:
+                    raise ValueError(f"--associations-from: steps[{k - 1}] names landmark {j} before "
+                                     f"{num_landmarks} exists")
+                if j == num_landmarks:  # created here, as an estimator's new object
+                    j = -1
+            elif true_associations:
                 if det.true_object is None:
                     raise ValueError(f"steps[{k - 1}]: --true-associations needs every detection's true_object")
                 j = det.true_object if not unknown_map else landmark_of_truth.get(det.true_object, -1)
@@ -187,7 +205,8 @@ def run(scenario: Scenario, gate: float = 0.999, true_associations: bool = False
     smoothed = np.array([[p.x(), p.y(), p.theta()] for p in (final.atPose2(X(k)) for k in range(len(steps) + 1))])
     objects = [[*final.atPoint2(L(j)), 0.0] for j in range(num_landmarks)]
     settings = (f"gate={gate:g} (d2 {gate_d2:.2f}), extra_updates={extra_updates}"
-                + (", true associations" if true_associations else ", nearest-neighbour association")
+                + (", given associations" if given is not None else ", true associations" if true_associations
+                   else ", nearest-neighbour association")
                 + (", batch LM smoothing" if batch else ""))
     result = Result(f"isam2_baseline (GTSAM {importlib.metadata.version('gtsam')} iSAM2, geometry only; "
                     f"{settings})", steps, {"compile_s": 0.0, "step_s": step_s})
@@ -217,7 +236,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--true-associations", action="store_true", help="use each detection's true_object (oracle)")
     p.add_argument("--extra-updates", type=int, default=1, help="extra isam.update() calls per step (default 1)")
     p.add_argument("--batch", action="store_true", help="smooth the final graph with Levenberg-Marquardt")
+    p.add_argument("--associations-from", metavar="RESULT",
+                   help="use the associations of RESULT's last step's top component (a hybridslam result file of "
+                        "the one scenario given): with --batch, the batch solution of that estimator's final graph")
     args = p.parse_args(argv)
+    given = None
+    if args.associations_from is not None:
+        if len(args.scenarios) != 1 or args.true_associations:
+            p.error("--associations-from: one scenario, and not with --true-associations")
+        from hybridslam.io.result import load_result
+        given = [list(a) for a in load_result(args.associations_from).steps[-1].components[0].associations]
     if not 0.0 < args.gate < 1.0:
         p.error(f"--gate: expected a probability in (0, 1), got {args.gate}")
     if args.extra_updates < 0:
@@ -230,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'file':<32}" + "".join(f"{c:>14}" for c in cols))
     rows = []
     for path in args.scenarios:
-        obj, row = run(load_scenario(path), args.gate, args.true_associations, args.extra_updates, args.batch)
+        obj, row = run(load_scenario(path), args.gate, args.true_associations, args.extra_updates, args.batch, given)
         out = args.output if to_file else os.path.join(args.output, os.path.basename(path))
         with open(out, "w", encoding="utf-8") as f:
             json.dump(obj, f)

@@ -280,13 +280,13 @@ def test_a_long_file_under_the_full_smoother_gets_a_note_naming_the_bounded_opti
     import dataclasses
 
     from hybridslam.cli.run import LONG_RUN_STEPS, long_run_note
-    from hybridslam.estimators.smoothing import Filter, Lag
+    from hybridslam.estimators.smoothing import Filter, Incremental, Lag
 
     one = hs.simulate(0, steps=1)  # the note reads the step count only
     long, short = (dataclasses.replace(one, steps=one.steps * n) for n in (LONG_RUN_STEPS + 1, LONG_RUN_STEPS))
     note = long_run_note(hs.make_estimator("ml"), long)
-    assert note is not None and f"{LONG_RUN_STEPS + 1} steps" in note and "--smoother lag:" in note
+    assert note is not None and f"{LONG_RUN_STEPS + 1} steps" in note and "--smoother incremental:" in note
     assert long_run_note(hs.make_estimator("hybrid"), long) is not None
     assert long_run_note(hs.make_estimator("ml"), short) is None
-    for smoother in (Lag(50), Filter()):
+    for smoother in (Lag(50), Incremental(50), Filter()):
         assert long_run_note(hs.make_estimator("ml", smoother=smoother), long) is None

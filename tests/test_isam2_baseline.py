@@ -78,3 +78,27 @@ def test_hallway_unknown_map(baseline, tmp_path) -> None:
     result, raw = _run(baseline, tmp_path, scenario, "--batch")
     _check_file(result, raw, scenario)
     assert result.steps[-1].components[0].associations == truth
+
+
+def test_given_associations_give_the_batch_solution_an_incremental_run_ends_at(baseline, tmp_path) -> None:
+    """``--associations-from RESULT --batch``: GTSAM's batch Levenberg-Marquardt of another
+    estimator's final graph. ``ml`` under ``incremental:3`` on a 20-step hallway (unknown map: the
+    objects the run created are created here where the associations first name them) ends at that
+    solution; under ``lag:3`` its old poses stay where they left the window, tenths of a metre away."""
+    from hybridslam.estimators.smoothing import Incremental, Lag
+
+    scenario = hallway.hallway(0, 0.05, steps=20)
+    src = tmp_path / "scenario.json"
+    hs.save_scenario(scenario, src)
+    distances = []
+    for smoother in (Incremental(3), Lag(3)):
+        run = hs.run_estimator(scenario, "ml", smoother=smoother)
+        hs.save_result(run.result, tmp_path / "ml.json")
+        out = tmp_path / "gtsam.json"
+        assert baseline.main([str(src), "-o", str(out), "--associations-from", str(tmp_path / "ml.json"),
+                              "--batch"]) == 0
+        gtsam = hs.load_result(out)
+        assert gtsam.steps[-1].components[0].associations == run.result.steps[-1].components[0].associations
+        batch = np.asarray(json.loads(out.read_text())["trajectory"])
+        distances.append(np.max(np.linalg.norm(batch[:, :2] - np.asarray(run.result.trajectory)[:, :2], axis=1)))
+    assert distances[0] < 1e-3 < 0.1 < distances[1], distances

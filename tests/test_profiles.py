@@ -53,12 +53,14 @@ def test_a_hallway_file_gets_the_readme_hallway_settings():
     assert hs.make_estimator("hybrid", scenario=scenario, profile="paper") == hs.Hybrid()
 
 
-def test_a_long_file_gets_the_fixed_lag_smoother_and_no_loop_closure():
+def test_a_long_file_gets_the_incremental_smoother_and_no_loop_closure():
     scenario = hallway(0, 0.021, steps=profiles.LONG_RUN_STEPS + 1)
     p = hs.recommended(scenario)
-    assert p.kind == "large+long" and p.options == {**LARGE_HYBRID, "smoother": "lag:50"} and p.close_loops is None
-    assert hs.recommended(scenario, "ml").options == {"smoother": "lag:50"}
-    assert hs.make_estimator("ml", scenario=scenario).smoother == hs.Lag(50)
+    assert p.kind == "large+long" and p.options == {**LARGE_HYBRID, "smoother": "incremental:50"} and p.close_loops is None
+    # The single-Gaussian estimators' step is mostly the window's solve: a shorter window.
+    assert hs.recommended(scenario, "ml").options == {"smoother": "incremental:20"}
+    assert hs.make_estimator("ml", scenario=scenario).smoother == hs.Incremental(20)
+    assert hs.make_estimator("hybrid", scenario=scenario).smoother == hs.Incremental(50)
     assert hs.recommended(scenario.replace(steps=scenario.steps[:profiles.LONG_RUN_STEPS])).options == LARGE_HYBRID
 
 
@@ -98,7 +100,8 @@ def test_the_rule(slots, detections, steps, unknown, classes, model, name):
     small = slots <= profiles.EXACT_MAX_OBJECTS and detections <= profiles.EXACT_MAX_DETECTIONS
     long = steps > profiles.LONG_RUN_STEPS
     assert p.kind.startswith("paper" if small else "large") and p.kind.endswith("long") == long
-    assert (p.options.get("smoother") == "lag:50") == long
+    lag = 50 if name in ("hybrid", "multimodal") else 20
+    assert (p.options.get("smoother") == f"incremental:{lag}") == long
     assert (p.options.get("capacity") == 16) == (not small and name in ("hybrid", "multimodal"))
     assert (p.close_loops is not None) == (name == "hybrid" and not small and not long and unknown
                                            and classes >= 2 and model != "none")

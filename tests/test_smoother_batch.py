@@ -21,7 +21,7 @@ import pytest
 from scipy.optimize import least_squares
 
 import hybridslam as hs
-from hybridslam.estimators.smoothing import FINAL_ATOL, Lag
+from hybridslam.estimators.smoothing import FINAL_ATOL, Incremental, Lag
 from hybridslam.io.scenario import Classifier
 from hybridslam.sim.hallway import hallway
 
@@ -179,6 +179,37 @@ def test_the_result_file_describes_its_own_solution_on_an_unknown_map(name):
     scenario = hallway(0, 0.05, steps=20)
     run = hs.run_estimator(scenario, name)  # smoother=Full() by default
     metres, radians = _moves(scenario, run)
+    assert metres < 1e-5 and radians < 1e-5, (metres, radians)
+
+
+def _incremental_and_lag(scenario, name, length):
+    """``name`` run with ``Incremental(length)`` and with ``Lag(length)``, and how far each result's
+    graph, rebuilt and solved, moves its trajectory (metres, radians)."""
+    runs = [hs.run_estimator(scenario, name, smoother=s) for s in (Incremental(length), Lag(length))]
+    return runs, [_moves(scenario, r) for r in runs]
+
+
+def test_incremental_steps_as_the_lag_and_ends_at_the_batch_solution():
+    """``incremental:3`` on the hallway of the test above: every step before the last is ``lag:3``'s
+    (the same online estimates), and the last re-solves the whole graph, so the result file's
+    trajectory is that graph's optimum; ``lag:3``'s, whose old poses stay where they left the
+    window, is not (it moves by tenths of a metre)."""
+    scenario = hallway(0, 0.05, steps=20)
+    (inc, lag), (inc_moves, lag_moves) = _incremental_and_lag(scenario, "ml", 3)
+    for a, b in zip(inc.result.steps[:-1], lag.result.steps[:-1], strict=True):
+        np.testing.assert_allclose(a.components[0].pose_mean, b.components[0].pose_mean, rtol=0, atol=1e-9)
+    assert inc_moves[0] < 1e-5 and inc_moves[1] < 1e-5, inc_moves
+    assert lag_moves[0] > 0.1, lag_moves
+
+
+@pytest.mark.slow  # their own compiles, 20 s each: the extended suite, CI
+@pytest.mark.parametrize("name", ["max-mixture", "hybrid", "multimodal"])
+def test_incremental_ends_at_the_batch_solution_for_the_mixtures(name):
+    """As above for max-mixture (its associations rewritten by the closing solve, as the full
+    smoother's), and the hybrid belief's and ``multimodal``'s top component (``lag:3`` leaves them
+    1e-3 m and 0.67 m from it)."""
+    scenario = hallway(0, 0.05, steps=20)
+    metres, radians = _moves(scenario, hs.run_estimator(scenario, name, smoother=Incremental(3)))
     assert metres < 1e-5 and radians < 1e-5, (metres, radians)
 
 

@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 
 import hybridslam as hs
-from hybridslam.estimators.smoothing import AbstractSmoother, Filter, Full, Lag, parse_smoother
+from hybridslam.estimators.smoothing import AbstractSmoother, Closing, Filter, Full, Incremental, Lag, parse_smoother
 from hybridslam.estimators.smoothing_graph import data_log
 from hybridslam.inference import smoother as sm
 from tests.test_smoother import N, P, _graph
 
 
-@pytest.mark.parametrize("text", ["filter", "full", "lag:1", "lag:50"])
+@pytest.mark.parametrize("text", ["filter", "full", "lag:1", "lag:50", "incremental:1", "incremental:50"])
 def test_a_smoother_prints_as_its_option_and_parses_back(text):
     smoother = parse_smoother(text)
     assert isinstance(smoother, AbstractSmoother)
@@ -27,6 +27,12 @@ def test_a_smoother_prints_as_its_option_and_parses_back(text):
 def test_what_the_estimators_ask_a_smoother(unchecked_types):
     assert (Filter().smooths, Full().smooths, Lag(3).smooths) == (False, True, True)
     assert (Filter().whole_trajectory, Full().whole_trajectory, Lag(3).whole_trajectory) == (False, True, False)
+    # incremental:L steps as lag:L and closes the run with the whole graph; the others close as they step.
+    assert not Incremental(3).whole_trajectory and Incremental(3).closing() == Closing(max_steps=100)
+    assert Closing().whole_trajectory and all(s.closing() is s for s in (Filter(), Full(), Lag(3)))
+    ml = hs.make_estimator("ml", smoother=Incremental(3))
+    assert ml.closing().smoother == Closing(max_steps=100) and ml.stepping().closing() is not ml.stepping()
+    assert hs.make_estimator("ml", smoother=Lag(3)).closing().smoother == Lag(3)
     scenario = hs.simulate(0, steps=3)
     log = data_log(scenario, 3, max(scenario.max_detections, 1), scenario.num_objects)
     assert Filter().init_window(log) is None and Full().init_window(log, 5) is None
@@ -80,7 +86,8 @@ def test_the_termination_config_is_what_the_keywords_were():
     assert int(by_config.steps) == int(by_keywords.steps)
 
 
-@pytest.mark.parametrize("text, smoother", [("full", Full()), ("filter", Filter()), ("lag:7", Lag(7))])
+@pytest.mark.parametrize("text, smoother", [("full", Full()), ("filter", Filter()), ("lag:7", Lag(7)),
+                                            ("incremental:7", Incremental(7))])
 def test_the_command_line_parses_the_smoother_once_into_the_object(text, smoother):
     """``--smoother`` is parsed at the boundary: the namespace holds the smoother object, which
     ``make_estimator`` takes as it is; a bad text is argparse's one-line error."""
@@ -89,8 +96,9 @@ def test_the_command_line_parses_the_smoother_once_into_the_object(text, smoothe
     args = cli.build_parser().parse_args(["run", "s.json", "-o", "r.json", "--smoother", text])
     assert isinstance(args.smoother, AbstractSmoother) and args.smoother == smoother
     assert hs.make_estimator("ml", smoother=args.smoother).smoother == smoother
-    with pytest.raises(cli.CLIError, match="--smoother: expected filter, full or lag:L"):
-        cli.build_parser().parse_args(["run", "s.json", "-o", "r.json", "--smoother", "lag:0"])
+    for bad in ("lag:0", "incremental:0", "incremental:", "incremental"):
+        with pytest.raises(cli.CLIError, match="--smoother: expected filter, full, lag:L or incremental:L"):
+            cli.build_parser().parse_args(["run", "s.json", "-o", "r.json", "--smoother", bad])
 
 
 def test_a_smoother_without_its_option_text_cannot_be_made():
@@ -101,3 +109,18 @@ def test_a_smoother_without_its_option_text_cannot_be_made():
 
     with pytest.raises(TypeError, match="abstract"):
         Nameless()
+
+
+def test_a_study_refuses_the_incremental_smoother_before_any_work(tmp_path, capsys):
+    """A batched study has no per-track last step for ``incremental:L``'s closing solve: a one-line
+    error naming the smoother, and nothing written."""
+    from hybridslam import cli
+    from hybridslam.studies.batch import check_batchable
+
+    assert cli.main(["sweep", "-o", str(tmp_path / "study"), "--smoother", "incremental:5"]) == 2
+    err = capsys.readouterr().err
+    assert "smoother=incremental:5" in err and "lag:L" in err and "Traceback" not in err
+    assert not (tmp_path / "study").exists()
+    check_batchable(hs.make_estimator("hybrid", smoother=Lag(5)))  # lag:L, full and filter batch
+    with pytest.raises(ValueError, match="batched study"):
+        check_batchable(hs.make_estimator("ml", smoother=Incremental(5)))

@@ -81,14 +81,15 @@ def long_run_note(estimator: AbstractEstimator, scenario: Scenario) -> str | Non
 
     The full smoother re-solves the whole trajectory at every step, so its steps slow as the run
     goes (docs/studies/mrclam.md, "Whole logs": 871 s of MRCLAM, the hybrid belief from 20 to about 550 ms
-    per step, past the log's 0.5 s steps near the end); ``lag:L`` keeps them bounded.
+    per step, past the log's 0.5 s steps near the end); ``incremental:L`` keeps them bounded and
+    still ends at the batch solution.
     """
     smoother = getattr(estimator, "smoother", None)
     if smoother is None or not smoother.whole_trajectory or scenario.num_steps <= LONG_RUN_STEPS:
         return None
     return (f"note: {scenario.num_steps} steps under the full smoother, which re-solves the whole trajectory at "
-            f"every step: the steps slow as the run goes; --smoother lag:50 keeps them bounded "
-            f"(docs/studies/mrclam.md, Whole logs)")
+            f"every step: the steps slow as the run goes; --smoother incremental:50 keeps them bounded and ends at "
+            f"the same batch solution (docs/performance.md, Whole logs)")
 
 
 def chosen_settings(args: argparse.Namespace, profile: Profile) -> dict:
@@ -215,8 +216,9 @@ def add_parser(sub) -> None:
     p.add_argument("--profile", choices=PROFILES, default="auto",
                    help="auto (default): the options not given are chosen by the file (docs/settings.md: the "
                         "paper's configuration on small files; capacity 16, gate 3, linearized weights and, on an "
-                        "unknown map with classes, --close-loops on larger ones; lag:50 past 500 steps); paper: "
-                        "the estimator's own defaults, whatever the file")
+                        "unknown map with classes, --close-loops on larger ones; past 500 steps incremental:50, "
+                        "incremental:20 for ml, gpda and max-mixture); paper: the estimator's own defaults, whatever "
+                        "the file")
     p.add_argument("--plot", default=None, metavar="PNG",
                    help="also draw the run (map and trajectories, error and components per step) to this image")
     add_result_format_option(p)

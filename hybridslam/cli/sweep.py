@@ -14,7 +14,7 @@ from ..estimators.options import options_of
 from ..estimators.registry import ESTIMATORS
 from ..io.scenario import ScenarioError
 from ..studies import study
-from ..studies.batch import device_mesh
+from ..studies.batch import check_batchable, device_mesh
 from ..studies.strategies import parse_strategy, split_cpu_into_cores
 from .common import (
     CLASSIFIERS,
@@ -77,6 +77,10 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     if capacity is None and "capacity" in options_of(ESTIMATORS[args.estimator]):
         capacity = SWEEP_CAPACITY
     estimator = estimator_from_args(args, capacity=capacity)
+    try:
+        check_batchable(estimator)
+    except ValueError as e:
+        raise CLIError(str(e)) from None
     models = _models(args.models)
     try:
         strategy = parse_strategy(args.batching)

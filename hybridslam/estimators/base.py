@@ -335,6 +335,15 @@ class AbstractEstimator(eqx.Module):
                     for f in dataclasses.fields(self) if f.name in self.init_settings}
         return dataclasses.replace(self, **defaults) if defaults else self
 
+    def closing(self) -> AbstractEstimator:
+        """This estimator as the last step of a run sees it: its smoother's
+        :meth:`~.smoothing.AbstractSmoother.closing` in place of the smoother (``incremental:L``:
+        the whole graph re-solved once); itself where that is the same."""
+        smoother = getattr(self, "smoother", None)
+        if smoother is None or smoother.closing() is smoother:
+            return self
+        return dataclasses.replace(self, smoother=smoother.closing())  # type: ignore[call-arg]  # every smoothing estimator's field
+
     @abc.abstractmethod
     def init(self, scenario: Scenario) -> Any:
         """The state before step 1 (host-side; raises ``ValueError`` for a scenario it cannot run)."""

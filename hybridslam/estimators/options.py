@@ -135,8 +135,10 @@ CLUTTER = Option(
 SMOOTHER = Option(
     "smoother", "full: every component keeps its trajectory and relinearizes it at every step, as the papers' "
                 "smoothers do; lag:L: only the last L steps and the map, older poses marginalized (bounded cost "
-                "per step); filter: the joint Gaussian over the current pose and the map only",
-    parse=parse_smoother, metavar="{full,lag:L,filter}", convert=_smoother)
+                "per step); incremental:L: every step as lag:L, and the last step re-solves the whole graph, so "
+                "the result's trajectory is the batch solution (a long log's exact smoothing at lag:L's step cost); "
+                "filter: the joint Gaussian over the current pose and the map only",
+    parse=parse_smoother, metavar="{full,lag:L,incremental:L,filter}", convert=_smoother)
 MAX_DETECTIONS = Option("max_detections", "detection slots per step; a shared value lets files share one compiled "
                                           "step", none="the largest step", described=False)
 MAX_STEPS = Option("max_steps", "history length; a shared value lets files share one compiled step",

@@ -34,6 +34,7 @@ standard fixed-lag approximation otherwise; ``Lag(L)`` with ``L`` at least the r
 from __future__ import annotations
 
 import abc
+import dataclasses
 import math
 from typing import ClassVar
 
@@ -103,6 +104,12 @@ class AbstractSmoother(eqx.Module):
         if components is not None:
             poses = np.broadcast_to(poses, (components,) + poses.shape)
         return SmootherState(jax.device_put(poses), log, self.init_window(log, components))
+
+    def closing(self) -> AbstractSmoother:
+        """The smoother of a run's last step: this one, except :class:`Incremental`'s (the whole
+        graph re-solved once, :class:`Closing`). :func:`hybridslam.driver.run` steps the last step
+        of a scenario with it."""
+        return self
 
     def smooth(
         self, state: SmootherState, factors: Factors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
@@ -209,18 +216,69 @@ class Lag(AbstractSmoother):
                           cov, state.window)
 
 
+class Incremental(Lag):
+    """Exact smoothing at a bounded step cost (``--smoother incremental:L``): every step as
+    :class:`Lag` ``(L)`` (the last ``L`` steps relinearized and re-solved, older poses marginalized
+    at their linearization point), and the run's last step as :class:`Closing`: the whole graph
+    relinearized and re-solved to the solver's tolerance, warm-started from the window's
+    trajectory. The result file's trajectory is then the batch solution of the final graph, and the
+    steps before cost what ``lag:L``'s do.
+
+    This is the iSAM2 idea with static shapes (Kaess et al. 2012): a variable is relinearized only
+    while a new factor can still move it (inside the window) and at the end, when the estimate is
+    read. Unlike iSAM2, poses behind the window are not updated by back-substitution between the
+    two: a step's online estimate of ``x_k`` is the window's (as ``lag:L``'s), and the whole
+    trajectory is exact once, at the end. The last step is a program of its own
+    (:func:`hybridslam.driver.run`); a study's batched scan, which has no last step of its own
+    per track, refuses it (:func:`hybridslam.studies.batch.check_batchable`).
+
+    ``closing_max_steps``: the Levenberg-Marquardt iterations of the closing solve (from the
+    window's trajectory the old poses may move far: each iterate is one solve of the whole chain)."""
+
+    closing_max_steps: int = eqx.field(default=100, static=True)
+
+    @property
+    def name(self) -> str:
+        return f"incremental:{self.length}"
+
+    def __check_init__(self):
+        if not (isinstance(self.closing_max_steps, int) and self.closing_max_steps >= 1):
+            raise ValueError(f"Incremental.closing_max_steps: expected a positive int, got {self.closing_max_steps!r}")
+
+    def closing(self) -> AbstractSmoother:
+        return Closing(max_steps=self.closing_max_steps)
+
+
+class Closing(Full):
+    """:class:`Incremental`'s last step: the whole graph re-solved (:class:`Full`), each component's
+    window prior handed back unchanged (the state keeps its shapes, and a step after it, if any,
+    slides from there)."""
+
+    def smooth(
+        self, state: SmootherState, factors: Factors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
+        sensor: SensorModel, motion_cov: Float[Array, "3 3"], semantic: bool, mode: sm.Mode,
+        mean: Float[Array, " D0"], cov: Float[Array, "D0 D0"],
+    ) -> Smoothed:
+        out = super().smooth(state, factors, k, num_created, sensor, motion_cov, semantic, mode, mean, cov)
+        return dataclasses.replace(out, window=state.window)
+
+
 Smoother = AbstractSmoother
 
 
 def parse_smoother(text: str) -> Smoother:
-    """``"filter"``, ``"full"`` or ``"lag:L"`` with ``L >= 1`` steps (the ``--smoother`` option)."""
+    """``"filter"``, ``"full"``, ``"lag:L"`` or ``"incremental:L"`` with ``L >= 1`` steps (the
+    ``--smoother`` option)."""
     if text == "filter":
         return Filter()
     if text == "full":
         return Full()
-    if text.startswith("lag:") and text[4:].isdigit() and int(text[4:]) >= 1:
-        return Lag(int(text[4:]))
-    raise ValueError(f"--smoother: expected filter, full or lag:L (L a positive number of steps), got {text!r}")
+    for prefix, kind in (("lag:", Lag), ("incremental:", Incremental)):
+        rest = text[len(prefix):]
+        if text.startswith(prefix) and rest.isdigit() and int(rest) >= 1:
+            return kind(int(rest))
+    raise ValueError("--smoother: expected filter, full, lag:L or incremental:L (L a positive number of steps), "
+                     f"got {text!r}")
 
 
 class SmootherState(eqx.Module):

@@ -202,6 +202,16 @@ class BatchPlan:
                 f"each, budget {self.budget / gib:.1f} GiB)")
 
 
+def check_batchable(estimator: AbstractEstimator) -> None:
+    """A ``ValueError`` for an estimator whose run closes with a program of its own
+    (:meth:`~hybridslam.estimators.AbstractEstimator.closing`: ``incremental:L``): the tracks of a
+    batch share one scan, and a padded track has no last step of its own."""
+    if estimator.closing() is not estimator:
+        raise ValueError(f"smoother={getattr(estimator, 'smoother', None)}: a batched study runs every track in one "
+                         "scan, with no last step of its own to re-solve the whole graph; use full or lag:L here "
+                         "(hybridslam run and hs.run_many close incremental:L runs)")
+
+
 def run_batch(estimator: AbstractEstimator, batch: Batch, mesh: Mesh | None = None,
               on_plan=None, strategy: BatchStrategy | None = None) -> BatchRun:
     """Run every track of ``batch`` to its last step, sharded over ``mesh`` (default: all devices).
@@ -216,6 +226,7 @@ def run_batch(estimator: AbstractEstimator, batch: Batch, mesh: Mesh | None = No
     track 0 (dropped from the result). Each track's numbers depend only on its own inputs (its PRNG
     key included), not on the batch it runs in, the slicing or the number of devices.
     """
+    check_batchable(estimator)
     estimator = estimator.with_batch_axis(BATCH_AXIS).stepping()  # the states carry what init read
     mesh = device_mesh() if mesh is None else mesh
     strategy = default_strategy() if strategy is None else strategy
