@@ -677,3 +677,23 @@ def test_default_motion_noise_rule(clutter, steps, dt, expected):
 def test_cli_default_import_calibrates_the_motion_noise_from_the_drift(command_default, command_known):
     assert "motion_cov (calibrated, from the 5 s drift)" in command_default[1]
     assert "motion_cov (calibrated): sd" in command_known[1]
+
+
+def test_unmapped_objects_keep_the_map_and_add_room_beside_it(tmp_path):
+    """``--unmapped-objects N``: the surveyed landmarks stay the prior map, a discovery section adds
+    room for N objects they do not hold (the new-object density of an unknown map), the ground
+    truth moves to ``true_objects`` (detections then index it) and the file round-trips."""
+    plain = import_mrclam(DATA, 1)
+    s = import_mrclam(DATA, 1, unmapped_objects=4)
+    assert s.num_objects == plain.num_objects == 15 and s.discovery.max_objects == 19
+    np.testing.assert_array_equal(s.object_prior_means, plain.object_prior_means)
+    assert s.discovery.new_object_log_density == pytest.approx(-math.log(s.max_range * s.fov))
+    np.testing.assert_array_equal(np.array([p for p, _ in s.true_objects]), plain.true_object_poses)
+    assert s.steps == plain.steps and s.metadata["generator"]["unmapped_objects"] == 4
+    out = tmp_path / "r1.json"
+    assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out), "--unmapped-objects", "4"]) == 0
+    assert hs.load_scenario(out).discovery.max_objects == 19
+    with pytest.raises(MRCLAMError, match="unmapped_objects: room for objects beside a known map"):
+        import_mrclam(DATA, 1, unknown_map=True, unmapped_objects=4)
+    with pytest.raises(MRCLAMError, match="unmapped_objects: expected a non-negative integer"):
+        import_mrclam(DATA, 1, unmapped_objects=-1)

@@ -174,6 +174,7 @@ def import_mrclam(
     identity_filter: bool = False,
     merge_repeats: bool = False,
     clutter_log_density: float | str | None = None,
+    unmapped_objects: int = 0,
 ) -> Scenario:
     """Robot ``robot``'s log in the MRCLAM dataset folder ``dataset_dir`` as a ``hybridslam-scenario/1``.
 
@@ -195,6 +196,10 @@ def import_mrclam(
       ``[range, bearing]`` coordinates, the space of the Gaussian ``N(z; h, Σ_v)`` it competes
       with, as in the hallway; ``−log(max_range² · fov / 2)`` would be a density per square
       metre, off by the Jacobian ``r``), ``new_object_orientation_var = landmark_heading_var``.
+    * ``unmapped_objects`` (known map; default 0): the surveyed landmarks as the prior map, and a
+      ``discovery`` section with room for this many more objects that the survey does not hold
+      (another robot standing still is read at every step, which a clutter density, independent
+      between steps, does not describe); ``new_object_log_density`` as for an unknown map.
     * ``max_range`` [m], ``fov`` [rad]: the sensor written; a detection beyond them (as written)
       is dropped. Default from the data (:func:`default_sensor`), nothing dropped.
     * ``motion_cov`` (3 variances [m², m², rad²] or 3×3), ``geometric_cov`` (2 [m², rad²] or 2×2),
@@ -237,6 +242,11 @@ def import_mrclam(
                               "(unknown_map=True, --unknown-map)")
         if not isinstance(max_objects, int) or isinstance(max_objects, bool) or max_objects < 2:
             raise MRCLAMError(f"max_objects: expected an integer >= 2, got {max_objects!r}")
+    if not isinstance(unmapped_objects, int) or isinstance(unmapped_objects, bool) or unmapped_objects < 0:
+        raise MRCLAMError(f"unmapped_objects: expected a non-negative integer, got {unmapped_objects!r}")
+    if unmapped_objects and unknown_map:
+        raise MRCLAMError("unmapped_objects: room for objects beside a known map; an unknown map's slots are "
+                          "max_objects (--object-slots)")
     given = {"motion_cov": covariance(motion_cov, 3, "motion_cov"),
              "geometric_cov": covariance(geometric_cov, 2, "geometric_cov"),
              "robot_prior_cov": covariance(robot_prior_cov, 3, "robot_prior_cov")}
@@ -296,19 +306,25 @@ def import_mrclam(
         clutter_log_density=clutter, metadata={"generator": generator},
     )
     poses = np.column_stack([landmarks[:, 1:3], np.zeros(len(landmarks))])
+    density = -math.log(max_range * fov) if new_object_log_density is None else new_object_log_density
     if unknown_map:
-        density = -math.log(max_range * fov) if new_object_log_density is None else new_object_log_density
         return Scenario(
             object_prior_means=np.zeros((0, 3)), object_prior_covs=np.zeros((0, 3, 3)),
             class_prior=np.zeros((0, 1)),
             discovery=Discovery(int(slots), float(density),
                                 float(landmark_heading_var)),
             true_objects=tuple((p, 0) for p in poses), **common)
+    if unmapped_objects:  # a known map the survey may not hold whole (docstring)
+        generator["unmapped_objects"] = int(unmapped_objects)
+        truth: dict[str, Any] = dict(discovery=Discovery(len(landmarks) + int(unmapped_objects), float(density),
+                                                         float(landmark_heading_var)),
+                                     true_objects=tuple((p, 0) for p in poses))
+    else:
+        truth = dict(true_object_poses=poses, true_classes=np.zeros(len(landmarks), dtype=np.int64))
     return Scenario(
         object_prior_means=poses.copy(),
         object_prior_covs=landmark_covariances(landmarks[:, 3:5], landmark_sd_floor, landmark_heading_var),
-        class_prior=np.ones((len(landmarks), 1)), true_object_poses=poses,
-        true_classes=np.zeros(len(landmarks), dtype=np.int64), **common)
+        class_prior=np.ones((len(landmarks), 1)), **truth, **common)
 
 
 def _declares_clutter(value: float | str | None, identity_filter: bool) -> bool:
