@@ -350,7 +350,7 @@ if __name__ == "__main__":
     parser.add_argument("--steps", type=int, default=None, help="steps per run (default: one loop)")
     parser.add_argument("--levels", default=",".join(str(t) for t in hallway.LEVELS),
                         help="odometry noise levels tr(Λ_t) (default: the thesis's five)")
-    parser.add_argument("--smoother", default="full", help="full, lag:L or filter")
+    parser.add_argument("--smoother", default="full", help="full, lag:L, incremental:L or filter")
     parser.add_argument("--first-seed", type=int, default=0, help="the first seed (default 0)")
     parser.add_argument("--new-landmark", default="density",
                         help="every estimator's new-landmark rule: density (default) or mahalanobis:TAU")

@@ -522,7 +522,7 @@ if __name__ == "__main__":
                         help="known, unknown, unknown:N (N object slots; default the landmarks + 10), "
                              "comma-separated")
     parser.add_argument("--estimators", default=",".join(DEFAULT_ESTIMATORS))
-    parser.add_argument("--smoothers", default="full", help="full, filter, lag:L (comma-separated)")
+    parser.add_argument("--smoothers", default="full", help="full, filter, lag:L, incremental:L (comma-separated)")
     parser.add_argument("--figure-robot", type=int, default=None, help="the robot drawn (default: the first)")
     parser.add_argument("--motion-noise-from", default="steps", choices=("steps", "drift"),
                         help="the importer's motion_cov calibration (default steps; drift: from 5 s sums)")
