@@ -223,13 +223,14 @@ def run(
                           if scenario.num_steps else (scan, 0.0))
     records, infos, step_s = [], [], []
     link = None if keep_associations else HistoryLinker()
-    main_fn = step_fn
+    main_fn, closing = step_fn, stepper.closing()
     for k in range(scenario.num_steps):
         xs = one(k)
-        if k == scenario.num_steps - 1 and stepper.closing() is not stepper:
-            # The smoother's closing step (incremental:L: the whole graph re-solved once), a program of its own.
-            stepper = stepper.closing()
-            step_fn, seconds = compiled(scan, stepper, state, xs, key, steps=scenario.num_steps)
+        if k == scenario.num_steps - 1 and closing is not stepper:
+            # The smoother's closing step (incremental:L: the whole graph re-solved once), a program of
+            # its own, compiled fully (steps=None): the run's longest solve.
+            stepper = closing
+            step_fn, seconds = compiled(scan, stepper, state, xs, key, steps=None)
             compile_s += seconds
         t0 = time.perf_counter()
         state, trace = jax.block_until_ready(step_fn(stepper, state, xs, key))
@@ -251,7 +252,7 @@ def run(
             del record
         if between_steps is not None and k + 1 < scenario.num_steps:
             state = between_steps(k + 1, state)
-    spent(main_fn, sum(step_s[: len(step_s) - (step_fn is not main_fn)]))
+    spent(main_fn, sum(step_s if step_fn is main_fn else step_s[:-1]))  # the closing step ran its own program
     extra = {}
     trajectory, objects = _smoothed(estimator, state)
     if trajectory is not None:

@@ -46,7 +46,9 @@ def _gtsam_batch(scenario: hs.Scenario, result: hs.Result):
     ``None`` without GTSAM."""
     if importlib.util.find_spec("gtsam") is None:
         return None
-    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    here = os.path.dirname(os.path.abspath(__file__))
+    if here not in sys.path:
+        sys.path.insert(0, here)
     import isam2_baseline
 
     given = [list(a) for a in result.steps[-1].components[0].associations]

@@ -134,7 +134,8 @@ def _max_gap(times: np.ndarray, lo: float, hi: float) -> float:
     return float(np.diff(t).max())
 
 def _check_settings(max_range: Any, fov: Any, landmark_sd_floor: Any, landmark_heading_var: Any,
-                    discovery_margin: Any, new_object_log_density: Any, odometry_delay: Any) -> None:
+                    discovery_margin: Any, new_object_log_density: Any, odometry_delay: Any,
+                    unmapped_objects: Any) -> None:
     if max_range is not None:
         finite(max_range, "max_range", "metres")
     if fov is not None and not 0 < finite(fov, "fov", "radians") <= 2 * math.pi:
@@ -144,8 +145,9 @@ def _check_settings(max_range: Any, fov: Any, landmark_sd_floor: Any, landmark_h
     finite(odometry_delay, "odometry_delay", "seconds", positive=False)
     if new_object_log_density is not None:
         finite(new_object_log_density, "new_object_log_density", "nats", positive=False)
-    if not isinstance(discovery_margin, int) or isinstance(discovery_margin, bool) or discovery_margin < 0:
-        raise MRCLAMError(f"discovery_margin: expected a non-negative integer, got {discovery_margin!r}")
+    for name, count in (("discovery_margin", discovery_margin), ("unmapped_objects", unmapped_objects)):
+        if not isinstance(count, int) or isinstance(count, bool) or count < 0:
+            raise MRCLAMError(f"{name}: expected a non-negative integer, got {count!r}")
 
 
 def import_mrclam(
@@ -229,7 +231,7 @@ def import_mrclam(
     if not os.path.isdir(folder):
         raise MRCLAMError(f"{folder}: not a dataset folder (no such directory)")
     _check_settings(max_range, fov, landmark_sd_floor, landmark_heading_var, discovery_margin,
-                    new_object_log_density, odometry_delay)
+                    new_object_log_density, odometry_delay, unmapped_objects)
     if motion_noise_from is not None and motion_noise_from not in MOTION_NOISE_SOURCES:
         raise MRCLAMError(f"motion_noise_from: expected one of {', '.join(MOTION_NOISE_SOURCES)}, "
                           f"got {motion_noise_from!r}")
@@ -242,8 +244,6 @@ def import_mrclam(
                               "(unknown_map=True, --unknown-map)")
         if not isinstance(max_objects, int) or isinstance(max_objects, bool) or max_objects < 2:
             raise MRCLAMError(f"max_objects: expected an integer >= 2, got {max_objects!r}")
-    if not isinstance(unmapped_objects, int) or isinstance(unmapped_objects, bool) or unmapped_objects < 0:
-        raise MRCLAMError(f"unmapped_objects: expected a non-negative integer, got {unmapped_objects!r}")
     if unmapped_objects and unknown_map:
         raise MRCLAMError("unmapped_objects: room for objects beside a known map; an unknown map's slots are "
                           "max_objects (--object-slots)")
