@@ -290,7 +290,9 @@ def test_noise_is_calibrated_from_the_ground_truth(known):
     assert "1.4826*MAD" in cal["method"] and cal["motion_cov"] == "calibrated"
     # The drift check: summed over 5 s the odometry errors grow faster than white noise would.
     drift = cal["odometry_drift_sd_per_step"]
-    assert drift["block_steps"] == 10 and drift["sd"][2] > math.sqrt(known.motion_cov[2, 2])
+    assert drift["block_steps"][0] == 10 and drift["horizons_s"][0] == 5.0
+    assert drift["sd"][2] > math.sqrt(known.motion_cov[2, 2])
+    np.testing.assert_allclose(drift["sd"], np.max(drift["sd_by_horizon"], axis=0))
     assert log.odometry.rows.shape[0] > 0
 
 
@@ -318,6 +320,27 @@ def test_measurement_noise_is_what_the_written_detections_show(known):
     assert [d.range for st in raw.steps for d in st.detections] == list(a[:, 0])
     with pytest.raises(MRCLAMError, match="measurement_noise_from: expected one of written, raw"):
         import_mrclam(DATA, 1, identity_filter=True, measurement_noise_from="truth")
+
+
+def test_drift_covers_every_horizon_the_window_holds():
+    """The drift sd is per component the largest that the residuals' sums over 5, 10, 20 and 40 s
+    imply, over the horizons the window measures (5 blocks of 5 s, 20 of a longer one): white noise
+    gives its per-step sd at every horizon; a bias makes the longest horizon win."""
+    rng = np.random.default_rng(0)
+    white = 0.01 * rng.standard_normal((8000, 3))
+    sd, meta = mrclam_calibration.drift_over_horizons(white, 0.5)
+    assert meta["horizons_s"] == [5.0, 10.0, 20.0, 40.0] and meta["block_steps"] == [10, 20, 40, 80]
+    np.testing.assert_allclose(meta["sd_by_horizon"], 0.01, rtol=0.25)
+    np.testing.assert_allclose(sd, np.max(meta["sd_by_horizon"], axis=0))
+    biased = white + np.array([0.002, 0.0, 0.0])  # a velocity scale error: correlated in time
+    sd_b, meta_b = mrclam_calibration.drift_over_horizons(biased, 0.5)
+    assert np.argmax(np.array(meta_b["sd_by_horizon"])[:, 0]) == 3 and sd_b[0] > 1.5 * sd[0]
+    # A longer horizon counts with 20 blocks: 400 steps of 0.5 s (200 s) hold 20 of 10 s, 10 of
+    # 20 s; 200 steps (a 100 s window) 20 of 5 s only; 49 steps not 5 of 5 s.
+    assert mrclam_calibration.drift_over_horizons(white[:400], 0.5)[1]["horizons_s"] == [5.0, 10.0]
+    assert mrclam_calibration.drift_over_horizons(white[:399], 0.5)[1]["horizons_s"] == [5.0]
+    assert mrclam_calibration.drift_over_horizons(white[:50], 0.5)[1]["horizons_s"] == [5.0]
+    assert mrclam_calibration.drift_over_horizons(white[:49], 0.5) is None
 
 
 def test_motion_noise_from_the_drift_grows_as_fast_as_dead_reckonings_error(known):
@@ -645,7 +668,7 @@ def test_cli_default_import_says_what_it_kept(tmp_path, capsys, command_default)
 
 def test_a_file_with_clutter_gets_the_drift_calibrated_motion_noise_by_default(known):
     """With a clutter hypothesis (the default conversion) ``motion_cov`` is calibrated from the
-    odometry's 5 s drift, so that ``S`` covers dead reckoning's real error and a landmark seen after
+    odometry's 5-40 s drift (5 s on this excerpt), so that ``S`` covers dead reckoning's real error and a landmark seen after
     a stretch without any is not explained as clutter; without clutter (the identity filter,
     ``clutter_log_density="none"``) or with a window too short for 5 drift blocks it stays per step.
     A given ``motion_noise_from`` is kept."""

@@ -46,6 +46,12 @@ def _variances(text: str | None, n: int, option: str) -> np.ndarray | None:
     return np.diag(values)
 
 
+def _horizons(drift: dict) -> str:
+    """The drift horizons a calibration used, ``"5 s"`` or ``"5-40 s"``."""
+    h = drift["horizons_s"]
+    return f"{h[0]:g} s" if len(h) == 1 else f"{h[0]:g}-{h[-1]:g} s"
+
+
 def _sds(cov: np.ndarray) -> str:
     return ", ".join(f"{s:.3g}" for s in np.sqrt(np.diag(cov)))
 
@@ -81,8 +87,8 @@ def mrclam_summary(path: str, s: Scenario) -> str:
                       + ("none" if s.clutter_log_density is None else f"{s.clutter_log_density:.3g}"))
     source = ("" if cal["geometric_cov"] == "given"
               else f" from the {_NOISE_FROM[cal['measurement_noise_from']]}")
-    drift_source = (", from the 5 s drift" if cal["motion_cov"] == "calibrated"
-                    and cal["motion_noise_from"] == "drift" else "")
+    drift_source = (f", from the {_horizons(cal['odometry_drift_sd_per_step'])} drift"
+                    if cal["motion_cov"] == "calibrated" and cal["motion_noise_from"] == "drift" else "")
     geometric = (f"geometric_cov ({cal['geometric_cov']}{source}): sd {_sds(s.geometric_cov)} (m, rad); "
                  f"range bias {bias:+.3f} m ({corrected})")
     dead_reckoning = (f"dead reckoning at the end of the window: {dr['final_position_error_m']:.3f} m, "
@@ -99,8 +105,7 @@ def mrclam_summary(path: str, s: Scenario) -> str:
     drift = cal.get("odometry_drift_sd_per_step")
     if drift and np.any(np.asarray(drift["sd"]) > _DRIFT_NOTE * np.sqrt(np.diag(s.motion_cov))):
         sds = ", ".join(f"{v:.3g}" for v in drift["sd"])
-        block = drift["block_steps"]
-        lines.append(f"note: odometry errors are correlated in time: summed over {block} steps "
+        lines.append(f"note: odometry errors are correlated in time: summed over {_horizons(drift)} "
                      f"they grow like sd {sds} per step, more than {_DRIFT_NOTE:g}x motion_cov's; dead "
                      "reckoning drifts faster than it says (--motion-noise-from drift, --motion-cov)")
     if gaps:
@@ -208,7 +213,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "(default), or from the raw measurements at their own times")
     m.add_argument("--motion-noise-from", choices=MOTION_NOISE_SOURCES, default=None,
                    help="calibrate motion_cov from the per-step odometry errors (steps) or from their "
-                        "sums over 5 s (drift: larger, as the errors are correlated in time); default: "
+                        "sums over 5-40 s (drift: larger, as the errors are correlated in time); default: "
                         "drift for a file with a clutter hypothesis (the default conversion) and a window "
                         "of 25 s or more, steps otherwise (--identity-filter, --clutter-log-density none)")
     m.set_defaults(func=cmd_import_mrclam)

@@ -94,9 +94,12 @@ What the data hold (datasets 6 and 7, all robots), and what the import does abou
   ~0.17 s later (``odometry_delay`` shifts them; default 0, the data as logged) and the
   commanded distance is 4-12% longer than the true one over a whole log. The per-step errors are
   therefore correlated in time: summed over 5 s they grow 2.7-5.9× (forward) and 1.7-3.3×
-  (heading) faster than the calibrated per-step sd (200 s windows), and dead reckoning drifts
-  accordingly. ``generator.calibration.odometry_drift_sd_per_step``
-  reports it; ``motion_noise_from="drift"`` writes a ``motion_cov`` that grows as fast (on
+  (heading) faster than the calibrated per-step sd (200 s windows), and over a whole log the
+  largest sd per step over 10-40 s is 1.8-2.1× the 5 s one (forward) and up to 1.5× (heading;
+  dataset 7). Dead reckoning drifts
+  accordingly. ``generator.calibration.odometry_drift_sd_per_step`` reports it per horizon (5,
+  10, 20, 40 s, each where the window measures it); ``motion_noise_from="drift"`` writes a
+  ``motion_cov`` that grows as fast at every one of them (on
   dataset 7's unknown map it halves the duplicate landmarks; on the known map it costs accuracy:
   docs/studies/mrclam.md).
 * Odometry records have gaps of up to ~1 s (the last command is held) and duplicated times;
@@ -216,10 +219,11 @@ def import_mrclam(
       detections as written, at their step times; ``"raw"`` from the raw measurements at their
       own times (module docstring, Noise).
     * ``motion_noise_from``: ``"steps"`` calibrates ``motion_cov`` from the per-step odometry
-      residuals; ``"drift"`` takes per component the larger of that and the variance per step that
-      their sums over 5 s imply (``generator.calibration.odometry_drift_sd_per_step``), so that dead
-      reckoning's covariance grows as fast as its error does over seconds (the errors are
-      correlated in time: module docstring). Needs a window of at least 25 s. Default (``None``):
+      residuals; ``"drift"`` takes per component the largest of that and the variances per step that
+      their sums over 5, 10, 20 and 40 s imply (each horizon the window holds 5 blocks of;
+      ``generator.calibration.odometry_drift_sd_per_step``), so that dead reckoning's covariance
+      grows as fast as its error does over seconds to tens of seconds (the errors are correlated in
+      time: module docstring). Needs a window of at least 25 s. Default (``None``):
       ``"drift"`` when the file declares a clutter hypothesis and the window holds the 25 s,
       ``"steps"`` otherwise (module docstring, Noise: why clutter needs a consistent covariance).
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..io.scenario import Detection, Step
-from .mrclam_calibration import (DRIFT_BLOCK_S, MIN_BLOCKS, _drift_block, between, drift_per_step,
+from .mrclam_calibration import (DRIFT_BLOCK_S, MIN_BLOCKS, between, drift_over_horizons,
                                  integrate_odometry, interpolate_groundtruth, measurement_residuals,
                                  odometry_residuals, robust_variance)
 from .mrclam_detections import Measurements, Window, closest_per_landmark, compensate, landmark_measurements
@@ -99,12 +99,12 @@ def calibrate(track: Track, log: RobotLog, landmarks: np.ndarray, given: dict[st
     if motion is None:
         motion = np.diag(robust_variance(odometry, MOTION_SD_FLOOR))
         if motion_source == "drift":
-            drift = drift_per_step(odometry, _drift_block(dt))
+            drift = drift_over_horizons(odometry, dt)
             if drift is None:
                 raise MRCLAMError(f"robot {robot}: motion_noise_from drift needs {MIN_BLOCKS} blocks of "
                                   f"{DRIFT_BLOCK_S:g} s of odometry in the window; give a longer window (duration) "
                                   "or motion_noise_from 'steps'")
-            motion = np.diag(np.maximum(np.diag(motion), drift**2))
+            motion = np.diag(np.maximum(np.diag(motion), drift[0] ** 2))
     if geometric is None:
         geometric = np.diag(robust_variance(sensor, GEOMETRIC_SD_FLOOR))
     return Noise(motion, geometric, odometry, sensor, raw, range_bias, source, motion_source)
