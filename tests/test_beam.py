@@ -77,3 +77,41 @@ def test_beam_with_room_for_all_is_the_exhaustive_enumeration(table, pair):
 def test_advance_needs_a_carry():
     with pytest.raises(ValueError, match="advance needs a carry"):
         beam_search(lambda o, j, r, p: (0.0, 0), 2, 2, 4, fill=0, advance=lambda r, o, j: r)
+
+
+PADDED = 5  # slots: the first `used` hold detections, the rest are padding (only `fill` allowed)
+
+
+@jax.jit
+def _padded_search(table, used):
+    """A narrow beam over PADDED slots whose slots from ``used`` on are padding, with and without
+    ``stop``; slot 0 starts from unsorted parents (as a belief's components enter the hybrid beam)."""
+    slots = jnp.arange(PADDED)
+
+    def score(opts, j, row, parent):
+        padding = j >= used
+        return jnp.where(padding, jnp.where(opts[j] == 0, parent, -jnp.inf), parent + table[j, opts[j]]), \
+            jnp.zeros((), jnp.int32), row + jnp.where(padding, 0, opts[j])
+
+    width = 4
+    start = (jnp.zeros((width, PADDED), jnp.int32), jnp.array([-1.0, 0.5, -jnp.inf, 0.2]))
+    carry = jnp.zeros(width, jnp.int32)
+    plain = beam_search(score, PADDED, OPTIONS, width, fill=0, start=start, carry=carry)
+    stopped = beam_search(score, PADDED, OPTIONS, width, fill=0, start=start, carry=carry,
+                          stop=jnp.max(jnp.where(slots < used, slots + 1, 0)))
+    return plain, stopped
+
+
+@settings(max_examples=20, deadline=None, derandomize=True)
+@given(arrays(np.float64, (PADDED, OPTIONS), elements=finite), st.integers(0, PADDED))
+def test_stop_skips_the_padding_and_changes_nothing(table, used):
+    """``stop`` skips the slots after the last detection; the beam (order, scores, rows, drops) is
+    the one that extends them, also with no detection at all (the parents still get sorted)."""
+    plain, stopped = _padded_search(jnp.asarray(table), used)
+    valid = np.asarray(plain.valid)
+    np.testing.assert_array_equal(np.asarray(stopped.valid), valid)  # the invalid rows hold no assignment
+    np.testing.assert_array_equal(np.asarray(stopped.score), np.asarray(plain.score))
+    for a, b in ((stopped.options, plain.options), (stopped.rank, plain.rank), (stopped.rows, plain.rows)):
+        np.testing.assert_array_equal(np.asarray(a)[valid], np.asarray(b)[valid])
+    assert int(stopped.dropped) == int(plain.dropped) and valid.sum() == (3 if used == 0 else 4)
+    assert np.all(np.diff(np.asarray(stopped.score)[valid]) <= 0)

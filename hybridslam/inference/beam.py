@@ -67,6 +67,7 @@ def beam_search(
     first_slot: int = 0,
     carry: PyTree | None = None,
     advance: Callable[[PyTree, Int[Array, " S"], Int[Array, ""]], PyTree] | None = None,
+    stop: Int[Array, ""] | int | None = None,
 ) -> Beam:
     """Beam search over ``num_slots`` slots of ``num_options`` options each.
 
@@ -80,6 +81,12 @@ def beam_search(
     score ``parent`` of the assignment being extended, and after each slot ``advance(row, options,
     j)`` returns the row of every kept extension (``options``: its assignment). With ``carry`` and
     no ``advance``, the score returns ``(score, rank, row)``: the extension's own row.
+
+    ``stop`` (traced or not): the slots from ``stop`` on are padding, whose only valid option is
+    ``fill`` at an unchanged score. They are skipped by a ``lax.cond``: on a CPU a step pays for its
+    own detections, not for the padding to the run's busiest step (under ``vmap`` both branches run,
+    as without it). At least slot ``first_slot`` is extended, so the result is the one without
+    ``stop``: the beam's order included.
     """
     if advance is not None and carry is None:
         raise ValueError("beam_search: advance needs a carry")
@@ -119,6 +126,13 @@ def beam_search(
             rows = jax.vmap(advance, (0, 0, None))(parent, flat[index], j)
         return (flat[index], new_score, r[index].astype(jnp.int32), dropped + jnp.sum(lost, dtype=jnp.int32), rows), None
 
+    step = extend
+    if stop is not None:
+        last = jnp.maximum(stop, first_slot + 1)
+
+        def step(state, j):  # padding slots keep the state: the one option they allow changes nothing
+            return jax.lax.cond(j < last, extend, lambda st, _: (st, None), state, j)
+
     init = (start_options, start_score, start_rank, jnp.zeros((), jnp.int32), carry)
-    (options, final, rank, dropped, rows), _ = jax.lax.scan(extend, init, jnp.arange(first_slot, num_slots))
+    (options, final, rank, dropped, rows), _ = jax.lax.scan(step, init, jnp.arange(first_slot, num_slots))
     return Beam(options, final, rank, dropped, rows)
