@@ -19,7 +19,7 @@ import hybridslam as hs
 from hybridslam.driver import inputs_from_scenario
 from hybridslam.estimators.base import StepInfo, _totals, messages
 from hybridslam.estimators.smoothing_graph import (data_log, factor_budget, graph, history_factors, new_overflow,
-                                                   scenario_log)
+                                                   scenario_log, window_factor_budget, window_graph, WindowPrior)
 from hybridslam.inference import smoother as sm
 
 STEPS = 6
@@ -111,3 +111,58 @@ def test_detections_beyond_the_budget_are_counted_and_named(scenario):
     info = StepInfo(k=jnp.asarray(STEPS), num_components=jnp.asarray(1), log_overflow=jnp.asarray(sum(per_step)))
     assert any("factor budget" in line for line in messages(_totals(info), per_step=True))
     assert int(new_overflow(None, logs[-1])) == 0
+
+
+def test_a_window_lists_its_own_detections_with_the_normal_equations_of_its_padded_slots(scenario):
+    """A fixed-lag window's graph takes its detections from the log's rows, as many slots as the
+    busiest window of the scenario holds (``window_factor_budget``): the normal equations of the
+    padded layout (every slot of the window's steps), also where the window starts before the log
+    (``start`` 0) and where it has slid past the first steps."""
+    slots, n, length = scenario.max_detections, scenario.num_objects, 2
+    sensor = hs.model_from_scenario(scenario).sensor
+    counts = [len(s.detections) for s in scenario.steps]
+    budget = window_factor_budget(scenario, None, slots, length)
+    assert budget == max(sum(counts[i:i + length + 1]) for i in range(STEPS)) < (length + 1) * slots
+    assert window_factor_budget(scenario, STEPS + 4, slots, length) == (length + 1) * slots  # shared shapes
+    logs = {w: _recorded(data_log(scenario, STEPS, slots, n, factor_budget(scenario, None, slots), w), scenario, slots)[-1]
+            for w in (budget, 0)}
+    rng = np.random.default_rng(1)
+    factors = history_factors(jnp.asarray(rng.integers(-1, n, size=(STEPS, slots))),
+                              jnp.asarray(rng.integers(0, scenario.num_classes, size=n)))
+    poses = jnp.asarray(rng.normal(size=(length + 1, 3)))
+    objects = jnp.asarray(rng.normal(size=(n, 3)) * 3.0)
+    prior = WindowPrior(logs[0].prior_mean, logs[0].prior_info)
+
+    @eqx.filter_jit
+    def normal_equations(g):
+        lin = sm.linearize(g, poses, objects)
+        return (*lin.dense(), lin.cost)
+
+    for k, start in ((2, 0), (4, 2), (STEPS, STEPS - length)):
+        graphs = [window_graph(logs[w], factors, jnp.asarray(k), jnp.asarray(start), length, n, sensor,
+                               jnp.eye(3) * 0.01, True, "sum", prior) for w in (budget, 0)]
+        graphs.append(_window_grid_graph(graphs[1], logs[0], factors, k, start, length))
+        assert graphs[0].meas_pose.shape[0] == budget < graphs[1].meas_pose.shape[0]
+        live = [int(jnp.sum(g.meas_log_weight > -jnp.inf)) for g in graphs]
+        assert live[0] == live[1] == live[2] > 0
+        (h0, g0, c0), *rest = (normal_equations(g) for g in graphs)
+        for h1, g1, c1 in rest:
+            np.testing.assert_allclose(np.asarray(h0), np.asarray(h1), rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(np.asarray(g0), np.asarray(g1), rtol=1e-12, atol=1e-12)
+            assert float(c0) == pytest.approx(float(c1), rel=1e-12)
+
+
+def _window_grid_graph(like, log, factors, k, start, length) -> sm.FactorGraph:
+    """The reference window: one factor per (step, slot) of the window's steps, written out
+    independently; the rest of the graph as ``like``'s."""
+    t, dmax = log.mask.shape
+    rows = start - 1 + jnp.arange(length + 1)
+    take = lambda a: jnp.take(a, jnp.clip(rows, 0, t - 1), axis=0)  # noqa: E731
+    reached = ((rows >= 0) & (rows < k))[:, None] & take(log.mask)
+    flat = lambda a: a.reshape(((length + 1) * dmax,) + a.shape[2:])  # noqa: E731
+    return eqx.tree_at(
+        lambda g: (g.meas_pose, g.meas_objects, g.meas_log_weight, g.meas_null_log_weight, g.meas_data), like,
+        (jnp.repeat(jnp.arange(length + 1), dmax), flat(take(factors.objects)),
+         jnp.where(flat(reached)[:, None], flat(take(factors.log_weight)), -jnp.inf),
+         jnp.full((length + 1) * dmax, -jnp.inf),
+         sm.DetectionData(flat(take(log.geo)), flat(take(log.scores)), flat(take(factors.classes)))))

@@ -49,7 +49,7 @@ from ..inference import smoother as sm
 from ..io.scenario import Scenario
 from ..models.measurement import Detections, SensorModel
 from .smoothing_graph import (DataLog, Factors, WindowPrior, data_log, factor_budget, graph, initial_trajectory,
-                              initial_window, window_graph)
+                              initial_window, window_factor_budget, window_graph)
 
 
 STEP_ATOL = 1e-2  # nats: the cost tolerance of a smoother step before the last (Full.step_atol)
@@ -89,6 +89,11 @@ class AbstractSmoother(eqx.Module):
         del log, components
         return None
 
+    def window_factors(self, scenario: Scenario, max_steps: int | None, slots: int) -> int:
+        """The window graph's factor slots in a state built for ``scenario`` (0: no window)."""
+        del scenario, max_steps, slots
+        return 0
+
     def init(self, scenario: Scenario, steps: int, slots: int, max_objects: int, max_steps: int | None,
              components: int | None = None) -> SmootherState:
         """What this smoother keeps before the first step of a state sized for ``scenario``
@@ -99,7 +104,8 @@ class AbstractSmoother(eqx.Module):
         (:class:`SmootherState` ``()``) where the smoother does not smooth."""
         if not self.smooths:
             return SmootherState()
-        log = data_log(scenario, steps, slots, max_objects, factor_budget(scenario, max_steps, slots))
+        log = data_log(scenario, steps, slots, max_objects, factor_budget(scenario, max_steps, slots),
+                       self.window_factors(scenario, max_steps, slots))
         poses = np.asarray(initial_trajectory(scenario, steps))
         if components is not None:
             poses = np.broadcast_to(poses, (components,) + poses.shape)
@@ -199,6 +205,9 @@ class Lag(AbstractSmoother):
             if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
                 raise ValueError(f"Lag.{field}: expected a positive int, got {value!r}")
         _check_atol("Lag", self.step_atol)
+
+    def window_factors(self, scenario: Scenario, max_steps: int | None, slots: int) -> int:
+        return window_factor_budget(scenario, max_steps, slots, self.length)
 
     def init_window(self, log: DataLog, components: int | None = None) -> WindowPrior | None:
         return initial_window(log, components)

@@ -51,6 +51,9 @@ class DataLog(eqx.Module):
     prior_sqrt_info: Float[Array, "D0 D0"]
     prior_info: Float[Array, "D0 D0"]  # RᵀR, formed once here rather than once per step
     last_step: Int[Array, ""]  # the scenario's steps: the step solved to smoothing.FINAL_ATOL (a padded log has more rows)
+    # A fixed-lag window graph's measurement factor slots (window_factor_budget); 0: one per padded
+    # detection slot of the window's steps.
+    window_factors: int = eqx.field(static=True, default=0)
 
     def record(self, k: Int[Array, ""], odometry: Float[Array, "3"], detections: Detections) -> DataLog:
         """The log with step ``k + 1``'s inputs written in row ``k`` (and its detections appended
@@ -75,11 +78,13 @@ class DataLog(eqx.Module):
 
 
 def data_log(scenario: Scenario, max_steps: int, max_detections: int, max_objects: int,
-             max_factors: int | None = None) -> DataLog:
+             max_factors: int | None = None, window_factors: int = 0) -> DataLog:
     """An empty log for ``scenario`` and the prior of its smoothing problems.
 
     ``max_factors``: the factor budget (:class:`DataLog`), by default ``max_steps · max_detections``
     (room for anything); :func:`factor_budget` gives the scenario's own count where that is safe.
+    ``window_factors``: a fixed-lag window's factor slots (:func:`window_factor_budget`; 0: every
+    padded slot of the window's steps).
     The prior is the scenario's robot prior and object priors, block-diagonal; an object slot a
     detection may create later gets a prior on its heading only (``N(0, new_object_orientation_var)``).
     """
@@ -106,7 +111,7 @@ def data_log(scenario: Scenario, max_steps: int, max_detections: int, max_object
         rows=put(np.zeros((budget,), np.int32)),
         prior_mean=put(np.asarray(mean, float)), prior_sqrt_info=put(np.asarray(info_sqrt, float)),
         prior_info=put(np.asarray(info_sqrt.T @ info_sqrt, float)),
-        last_step=put(np.asarray(scenario.num_steps, dtype=np.int32)),
+        last_step=put(np.asarray(scenario.num_steps, dtype=np.int32)), window_factors=int(window_factors),
     )
 
 
@@ -126,6 +131,20 @@ def factor_budget(scenario: Scenario, max_steps: int | None, max_detections: int
     if max_steps is None:
         return max(total, 1)
     return max(max_steps, 1) * max_detections
+
+
+def window_factor_budget(scenario: Scenario, max_steps: int | None, max_detections: int, length: int) -> int:
+    """The measurement factor slots of a window of ``length + 1`` poses in a state built for
+    ``scenario``: the most detections in ``length + 1`` consecutive steps of the scenario where the
+    state is sized for it alone (``max_steps`` None, as :func:`factor_budget`), else every padded
+    slot, ``(length + 1) · max_detections``. A window then linearizes its own detections, not the
+    run's busiest step's slots at every pose (MRCLAM unfiltered: 21 slots, about 3 detections a step)."""
+    full = (length + 1) * max_detections
+    if max_steps is not None:
+        return full
+    counts = np.array([len(step.detections) for step in scenario.steps] or [0])
+    sums = np.convolve(counts, np.ones(min(length + 1, counts.size), int), mode="valid")
+    return int(min(max(int(sums.max()), 1), full))
 
 
 def scenario_log(scenario: Scenario, max_objects: int) -> DataLog:
@@ -245,21 +264,28 @@ def window_graph(
     ``x_start``'s included (they leave with ``x_start`` when it is marginalized)."""
     t, dmax = log.mask.shape
     n = (log.prior_mean.shape[0] - 3) // 3
-    rows = start - 1 + jnp.arange(length + 1)  # the log row of each window pose's detections
-    take = lambda a: jnp.take(a, jnp.clip(rows, 0, t - 1), axis=0)  # noqa: E731
-    reached = ((rows >= 0) & (rows < k))[:, None] & take(log.mask)  # (L+1, Dmax)
-    flat = lambda a: a.reshape(((length + 1) * dmax,) + a.shape[2:])  # noqa: E731
-    log_w = jnp.where(reached[..., None], take(factors.log_weight), -jnp.inf)
+    first = start - 1  # the log row of window pose 0's detections
+    # The window's detections are a run of the log's rows (arrival order is step order): its
+    # factor slots take them from the first one of step `first` on, `fw` of them (the budget holds
+    # every window of the scenario: window_factor_budget), the slots after them inactive.
+    fw = log.window_factors or (length + 1) * dmax
+    f = log.rows.shape[0]
+    recorded = jnp.arange(f) < jnp.minimum(log.count(), f)
+    at = jnp.sum(recorded & (log.rows // dmax < first)) + jnp.arange(fw)
+    cell = log.rows[jnp.clip(at, 0, f - 1)]  # flat (step, slot) index
+    step = cell // dmax
+    reached = (at < f) & recorded[jnp.clip(at, 0, f - 1)] & (step >= first) & (step <= first + length) & (step < k)
+    take = lambda a: a.reshape((t * dmax,) + a.shape[2:])[cell]  # noqa: E731
+    log_w = jnp.where(reached[:, None], take(factors.log_weight), -jnp.inf)
     null = jnp.where(reached, take(factors.null_log_weight), -jnp.inf)
-    residual, data = _measurements(sensor, semantic, flat(take(log.geo)), flat(take(log.scores)),
-                                   flat(take(factors.classes)))
+    residual, data = _measurements(sensor, semantic, take(log.geo), take(log.scores), take(factors.classes))
     odo_rows = start + jnp.arange(length)
     return sm.FactorGraph(
         prior_mean=prior.mean, prior_sqrt_info=None, prior_info=prior.info,
         odometry=jnp.take(log.odometry, jnp.clip(odo_rows, 0, t - 1), axis=0), odometry_active=odo_rows < k,
         motion_sqrt_info=_sqrt_information_of(motion_cov),
-        meas_pose=flat(jnp.broadcast_to(jnp.arange(length + 1)[:, None], (length + 1, dmax))),
-        meas_objects=flat(take(factors.objects)), meas_log_weight=flat(log_w), meas_null_log_weight=flat(null),
+        meas_pose=jnp.where(reached, step - first, 0).astype(jnp.int32),
+        meas_objects=take(factors.objects), meas_log_weight=log_w, meas_null_log_weight=null,
         meas_data=data, pose_active=jnp.arange(length + 1) <= k - start,
         object_active=jnp.arange(n) < num_created, residual_fn=residual, mode=mode,
     )
