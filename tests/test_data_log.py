@@ -124,8 +124,9 @@ def test_a_window_lists_its_own_detections_with_the_normal_equations_of_its_padd
     budget = window_factor_budget(scenario, None, slots, length)
     assert budget == max(sum(counts[i:i + length + 1]) for i in range(STEPS)) < (length + 1) * slots
     assert window_factor_budget(scenario, STEPS + 4, slots, length) == (length + 1) * slots  # shared shapes
-    logs = {w: _recorded(data_log(scenario, STEPS, slots, n, factor_budget(scenario, None, slots), w), scenario, slots)[-1]
-            for w in (budget, 0)}
+    logs = {w: _recorded(data_log(scenario, STEPS, slots, n, factor_budget(scenario, None, slots), w,
+                                  length + 1 if w else 0), scenario, slots)[-1] for w in (budget, 0)}
+    assert int(logs[budget].overflow()) == int(logs[0].overflow()) == 0  # the scenario's windows fit
     rng = np.random.default_rng(1)
     factors = history_factors(jnp.asarray(rng.integers(-1, n, size=(STEPS, slots))),
                               jnp.asarray(rng.integers(0, scenario.num_classes, size=n)))
@@ -166,3 +167,17 @@ def _window_grid_graph(like, log, factors, k, start, length) -> sm.FactorGraph:
          jnp.where(flat(reached)[:, None], flat(take(factors.log_weight)), -jnp.inf),
          jnp.full((length + 1) * dmax, -jnp.inf),
          sm.DetectionData(flat(take(log.geo)), flat(take(log.scores)), flat(take(factors.classes)))))
+
+
+def test_a_window_s_detections_beyond_its_slots_are_counted(scenario):
+    """A window sized for fewer detections than the data bring (a state stepped on other data) counts
+    each detection that arrives beyond the slots of the window ending at its step."""
+    slots, n, length = scenario.max_detections, scenario.num_objects, 2
+    logs = _recorded(data_log(scenario, STEPS, slots, n, None, 1, length + 1), scenario, slots)
+    counts = [len(s.detections) for s in scenario.steps]
+    expected = 0
+    for k in range(STEPS):
+        held = sum(counts[max(k - length, 0):k + 1])
+        expected += min(counts[k], max(held - 1, 0))
+    assert int(logs[-1].overflow()) == expected > 0
+    assert sum(int(new_overflow(a, b)) for a, b in zip(logs[:-1], logs[1:])) == expected

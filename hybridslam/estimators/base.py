@@ -213,7 +213,8 @@ def messages(t: dict[str, float], per_step: bool) -> list[str]:
                      "or they are spurious (--clutter)")
     if (n := int(t["log_overflow"])) > 0:
         out.append(f"{n} detection(s) beyond the smoother's factor budget are not in its graph (the state was sized "
-                   "for a scenario with fewer detections; build it with max_steps set for room for every slot)")
+                   "for a scenario with fewer detections, in all or in a fixed-lag window; build it with max_steps "
+                   "set for room for every slot)")
     return out
 
 

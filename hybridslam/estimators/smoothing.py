@@ -89,10 +89,10 @@ class AbstractSmoother(eqx.Module):
         del log, components
         return None
 
-    def window_factors(self, scenario: Scenario, max_steps: int | None, slots: int) -> int:
-        """The window graph's factor slots in a state built for ``scenario`` (0: no window)."""
+    def window_budget(self, scenario: Scenario, max_steps: int | None, slots: int) -> tuple[int, int]:
+        """The window graph's factor slots and poses in a state built for ``scenario`` ((0, 0): no window)."""
         del scenario, max_steps, slots
-        return 0
+        return 0, 0
 
     def init(self, scenario: Scenario, steps: int, slots: int, max_objects: int, max_steps: int | None,
              components: int | None = None) -> SmootherState:
@@ -105,7 +105,7 @@ class AbstractSmoother(eqx.Module):
         if not self.smooths:
             return SmootherState()
         log = data_log(scenario, steps, slots, max_objects, factor_budget(scenario, max_steps, slots),
-                       self.window_factors(scenario, max_steps, slots))
+                       *self.window_budget(scenario, max_steps, slots))
         poses = np.asarray(initial_trajectory(scenario, steps))
         if components is not None:
             poses = np.broadcast_to(poses, (components,) + poses.shape)
@@ -206,8 +206,8 @@ class Lag(AbstractSmoother):
                 raise ValueError(f"Lag.{field}: expected a positive int, got {value!r}")
         _check_atol("Lag", self.step_atol)
 
-    def window_factors(self, scenario: Scenario, max_steps: int | None, slots: int) -> int:
-        return window_factor_budget(scenario, max_steps, slots, self.length)
+    def window_budget(self, scenario: Scenario, max_steps: int | None, slots: int) -> tuple[int, int]:
+        return window_factor_budget(scenario, max_steps, slots, self.length), self.length + 1
 
     def init_window(self, log: DataLog, components: int | None = None) -> WindowPrior | None:
         return initial_window(log, components)

@@ -51,9 +51,12 @@ class DataLog(eqx.Module):
     prior_sqrt_info: Float[Array, "D0 D0"]
     prior_info: Float[Array, "D0 D0"]  # RᵀR, formed once here rather than once per step
     last_step: Int[Array, ""]  # the scenario's steps: the step solved to smoothing.FINAL_ATOL (a padded log has more rows)
-    # A fixed-lag window graph's measurement factor slots (window_factor_budget); 0: one per padded
-    # detection slot of the window's steps.
+    # Detections that arrived beyond the factor slots of the fixed-lag window ending at their step.
+    window_excess: Int[Array, ""]
+    # A fixed-lag window graph's measurement factor slots (window_factor_budget) and poses (L + 1);
+    # 0: one slot per padded detection slot of the window's steps.
     window_factors: int = eqx.field(static=True, default=0)
+    window_steps: int = eqx.field(static=True, default=0)
 
     def record(self, k: Int[Array, ""], odometry: Float[Array, "3"], detections: Detections) -> DataLog:
         """The log with step ``k + 1``'s inputs written in row ``k`` (and its detections appended
@@ -62,10 +65,16 @@ class DataLog(eqx.Module):
         budget = self.rows.shape[0]
         at = jnp.where(detections.mask, self.count() + jnp.cumsum(detections.mask) - 1, budget)
         rows = self.rows.at[at].set(k * dmax + jnp.arange(dmax, dtype=self.rows.dtype), mode="drop")
+        mask = self.mask.at[k].set(detections.mask)
+        excess = self.window_excess
+        if self.window_factors:  # the window ending at step k holds more detections than its slots
+            t = jnp.arange(mask.shape[0])
+            held = jnp.sum(jnp.where((t > k - self.window_steps) & (t <= k), jnp.sum(mask, axis=1), 0))
+            excess += jnp.minimum(jnp.sum(detections.mask), jnp.maximum(held - self.window_factors, 0))
         return eqx.tree_at(
-            lambda d: (d.odometry, d.geo, d.scores, d.mask, d.rows), self,
+            lambda d: (d.odometry, d.geo, d.scores, d.mask, d.rows, d.window_excess), self,
             (self.odometry.at[k].set(odometry), self.geo.at[k].set(detections.geo),
-             self.scores.at[k].set(detections.scores), self.mask.at[k].set(detections.mask), rows),
+             self.scores.at[k].set(detections.scores), mask, rows, excess.astype(jnp.int32)),
         )
 
     def count(self) -> Int[Array, ""]:
@@ -73,18 +82,19 @@ class DataLog(eqx.Module):
         return jnp.sum(self.mask, dtype=jnp.int32)
 
     def overflow(self) -> Int[Array, ""]:
-        """Detections recorded beyond the factor budget (not in the full smoother's graph)."""
-        return jnp.maximum(self.count() - self.rows.shape[0], 0)
+        """Detections recorded beyond the factor budget (not in the full smoother's graph), and
+        beyond the fixed-lag window's factor slots when they arrived (not in that window's graph)."""
+        return jnp.maximum(self.count() - self.rows.shape[0], 0) + self.window_excess
 
 
 def data_log(scenario: Scenario, max_steps: int, max_detections: int, max_objects: int,
-             max_factors: int | None = None, window_factors: int = 0) -> DataLog:
+             max_factors: int | None = None, window_factors: int = 0, window_steps: int = 0) -> DataLog:
     """An empty log for ``scenario`` and the prior of its smoothing problems.
 
     ``max_factors``: the factor budget (:class:`DataLog`), by default ``max_steps · max_detections``
     (room for anything); :func:`factor_budget` gives the scenario's own count where that is safe.
     ``window_factors``: a fixed-lag window's factor slots (:func:`window_factor_budget`; 0: every
-    padded slot of the window's steps).
+    padded slot of the window's steps) and ``window_steps`` its poses, ``L + 1``.
     The prior is the scenario's robot prior and object priors, block-diagonal; an object slot a
     detection may create later gets a prior on its heading only (``N(0, new_object_orientation_var)``).
     """
@@ -111,7 +121,8 @@ def data_log(scenario: Scenario, max_steps: int, max_detections: int, max_object
         rows=put(np.zeros((budget,), np.int32)),
         prior_mean=put(np.asarray(mean, float)), prior_sqrt_info=put(np.asarray(info_sqrt, float)),
         prior_info=put(np.asarray(info_sqrt.T @ info_sqrt, float)),
-        last_step=put(np.asarray(scenario.num_steps, dtype=np.int32)), window_factors=int(window_factors),
+        last_step=put(np.asarray(scenario.num_steps, dtype=np.int32)), window_excess=put(np.zeros((), np.int32)),
+        window_factors=int(window_factors), window_steps=int(window_steps),
     )
 
 
