@@ -525,7 +525,7 @@ if __name__ == "__main__":
     parser.add_argument("--smoothers", default="full", help="full, filter, lag:L, incremental:L (comma-separated)")
     parser.add_argument("--figure-robot", type=int, default=None, help="the robot drawn (default: the first)")
     parser.add_argument("--motion-noise-from", default="steps", choices=("steps", "drift"),
-                        help="the importer's motion_cov calibration (default steps; drift: from 5 s sums)")
+                        help="the importer's motion_cov calibration (default steps; drift: from 5-40 s sums)")
     parser.add_argument("--retry-errors", action="store_true", help="run the cells that failed before again")
     parser.add_argument("--report-only", action="store_true",
                         help="run nothing: the table, errors.csv and figure of the finished cells of this grid")

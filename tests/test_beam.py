@@ -115,3 +115,14 @@ def test_stop_skips_the_padding_and_changes_nothing(table, used):
         np.testing.assert_array_equal(np.asarray(a)[valid], np.asarray(b)[valid])
     assert int(stopped.dropped) == int(plain.dropped) and valid.sum() == (3 if used == 0 else 4)
     assert np.all(np.diff(np.asarray(stopped.score)[valid]) <= 0)
+
+
+def test_a_step_s_span_ends_at_its_last_detection():
+    """``Detections.span``: the slots the association search extends (a hole before the last
+    detection counts; nothing after it does)."""
+    from hybridslam.models.measurement import Detections
+
+    mask = jnp.array([[True, False, True, False], [False] * 4, [True] * 4])
+    d = Detections(jnp.zeros((3, 4, 2)), jnp.zeros((3, 4, 1)), mask)
+    assert d.span().tolist() == [3, 0, 4]
+    assert int(Detections(d.geo[0], d.scores[0], mask[0]).span()) == 3

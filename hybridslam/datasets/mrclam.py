@@ -220,7 +220,7 @@ def import_mrclam(
       own times (module docstring, Noise).
     * ``motion_noise_from``: ``"steps"`` calibrates ``motion_cov`` from the per-step odometry
       residuals; ``"drift"`` takes per component the largest of that and the variances per step that
-      their sums over 5, 10, 20 and 40 s imply (each horizon the window holds 5 blocks of;
+      their sums over 5, 10, 20 and 40 s imply (5 s with 5 blocks in the window, a longer one with 20;
       ``generator.calibration.odometry_drift_sd_per_step``), so that dead reckoning's covariance
       grows as fast as its error does over seconds to tens of seconds (the errors are correlated in
       time: module docstring). Needs a window of at least 25 s. Default (``None``):

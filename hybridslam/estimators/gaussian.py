@@ -410,9 +410,8 @@ def associate(state: GaussianState, mean: Float[Array, " D"], cov: Float[Array, 
             _, used, _, obj, *_ = flags(opts, upto)
             return sequential.condition(inn, cov, partial_row, upto, obj[upto], used[upto])
 
-        used_slots = jnp.max(jnp.where(detections.mask, slots + 1, 0))  # the later slots are padding
         found = beam_search(score, dmax, g + 1, width, fill=g, carry=sequential.start(width, mean.shape[0], dmax, mean.dtype),
-                            advance=advance, stop=used_slots)
+                            advance=advance, stop=detections.span())
         options, dropped = found.options, found.dropped
         ok, _, _, _, new, unmapped, skip, clutter = jax.vmap(flags, (0, None))(options, dmax - 1)
         ok &= found.valid  # a row the beam did not fill is no hypothesis (it may repeat another)

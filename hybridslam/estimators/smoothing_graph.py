@@ -281,11 +281,11 @@ def window_graph(
     # every window of the scenario: window_factor_budget), the slots after them inactive.
     fw = log.window_factors or (length + 1) * dmax
     f = log.rows.shape[0]
-    recorded = jnp.arange(f) < jnp.minimum(log.count(), f)
-    at = jnp.sum(recorded & (log.rows // dmax < first)) + jnp.arange(fw)
+    listed = jnp.minimum(log.count(), f)  # the rows filled
+    at = jnp.sum((jnp.arange(f) < listed) & (log.rows // dmax < first)) + jnp.arange(fw)
     cell = log.rows[jnp.clip(at, 0, f - 1)]  # flat (step, slot) index
     step = cell // dmax
-    reached = (at < f) & recorded[jnp.clip(at, 0, f - 1)] & (step >= first) & (step <= first + length) & (step < k)
+    reached = (at < listed) & (step >= first) & (step <= first + length) & (step < k)
     take = lambda a: a.reshape((t * dmax,) + a.shape[2:])[cell]  # noqa: E731
     log_w = jnp.where(reached[:, None], take(factors.log_weight), -jnp.inf)
     null = jnp.where(reached, take(factors.null_log_weight), -jnp.inf)

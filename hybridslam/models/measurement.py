@@ -158,6 +158,12 @@ class Detections(eqx.Module):
     scores: Float[Array, "*T Dmax M"]  # classifier output z^sem (Eq. 1)
     mask: Bool[Array, "*T Dmax"]  # which slots hold a detection
 
+    def span(self) -> Int[Array, "*T"]:
+        """The slots up to the last detection, its index + 1 (0 without one): the later slots are
+        padding to the run's busiest step, which a step's association search skips."""
+        slots = jnp.arange(1, self.mask.shape[-1] + 1)
+        return jnp.max(jnp.where(self.mask, slots, 0), axis=-1)
+
 
 def stacked_detections(stacked: StackedSteps) -> Detections:
     """All steps of a scenario as one :class:`Detections` with a leading time axis ``T``."""

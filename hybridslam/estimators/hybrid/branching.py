@@ -195,9 +195,8 @@ def beam_children(
     keep = jnp.log(model.prune_ratio)
     rdim = tables.r_bar.shape[-1]
     empty = jax.tree.map(lambda a: jnp.broadcast_to(a, (width,) + a.shape), empty_child(dmax, rdim, mean.dtype))
-    used = jnp.max(jnp.where(detections.mask, slots + 1, 0))  # the slots after the last detection are padding
     found = beam_search(score, 1 + dmax, num_options, width, fill=0, keep_nats=keep, start=(first, first_score),
-                        first_slot=1, carry=empty, stop=1 + used)
+                        first_slot=1, carry=empty, stop=1 + detections.span())  # slot 0 is the parent
     ok, assign, makes, unmapped, new, slot_class, log_prior, *_ = jax.vmap(child, (0, None))(found.options, dmax - 1)
     valid = ok & found.valid
     if skip:  # only the children that skip the fewest detections (the beam ranks them first)

@@ -120,9 +120,8 @@ def hypotheses(
                 return jnp.where(feasible[0], parent + inc, -jnp.inf), skips
 
             start = sequential.start(cfg.beam, terms.cov.shape[0], cfg.max_detections, m.dtype)
-            used = jnp.max(jnp.where(detections.mask, slots + 1, 0))  # the later slots are padding
             found = beam_search(score, cfg.max_detections, cfg.candidates + 1, cfg.beam, fill=cfg.candidates,
-                                carry=start, advance=partial(condition, terms, detections.mask), stop=used)
+                                carry=start, advance=partial(condition, terms, detections.mask), stop=detections.span())
             objects, new, feasible = assignment_objects(found.options, cand, detections.mask, created, cfg.max_objects,
                                                         cfg.discovery)
             # A row the beam did not fill is no hypothesis (it may repeat another).
