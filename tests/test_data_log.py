@@ -18,8 +18,9 @@ import pytest
 import hybridslam as hs
 from hybridslam.driver import inputs_from_scenario
 from hybridslam.estimators.base import StepInfo, _totals, messages
-from hybridslam.estimators.smoothing_graph import (data_log, factor_budget, graph, history_factors, new_overflow,
-                                                   scenario_log, window_factor_budget, window_graph, WindowPrior)
+from hybridslam.estimators.smoothing_graph import (Factors, WindowPrior, data_log, factor_budget, graph,
+                                                   history_factors, new_overflow, scenario_log, window_factor_budget,
+                                                   window_graph)
 from hybridslam.inference import smoother as sm
 
 STEPS = 6
@@ -48,6 +49,25 @@ def test_the_budget_is_the_scenario_s_detections_unless_the_shapes_are_shared(sc
         data_log(scenario, STEPS, 2, scenario.num_objects, max_factors=0)
 
 
+def _grid_factors(history, classes) -> Factors:
+    """The reference factors of an association history: every (step, slot) of the grid written out."""
+    obj = jnp.maximum(history, 0)
+    return Factors(obj[..., None], jnp.where(history >= 0, 0.0, -jnp.inf)[..., None],
+                   jnp.full(history.shape, -jnp.inf), jnp.maximum(classes[obj], 0)[..., None])
+
+
+def test_history_factors_list_the_rows_of_the_grid(scenario):
+    rng = np.random.default_rng(2)
+    n, slots = scenario.num_objects, scenario.max_detections
+    history = jnp.asarray(rng.integers(-1, n, size=(STEPS, slots)))
+    classes = jnp.asarray(rng.integers(-1, scenario.num_classes, size=n))  # -1: not realized yet
+    cells = jnp.asarray(rng.integers(0, STEPS * slots, size=40))
+    lazy, grid = history_factors(history, classes).rows(cells), _grid_factors(history, classes).rows(cells)
+    for a, b in zip(lazy, grid):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert np.any(np.asarray(grid.log_weight) == 0.0) and np.any(np.isinf(np.asarray(grid.log_weight)))
+
+
 def _grid_graph(log, factors, k, sensor, motion_cov) -> sm.FactorGraph:
     """The reference: one factor per (step, slot) of the padded grid, written out independently."""
     t, dmax = log.mask.shape
@@ -72,7 +92,8 @@ def test_the_compact_graph_has_the_normal_equations_of_the_padded_grid(scenario)
     logs = _recorded(data_log(scenario, STEPS, slots, n, factor_budget(scenario, None, slots)), scenario, slots)
     rng = np.random.default_rng(0)
     history = jnp.asarray(rng.integers(-1, n, size=(STEPS, slots)))
-    factors = history_factors(history, jnp.asarray(rng.integers(0, scenario.num_classes, size=n)))
+    classes = jnp.asarray(rng.integers(0, scenario.num_classes, size=n))
+    factors, grid = history_factors(history, classes), _grid_factors(history, classes)
     poses = jnp.asarray(rng.normal(size=(STEPS + 1, 3)))
     objects = jnp.asarray(rng.normal(size=(n, 3)) * 3.0)
 
@@ -83,7 +104,7 @@ def test_the_compact_graph_has_the_normal_equations_of_the_padded_grid(scenario)
 
     for k in (1, 3, STEPS):
         graphs = [graph(logs[-1], factors, jnp.asarray(k), n, sensor, jnp.eye(3) * 0.01, True),
-                  _grid_graph(logs[-1], factors, k, sensor, jnp.eye(3) * 0.01)]
+                  _grid_graph(logs[-1], grid, k, sensor, jnp.eye(3) * 0.01)]
         assert graphs[0].meas_pose.shape[0] < graphs[1].meas_pose.shape[0]
         live = [int(jnp.sum(g.meas_log_weight > -jnp.inf)) for g in graphs]
         assert live[0] == live[1] > 0
@@ -128,8 +149,9 @@ def test_a_window_lists_its_own_detections_with_the_normal_equations_of_its_padd
                                   length + 1 if w else 0), scenario, slots)[-1] for w in (budget, 0)}
     assert int(logs[budget].overflow()) == int(logs[0].overflow()) == 0  # the scenario's windows fit
     rng = np.random.default_rng(1)
-    factors = history_factors(jnp.asarray(rng.integers(-1, n, size=(STEPS, slots))),
-                              jnp.asarray(rng.integers(0, scenario.num_classes, size=n)))
+    history = jnp.asarray(rng.integers(-1, n, size=(STEPS, slots)))
+    classes = jnp.asarray(rng.integers(0, scenario.num_classes, size=n))
+    factors, grid = history_factors(history, classes), _grid_factors(history, classes)
     poses = jnp.asarray(rng.normal(size=(length + 1, 3)))
     objects = jnp.asarray(rng.normal(size=(n, 3)) * 3.0)
     prior = WindowPrior(logs[0].prior_mean, logs[0].prior_info)
@@ -142,7 +164,7 @@ def test_a_window_lists_its_own_detections_with_the_normal_equations_of_its_padd
     for k, start in ((2, 0), (4, 2), (STEPS, STEPS - length)):
         graphs = [window_graph(logs[w], factors, jnp.asarray(k), jnp.asarray(start), length, n, sensor,
                                jnp.eye(3) * 0.01, True, "sum", prior) for w in (budget, 0)]
-        graphs.append(_window_grid_graph(graphs[1], logs[0], factors, k, start, length))
+        graphs.append(_window_grid_graph(graphs[1], logs[0], grid, k, start, length))
         assert graphs[0].meas_pose.shape[0] == budget < graphs[1].meas_pose.shape[0]
         live = [int(jnp.sum(g.meas_log_weight > -jnp.inf)) for g in graphs]
         assert live[0] == live[1] == live[2] > 0

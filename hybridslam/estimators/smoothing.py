@@ -48,8 +48,8 @@ from jaxtyping import Array, Bool, Float, Int
 from ..inference import smoother as sm
 from ..io.scenario import Scenario
 from ..models.measurement import Detections, SensorModel
-from .smoothing_graph import (DataLog, Factors, WindowPrior, data_log, factor_budget, graph, initial_trajectory,
-                              initial_window, window_factor_budget, window_graph)
+from .smoothing_graph import (AnyFactors, DataLog, Factors, WindowPrior, data_log, factor_budget, graph,
+                              initial_trajectory, initial_window, window_factor_budget, window_graph)
 
 
 STEP_ATOL = 1e-2  # nats: the cost tolerance of a smoother step before the last (Full.step_atol)
@@ -118,7 +118,7 @@ class AbstractSmoother(eqx.Module):
         return self
 
     def smooth(
-        self, state: SmootherState, factors: Factors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
+        self, state: SmootherState, factors: AnyFactors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
         sensor: SensorModel, motion_cov: Float[Array, "3 3"], semantic: bool, mode: sm.Mode,
         mean: Float[Array, " D0"], cov: Float[Array, "D0 D0"],
     ) -> Smoothed:
@@ -176,7 +176,7 @@ class Full(AbstractSmoother):
         _check_atol("Full", self.step_atol)
 
     def smooth(
-        self, state: SmootherState, factors: Factors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
+        self, state: SmootherState, factors: AnyFactors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
         sensor: SensorModel, motion_cov: Float[Array, "3 3"], semantic: bool, mode: sm.Mode,
         mean: Float[Array, " D0"], cov: Float[Array, "D0 D0"],
     ) -> Smoothed:
@@ -213,7 +213,7 @@ class Lag(AbstractSmoother):
         return initial_window(log, components)
 
     def smooth(
-        self, state: SmootherState, factors: Factors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
+        self, state: SmootherState, factors: AnyFactors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
         sensor: SensorModel, motion_cov: Float[Array, "3 3"], semantic: bool, mode: sm.Mode,
         mean: Float[Array, " D0"], cov: Float[Array, "D0 D0"],
     ) -> Smoothed:
@@ -264,7 +264,7 @@ class Closing(Full):
     slides from there)."""
 
     def smooth(
-        self, state: SmootherState, factors: Factors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
+        self, state: SmootherState, factors: AnyFactors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
         sensor: SensorModel, motion_cov: Float[Array, "3 3"], semantic: bool, mode: sm.Mode,
         mean: Float[Array, " D0"], cov: Float[Array, "D0 D0"],
     ) -> Smoothed:
@@ -387,7 +387,7 @@ def smooth(
 
 
 def smooth_lag(
-    settings: Lag, log: DataLog, factors: Factors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
+    settings: Lag, log: DataLog, factors: AnyFactors, k: Int[Array, ""], num_created: Int[Array, ""] | int,
     sensor: SensorModel, motion_cov: Float[Array, "3 3"], semantic: bool, mode: sm.Mode,
     poses: Float[Array, "T1 3"], mean: Float[Array, " D0"], cov: Float[Array, "D0 D0"], window: WindowPrior,
 ) -> Smoothed:
@@ -401,9 +401,11 @@ def smooth_lag(
     start = poses.at[k].set(mean[:3])
     objects = mean[3:].reshape(-1, 3)
     old, new = jnp.maximum(k - 1 - length, 0), jnp.maximum(k - length, 0)
-    g_old = window_graph(log, factors, k, old, length, num_created, sensor, motion_cov, semantic, mode, window)
-    m_mean, _, m_info = sm.marginalize_first_information(
-        g_old, jax.lax.dynamic_slice_in_dim(start, old, length + 1), objects)
+    # Marginalizing x_old reads only the factors touching it: a graph of x_old, x_{old+1} and
+    # x_old's detections (the first of the window's rows), not the whole window linearized and masked.
+    g_old = window_graph(log, factors, k, old, 1, num_created, sensor, motion_cov, semantic, mode, window,
+                         slots=log.mask.shape[1])
+    m_mean, _, m_info = sm.marginalize_first_information(g_old, jax.lax.dynamic_slice_in_dim(start, old, 2), objects)
     # Objects not created yet carry no factor: keep their own prior rows (a heading prior only),
     # not the identity block the elimination gives inactive variables. Those rows touch no active
     # coordinate (nor do the active rows touch them), so the information splits the same way.

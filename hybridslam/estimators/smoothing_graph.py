@@ -19,6 +19,8 @@ and in place of the run's prior a dense Gaussian prior on its first pose and the
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -207,6 +209,15 @@ def initial_trajectory(scenario: Scenario, max_steps: int) -> Float[Array, "T1 3
     return jax.device_put(np.broadcast_to(np.asarray(scenario.robot_prior_mean, dtype=float), (max_steps + 1, 3)))
 
 
+class FactorRows(NamedTuple):
+    """Measurement factors of ``F`` listed detections (what a graph takes from :class:`Factors`)."""
+
+    objects: Int[Array, "F G"]
+    log_weight: Float[Array, "F G"]
+    null_log_weight: Float[Array, " F"]
+    classes: Int[Array, "F G"]
+
+
 class Factors(eqx.Module):
     """One component's measurement factors: per (step, detection slot), up to ``G`` candidate objects
     with log weights (``-inf``: none) and a null component (max-mixtures)."""
@@ -216,17 +227,44 @@ class Factors(eqx.Module):
     null_log_weight: Float[Array, "T Dmax"]
     classes: Int[Array, "T Dmax G"]  # class of each candidate for the semantic factor (0 if none)
 
+    def rows(self, cells: Int[Array, " F"]) -> FactorRows:
+        """The factors of the detections at flat indices ``cells`` (``step · Dmax + slot``)."""
+        take = lambda a: a.reshape((-1,) + a.shape[2:])[cells]  # noqa: E731
+        return FactorRows(take(self.objects), take(self.log_weight), take(self.null_log_weight), take(self.classes))
 
-def history_factors(history: Int[Array, "T Dmax"], classes: Int[Array, " N"] | None = None) -> Factors:
-    """One factor per associated detection (``history >= 0``), with the object's class realization."""
-    obj = jnp.maximum(history, 0)
-    cls = jnp.zeros_like(obj) if classes is None else jnp.maximum(classes[obj], 0)
-    return Factors(obj[..., None], jnp.where(history >= 0, 0.0, -jnp.inf)[..., None],
-                   jnp.full(history.shape, -jnp.inf), cls[..., None])
+
+class HistoryFactors(eqx.Module):
+    """One factor per associated detection (``history >= 0``), with the object's class realization
+    (``classes``; none: class 0): the hybrid belief's and ``multimodal``'s factors, read off a
+    component's association history.
+
+    The same rows as :class:`Factors` would hold, made only for the detections a graph lists
+    (:meth:`rows`): a component's smoothing gathers a window's few hundred detections from its
+    history rather than building four arrays over every (step, slot) of the log first (a whole
+    MRCLAM log: 1,700 × 21 entries per component and smoothing)."""
+
+    history: Int[Array, "T Dmax"]
+    classes: Int[Array, " N"] | None = None
+
+    def rows(self, cells: Int[Array, " F"]) -> FactorRows:
+        """The factors of the detections at flat indices ``cells`` (``step · Dmax + slot``)."""
+        assigned = self.history.reshape(-1)[cells]
+        obj = jnp.maximum(assigned, 0)
+        cls = jnp.zeros_like(obj) if self.classes is None else jnp.maximum(self.classes[obj], 0)
+        return FactorRows(obj[:, None], jnp.where(assigned >= 0, 0.0, -jnp.inf)[:, None],
+                          jnp.full(assigned.shape, -jnp.inf), cls[:, None])
+
+
+AnyFactors = Factors | HistoryFactors
+
+
+def history_factors(history: Int[Array, "T Dmax"], classes: Int[Array, " N"] | None = None) -> HistoryFactors:
+    """One factor per associated detection of ``history`` (:class:`HistoryFactors`)."""
+    return HistoryFactors(history, classes)
 
 
 def graph(
-    log: DataLog, factors: Factors, k: Int[Array, ""], num_created: Int[Array, ""] | int, sensor: SensorModel,
+    log: DataLog, factors: AnyFactors, k: Int[Array, ""], num_created: Int[Array, ""] | int, sensor: SensorModel,
     motion_cov: Float[Array, "3 3"], semantic: bool, mode: sm.Mode = "sum",
 ) -> sm.FactorGraph:
     """The factor graph of a component after ``k`` steps (see the module docstring): one
@@ -238,15 +276,16 @@ def graph(
     flat = lambda a: a.reshape((t * dmax,) + a.shape[2:])[rows]  # noqa: E731
     step_of = rows // dmax
     reached = (jnp.arange(rows.shape[0]) < log.count()) & (step_of < k)  # (F,): rows name only detections
-    log_w = jnp.where(reached[:, None], flat(factors.log_weight), -jnp.inf)
-    null = jnp.where(reached, flat(factors.null_log_weight), -jnp.inf)
-    residual, data = _measurements(sensor, semantic, flat(log.geo), flat(log.scores), flat(factors.classes))
+    listed = factors.rows(rows)
+    log_w = jnp.where(reached[:, None], listed.log_weight, -jnp.inf)
+    null = jnp.where(reached, listed.null_log_weight, -jnp.inf)
+    residual, data = _measurements(sensor, semantic, flat(log.geo), flat(log.scores), listed.classes)
     motion_sqrt = _sqrt_information_of(motion_cov)
     return sm.FactorGraph(
         prior_mean=log.prior_mean, prior_sqrt_info=log.prior_sqrt_info,
         odometry=log.odometry, odometry_active=steps < k, motion_sqrt_info=motion_sqrt,
         meas_pose=step_of + 1,
-        meas_objects=flat(factors.objects), meas_log_weight=log_w, meas_null_log_weight=null,
+        meas_objects=listed.objects, meas_log_weight=log_w, meas_null_log_weight=null,
         meas_data=data, pose_active=jnp.arange(t + 1) <= k, object_active=jnp.arange(n) < num_created,
         residual_fn=residual, mode=mode, prior_info=log.prior_info,
         independent_objects=True,  # the run's prior (data_log) is block-diagonal
@@ -265,21 +304,26 @@ def _measurements(
 
 
 def window_graph(
-    log: DataLog, factors: Factors, k: Int[Array, ""], start: Int[Array, ""], length: int,
+    log: DataLog, factors: AnyFactors, k: Int[Array, ""], start: Int[Array, ""], length: int,
     num_created: Int[Array, ""] | int, sensor: SensorModel, motion_cov: Float[Array, "3 3"], semantic: bool,
-    mode: sm.Mode, prior: WindowPrior,
+    mode: sm.Mode, prior: WindowPrior, slots: int | None = None,
 ) -> sm.FactorGraph:
     """The factor graph of a fixed-lag window after ``k`` steps: poses ``x_start..x_{start+length}``
     (window slots ``0..length``; those after ``x_k`` inactive), ``prior`` on ``[x_start, objects]``,
     the odometry of steps ``start+1..`` and the measurement factors of every pose in the window,
-    ``x_start``'s included (they leave with ``x_start`` when it is marginalized)."""
+    ``x_start``'s included (they leave with ``x_start`` when it is marginalized).
+
+    ``slots``: the measurement factor slots (default: the log's window budget); the window's
+    detections beyond them are left out (``length=1, slots=Dmax``: the factors touching
+    ``x_start``, which come first, and none of ``x_{start+1}``'s beyond them: what marginalizing
+    ``x_start`` reads, :func:`~hybridslam.inference.smoother.first_pose_factors`)."""
     t, dmax = log.mask.shape
     n = (log.prior_mean.shape[0] - 3) // 3
     first = start - 1  # the log row of window pose 0's detections
     # The window's detections are a run of the log's rows (arrival order is step order): its
     # factor slots take them from the first one of step `first` on, `fw` of them (the budget holds
     # every window of the scenario: window_factor_budget), the slots after them inactive.
-    fw = log.window_factors or (length + 1) * dmax
+    fw = slots or log.window_factors or (length + 1) * dmax
     f = log.rows.shape[0]
     listed = jnp.minimum(log.count(), f)  # the rows filled
     at = jnp.sum((jnp.arange(f) < listed) & (log.rows // dmax < first)) + jnp.arange(fw)
@@ -287,16 +331,17 @@ def window_graph(
     step = cell // dmax
     reached = (at < listed) & (step >= first) & (step <= first + length) & (step < k)
     take = lambda a: a.reshape((t * dmax,) + a.shape[2:])[cell]  # noqa: E731
-    log_w = jnp.where(reached[:, None], take(factors.log_weight), -jnp.inf)
-    null = jnp.where(reached, take(factors.null_log_weight), -jnp.inf)
-    residual, data = _measurements(sensor, semantic, take(log.geo), take(log.scores), take(factors.classes))
+    taken = factors.rows(cell)
+    log_w = jnp.where(reached[:, None], taken.log_weight, -jnp.inf)
+    null = jnp.where(reached, taken.null_log_weight, -jnp.inf)
+    residual, data = _measurements(sensor, semantic, take(log.geo), take(log.scores), taken.classes)
     odo_rows = start + jnp.arange(length)
     return sm.FactorGraph(
         prior_mean=prior.mean, prior_sqrt_info=None, prior_info=prior.info,
         odometry=jnp.take(log.odometry, jnp.clip(odo_rows, 0, t - 1), axis=0), odometry_active=odo_rows < k,
         motion_sqrt_info=_sqrt_information_of(motion_cov),
         meas_pose=jnp.where(reached, step - first, 0).astype(jnp.int32),
-        meas_objects=take(factors.objects), meas_log_weight=log_w, meas_null_log_weight=null,
+        meas_objects=taken.objects, meas_log_weight=log_w, meas_null_log_weight=null,
         meas_data=data, pose_active=jnp.arange(length + 1) <= k - start,
         object_active=jnp.arange(n) < num_created, residual_fn=residual, mode=mode,
     )

@@ -243,6 +243,20 @@ class LinearTables(NamedTuple):
     log_vis: Float[Array, " O"]
 
 
+def _gram(jac_x: Float[Array, "Q 3"], jac_o: Float[Array, "O S 3"], sub: Float[Array, "E E"]) -> Float[Array, "Q Q"]:
+    """``J Σ Jᵀ`` of rows ``Q = O · S`` (object ``o``'s ``S`` rows contiguous) whose Jacobian is
+    ``[J_x | 0 .. J_o .. 0]`` over ``[x, objs]`` (``E = 3 + 3O``): a row depends on the pose and
+    its own object only. By blocks, ``(JΣ)_q = J_x,q Σ_x: + J_o,q Σ_o(q):`` and
+    ``(JΣJᵀ)_qq' = (JΣ)_q,x J_x,q'ᵀ + (JΣ)_q,o(q') J_o,q'ᵀ``: ``O(Q E)`` products instead of the
+    dense ``Q E²`` (a gated MRCLAM step: 63 candidate rows of 2, 192 coordinates, 7.7 Mflop per
+    parent), the same sums without the zero terms."""
+    q, n_obj = jac_x.shape[0], jac_o.shape[0]
+    e = sub.shape[0]
+    js = jac_x @ sub[:3] + jnp.einsum("osc,oce->ose", jac_o, sub[3:].reshape(n_obj, 3, e)).reshape(q, e)
+    on_objects = jnp.einsum("qoc,osc->qos", js[:, 3:].reshape(q, n_obj, 3), jac_o).reshape(q, q)
+    return js[:, :3] @ jac_x.T + on_objects
+
+
 def linear_tables(
     sensor: SensorModel, mean: Float[Array, " D"], cov: Float[Array, "D D"], detections: Detections,
     objs: Int[Array, " O"],
@@ -265,12 +279,10 @@ def linear_tables(
         [jnp.broadcast_to(geo[:, None], (n_obj, m) + geo.shape[1:]), sem], axis=2)
     jac_x, jac_o = per_class(geo_x, sem_x), per_class(geo_o, sem_o)
     rdim = jac_x.shape[2]
-    jac_o = jnp.einsum("imra,ij->imrja", jac_o, jnp.eye(n_obj, dtype=jac_o.dtype)).reshape(n_obj, m, rdim, 3 * n_obj)
-    jac = jnp.concatenate([jac_x, jac_o], axis=-1).reshape(n_obj * m * rdim, 3 + 3 * n_obj)
     obj_idx = 3 + 3 * objs[:, None] + jnp.arange(3)[None, :]  # (O, 3): each object's state coordinates
     idx = jnp.concatenate([jnp.arange(3), obj_idx.reshape(-1)])
     sub = cov[idx[:, None], idx[None, :]]  # Σ over [x, objs]
-    gram = jac @ sub @ jac.T  # (O M R, O M R)
+    gram = _gram(jac_x.reshape(-1, 3), jac_o.reshape(n_obj, m * rdim, 3), sub)  # (O M R, O M R)
     local = jax.vmap(lambda o: jnp.concatenate([x, o]))(objects[objs])  # (O, 6)
     blocks = jnp.concatenate([jnp.broadcast_to(jnp.arange(3), (n_obj, 3)), obj_idx], axis=1)
     local_cov = cov[blocks[:, :, None], blocks[:, None, :]]  # (O, 6, 6): Σ over [x, object]

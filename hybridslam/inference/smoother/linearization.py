@@ -200,6 +200,35 @@ def _measurement_terms(graph: FactorGraph, poses, objects):
     return cost, hess, grad, pose_idx, obj_idx, active
 
 
+def _live_factors(graph: FactorGraph) -> Int[Array, ""]:
+    """One past the last measurement factor with a component (a candidate or a null one): the
+    factors after it carry no term."""
+    f = graph.meas_pose.shape[0]
+    live = jnp.any(graph.meas_log_weight > -jnp.inf, axis=-1) | (graph.meas_null_log_weight > -jnp.inf)
+    return jnp.max(jnp.where(live, jnp.arange(1, f + 1), 0), initial=0)
+
+
+def _measurement_blocks(graph: FactorGraph, poses, objects):
+    """The measurement factors' cost, active components ``(F,)`` and blocks scattered
+    (:func:`_scatter_measurements`), linearized over the live prefix of the factor slots only, at
+    one of a few compiled sizes (:mod:`..buckets`): a fixed-lag window's slots are sized for the
+    busiest window of the log (MRCLAM: 329 slots where half as many are typical). The factors left
+    out have no component: they add nothing, and their active component is ``-1`` (none)."""
+    p, n = poses.shape[0], objects.shape[0]
+    f = graph.meas_pose.shape[0]
+
+    def on_head(size: tuple[int]):
+        head = jax.tree.map(lambda a: a[: size[0]], (graph.meas_pose, graph.meas_objects, graph.meas_log_weight,
+                                                       graph.meas_null_log_weight, graph.meas_data))
+        g = dataclasses.replace(graph, meas_pose=head[0], meas_objects=head[1], meas_log_weight=head[2],
+                                meas_null_log_weight=head[3], meas_data=head[4])
+        cost, h, grad, pose_idx, obj_idx, active = _measurement_terms(g, poses, objects)
+        active = jnp.concatenate([active, jnp.full((f - size[0],), -1, active.dtype)])
+        return cost, active, _scatter_measurements(h, grad, pose_idx, obj_idx, p, n)
+
+    return buckets.by_bucket(buckets.bucket_sizes(f), (_live_factors(graph),), on_head)
+
+
 def _scatter_measurements(hess, grad, pose_idx, obj_idx, p: int, n: int):
     """Scatter-add per-factor blocks into pose diagonal ``(P,3,3)``, object diagonal ``(N,3,3)``,
     pose-object ``(P,3,N,3)`` blocks and the pose / object gradients."""
@@ -282,8 +311,7 @@ def linearize(
     info = prior_information(graph) if prior_info is None else prior_info
     prior_cost, prior_grad = _prior_terms(graph, poses, objects)
     odo_cost, odo_h, odo_g = _odometry_terms(graph, poses)
-    meas_cost, h, g, pose_idx, obj_idx, active = _measurement_terms(graph, poses, objects)
-    pp, oo, po, gp, go = _scatter_measurements(h, g, pose_idx, obj_idx, p, n)
+    meas_cost, active, (pp, oo, po, gp, go) = _measurement_blocks(graph, poses, objects)
 
     zero = jnp.zeros((1, 3, 3), pp.dtype)
     pose_diag = pp + jnp.concatenate([odo_h[:, :3, :3], zero]) + jnp.concatenate([zero, odo_h[:, 3:, 3:]])
