@@ -210,7 +210,8 @@ def initial_trajectory(scenario: Scenario, max_steps: int) -> Float[Array, "T1 3
 
 
 class FactorRows(NamedTuple):
-    """Measurement factors of ``F`` listed detections (what a graph takes from :class:`Factors`)."""
+    """Measurement factors of ``F`` listed detections: what a graph takes from :class:`Factors` or
+    :class:`HistoryFactors` (their ``rows``)."""
 
     objects: Int[Array, "F G"]
     log_weight: Float[Array, "F G"]
