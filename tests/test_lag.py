@@ -75,3 +75,12 @@ def test_a_bad_window_is_a_one_line_cli_error(tmp_path, capsys):
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1
     assert "--smoother" in err and "lag:L" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("smoother", [Lag(50), parse_smoother("incremental:50")])
+def test_a_window_longer_than_the_run_smooths_as_the_full_smoother(smoother, scenario):
+    # lag:50 on a 6-step file: the window holds every pose (it once asked for 51 of the 7 rows).
+    assert Lag(50).span(STEPS) == STEPS and Lag(2).span(STEPS) == 2
+    window = hs.run_estimator(scenario, "ml", smoother=smoother).result.trajectory
+    full = hs.run_estimator(scenario, "ml", smoother=Full()).result.trajectory
+    np.testing.assert_allclose(window, full, atol=1e-6)

@@ -89,9 +89,10 @@ class AbstractSmoother(eqx.Module):
         del log, components
         return None
 
-    def window_budget(self, scenario: Scenario, max_steps: int | None, slots: int) -> tuple[int, int]:
-        """The window graph's factor slots and poses in a state built for ``scenario`` ((0, 0): no window)."""
-        del scenario, max_steps, slots
+    def window_budget(self, scenario: Scenario, steps: int, max_steps: int | None, slots: int) -> tuple[int, int]:
+        """The window graph's factor slots and poses in a state of ``steps`` history rows built for
+        ``scenario`` ((0, 0): no window)."""
+        del scenario, steps, max_steps, slots
         return 0, 0
 
     def init(self, scenario: Scenario, steps: int, slots: int, max_objects: int, max_steps: int | None,
@@ -105,7 +106,7 @@ class AbstractSmoother(eqx.Module):
         if not self.smooths:
             return SmootherState()
         log = data_log(scenario, steps, slots, max_objects, factor_budget(scenario, max_steps, slots),
-                       *self.window_budget(scenario, max_steps, slots))
+                       *self.window_budget(scenario, steps, max_steps, slots))
         poses = np.asarray(initial_trajectory(scenario, steps))
         if components is not None:
             poses = np.broadcast_to(poses, (components,) + poses.shape)
@@ -206,8 +207,14 @@ class Lag(AbstractSmoother):
                 raise ValueError(f"Lag.{field}: expected a positive int, got {value!r}")
         _check_atol("Lag", self.step_atol)
 
-    def window_budget(self, scenario: Scenario, max_steps: int | None, slots: int) -> tuple[int, int]:
-        return window_factor_budget(scenario, max_steps, slots, self.length), self.length + 1
+    def span(self, steps: int) -> int:
+        """The window's steps in a state of ``steps`` history rows: ``length``, or every step where the
+        state holds fewer (``lag:50`` on a 3-step file smooths as ``full``)."""
+        return min(self.length, steps)
+
+    def window_budget(self, scenario: Scenario, steps: int, max_steps: int | None, slots: int) -> tuple[int, int]:
+        span = self.span(steps)
+        return window_factor_budget(scenario, max_steps, slots, span), span + 1
 
     def init_window(self, log: DataLog, components: int | None = None) -> WindowPrior | None:
         return initial_window(log, components)
@@ -396,7 +403,7 @@ def smooth_lag(
     the marginal over ``[x_k, objects]``, the trajectory with the window written back, and the new
     window prior. Non-finite results fall back as in :func:`smooth` (the window prior then stays the
     old one, moved to the window's new first pose: an approximation, counted as ``nonfinite``)."""
-    length = settings.length
+    length = settings.span(poses.shape[0] - 1)
     cost_atol = step_tolerance(settings, log, k)
     start = poses.at[k].set(mean[:3])
     objects = mean[3:].reshape(-1, 3)
