@@ -8,6 +8,7 @@ Pure numpy, no JAX compiles.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 
@@ -359,3 +360,15 @@ def test_study_aggregates_seeds(tmp_path, capsys):
     path.write_text(path.read_text() + "{not json\n")
     with pytest.raises(SystemExit, match=r"cells.jsonl:15: not a cell record"):
         study.read_cells(str(path))
+
+
+def test_a_sequence_without_a_static_object_is_named_at_import_and_at_run(folder, tmp_path):
+    # KITTI 0006 waits at a crossing: no static labelled object, so its known map is empty.
+    from hybridslam.cli.importers import kitti_summary
+
+    s = import_kitti(folder, 1)
+    empty = dataclasses.replace(s, object_prior_means=np.zeros((0, 3)), object_prior_covs=np.zeros((0, 3, 3)))
+    assert "WARNING: the sequence has no static labelled object" in kitti_summary("x.json", empty)
+    assert "WARNING" not in kitti_summary("x.json", s)
+    with pytest.raises(ValueError, match="--unknown-map"):
+        hs.make_estimator("ml").init(empty)

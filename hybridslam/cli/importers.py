@@ -239,7 +239,9 @@ def kitti_summary(path: str, s: Scenario) -> str:
         f"motion_cov ({cal['motion_cov']}): sd {_sds(s.motion_cov)} (m, m, rad per step)",
         f"geometric_cov ({cal['geometric_cov']}): sd {_sds(s.geometric_cov)} (m, rad)",
         (f"dead reckoning at the end: {g['dead_reckoning']['final_position_error_m']:.2f} m off the ground truth "
-        f"(path {g['dead_reckoning']['path_length_m']:.1f} m)")])
+        f"(path {g['dead_reckoning']['path_length_m']:.1f} m)")]
+        + (["WARNING: the sequence has no static labelled object, so the known map is empty and the estimators "
+            "refuse the file; import it with --unknown-map"] if s.discovery is None and n == 0 else []))
 
 
 def cmd_import_kitti(args: argparse.Namespace) -> int:

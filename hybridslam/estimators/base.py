@@ -285,7 +285,9 @@ def object_slots(scenario: Scenario) -> int:
     over an empty object axis would otherwise fail inside the compiled step)."""
     n = scenario.num_objects if scenario.discovery is None else scenario.discovery.max_objects
     if n < 1:
-        raise ValueError("objects: the scenario has no objects and no discovery section to create any")
+        raise ValueError("objects: the scenario has no objects and no discovery section to create any (a known map "
+                         "must hold an object; a log without one is an unknown map: e.g. hybridslam import ... "
+                         "--unknown-map)")
     return n
 
 
