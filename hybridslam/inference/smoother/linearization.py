@@ -303,8 +303,10 @@ def linearize(
 
     Each factor's Jacobian comes from ``jax.jacfwd`` on its own variables (3 or 6 columns), vmapped
     over factors; the prior's is ``R``, so its block is the constant ``Λ = RᵀR`` (``prior_info``,
-    computed here if not given). ``log η`` is treated as a constant (no Gauss-Newton term): with the
-    library's classifiers it does not depend on the state.
+    computed here if not given). ``log η`` is treated as a constant (no Gauss-Newton term): exact
+    for the closed-form classifiers, whose score covariance does not depend on the viewpoint; a
+    learned model's does (:class:`~hybridslam.models.learned.Learned`: ``Σ_c(θ)``), and its
+    ``½ log|Σ_c(θ)|`` is then left out of what the smoother minimizes (docs/limits.md).
     """
     check_shapes(graph, poses, objects)
     p, n = poses.shape[0], objects.shape[0]
