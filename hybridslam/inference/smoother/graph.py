@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Literal
+from typing import ClassVar, Literal
 
 import equinox as eqx
 import jax
@@ -48,6 +48,14 @@ class SensorResidual(eqx.Module):
 
     sensor: SensorModel
 
+    @property
+    def heading_curvature(self) -> bool:
+        """Whether the object's heading enters the residual, through the viewpoint of a
+        viewpoint-dependent classifier (its Gauss-Newton curvature then needs the second-order
+        term: :func:`~.linearization.linearize`)."""
+        classifier = self.sensor.classifier
+        return classifier.uses_scores and classifier.viewpoint_dependent
+
     def __call__(
         self, x: se2.Pose, obj: se2.Pose, data: DetectionData, g: Int[Array, ""]
     ) -> tuple[Float[Array, " R"], Float[Array, ""]]:
@@ -65,6 +73,7 @@ class RangeBearingResidual(eqx.Module):
     """
 
     sqrt_info: Float[Array, "2 2"]
+    heading_curvature: ClassVar[bool] = False  # range and bearing do not see the object's heading
 
     def __call__(
         self, x: se2.Pose, obj: se2.Pose, data: Float[Array, "2"], g: Int[Array, ""]
