@@ -329,7 +329,9 @@ def linearize(
     objects: Float[Array, "N 3"],
     prior_info: Float[Array, "D0 D0"] | None = None,
 ) -> Linearization:
-    """The blocks of ``H = JᵀJ``, ``g = Jᵀr`` and the cost ``½‖r‖²`` at ``(poses, objects)``.
+    """The blocks of ``H = JᵀJ``, ``g = Jᵀr`` and the cost ``½‖r‖²`` at ``(poses, objects)``; an
+    object's heading seen through a viewpoint-dependent classifier also gets its second-order
+    curvature (:func:`_measurement_terms`).
 
     Each factor's Jacobian comes from ``jax.jacfwd`` on its own variables (3 or 6 columns), vmapped
     over factors; the prior's is ``R``, so its block is the constant ``Λ = RᵀR`` (``prior_info``,
