@@ -19,6 +19,7 @@ from hypothesis import strategies as st
 
 import hybridslam as hs
 from hybridslam.inference import smoother as sm
+from hybridslam.models import geometry
 from hybridslam.models.classifier import Mirror
 from hybridslam.models.learned import Learned
 
@@ -103,3 +104,33 @@ def test_a_viewpoint_free_classifier_adds_no_term():
     assert not sm.SensorResidual(sensor).heading_curvature
     assert sm.SensorResidual(hs.SensorModel(jnp.eye(2), Mirror(0.5, 10.0), jnp.asarray(9.0),
                                             jnp.asarray(1.0))).heading_curvature
+
+
+@jax.jit
+def _cost_and_exact(graph, poses, objects, t):
+    """The smoother's cost and gradient in the object's heading ``t``, and the model's own negative
+    log-density of the same factors (Eq. 2 via ``log_likelihood``, the heading prior's ½ 10⁻² t²;
+    the geometric factor and the poses' priors do not depend on ``t``)."""
+    objs = objects.at[0, 2].set(t)
+    lin = sm.linearize(graph, poses, objs)
+    classifier = graph.residual_fn.sensor.classifier
+    scores = graph.meas_data.scores[0]
+    exact = lambda tt: (0.5 * 1e-2 * tt**2  # noqa: E731
+                        - classifier.log_likelihood(scores, 0, geometry.viewpoint(poses[1], objs[0].at[2].set(tt))))
+    return lin.cost, lin.grad_object[2], exact(t), jax.grad(exact)(t)
+
+
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), t1=st.floats(-3.1, 3.1), t2=st.floats(-3.1, 3.1))  # the prior wraps at ±π
+def test_the_smoothers_cost_is_the_learned_models_whole_negative_log_likelihood(seed, t1, t2):
+    """A learned model's covariance depends on the viewpoint, so its normalizer ``log|R_c(θ)|`` does
+    too: the smoother's cost (and its gradient in the object's heading) must change with the heading
+    as the model's negative log-density does, normalizer included (Eq. 2), not as ``½‖r‖²`` alone."""
+    rng = np.random.default_rng(seed)
+    graph = _graph(CLASSIFIERS["learned"](), rng)
+    poses, objects = _start(rng, graph)
+    c1, g1, e1, d1 = (float(v) for v in _cost_and_exact(graph, poses, objects, t1))
+    c2, g2, e2, d2 = (float(v) for v in _cost_and_exact(graph, poses, objects, t2))
+    assert c1 - c2 == pytest.approx(e1 - e2, rel=1e-9, abs=1e-9)
+    # the linearization's gradient is Jᵀr, the cost's: d cost / d θ_o
+    assert g1 == pytest.approx(d1, rel=1e-8, abs=1e-9) and g2 == pytest.approx(d2, rel=1e-8, abs=1e-9)

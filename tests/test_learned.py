@@ -15,6 +15,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import hybridslam as hs
 from hybridslam.io.scenario import (
@@ -214,8 +216,9 @@ def test_scenario_path_errors(two_steps, tmp_path):
 
 @pytest.mark.parametrize("num_classes", [1, 3, 4])
 def test_learned_residuals_match_the_base_formula(num_classes):
-    """Learned.residuals (one network pass, no matrix) equals ClassifierModel's R_c (z - h_c) and log|R_c|,
-    and so does its derivative in the viewpoint (the step differentiates it)."""
+    """Learned.residuals (one network pass, no matrix) holds ClassifierModel's R_c (z - h_c) in its
+    first M entries, and its log-density -½‖r‖² + log_norm equals the base formula's, with the same
+    derivative in the viewpoint: the extra entry carries log|R_c(θ)| (the step differentiates it)."""
     from hybridslam.models.classifier import ClassifierModel
 
     model = hs.Learned(num_classes, (5,), key=jax.random.PRNGKey(num_classes))
@@ -223,16 +226,43 @@ def test_learned_residuals_match_the_base_formula(num_classes):
     model = eqx.tree_at(lambda m: m.layers[-1].weight, model, 3.0 * model.layers[-1].weight)
     rng = np.random.default_rng(num_classes)
 
+    def density(residuals, z, v):
+        r, log_norm = residuals(model, z, v)
+        return log_norm - 0.5 * jnp.sum(r**2, axis=-1)
+
     @eqx.filter_jit  # one compiled program for the three points (op by op: about a hundred tiny compiles)
     def both(model, z, v):
-        jac = jax.jacfwd(lambda vv: model.residuals(z, vv)[0])(v)
+        jac = jax.jacfwd(lambda vv: model.residuals(z, vv)[0][:, :num_classes])(v)
         jac_base = jax.jacfwd(lambda vv: ClassifierModel.residuals(model, z, vv)[0])(v)
-        return model.residuals(z, v), ClassifierModel.residuals(model, z, v), jac, jac_base
+        dens = [jax.jacfwd(density, argnums=2)(f, z, v) for f in (type(model).residuals, ClassifierModel.residuals)]
+        return (model.residuals(z, v), ClassifierModel.residuals(model, z, v), jac, jac_base,
+                density(type(model).residuals, z, v), density(ClassifierModel.residuals, z, v), dens)
 
     for _ in range(3):
         z = jnp.asarray(rng.uniform(-1, 2, num_classes))
         v = jnp.asarray([np.cos(a := rng.uniform(-np.pi, np.pi)), np.sin(a)])
-        got, want, jac, jac_base = both(model, z, v)
-        for a, b in zip(got, want):
-            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+        got, want, jac, jac_base, dens, dens_base, grads = both(model, z, v)
+        assert got[0].shape == (num_classes, num_classes + 1) and model.residual_dim == num_classes + 1
+        np.testing.assert_allclose(got[0][:, :num_classes], want[0], rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(dens, dens_base, rtol=1e-12, atol=1e-10)
+        np.testing.assert_allclose(grads[0], grads[1], rtol=1e-9, atol=1e-10)
         np.testing.assert_allclose(jac, jac_base, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(jax.vmap(lambda c: model.log_likelihood(z, c, v))(jnp.arange(num_classes)),
+                                   dens_base, rtol=1e-12, atol=1e-10)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**16), scale=st.floats(0.1, 10.0), hidden=st.sampled_from([(), (4,), (3, 5)]),
+       angle=st.floats(-np.pi, np.pi))
+def test_log_det_bound_holds_for_every_viewpoint(seed, scale, hidden, angle):
+    """The bound that keeps the normalizer's entry real, √(2 (b_c + 1 − log|R_c(θ)|)) ≥ √2, holds
+    for any weights and viewpoint, with or without hidden layers."""
+    model = hs.Learned(3, hidden, key=jax.random.PRNGKey(seed))
+    model = eqx.tree_at(lambda m: (m.layers[-1].weight, m.layers[-1].bias), model,
+                        (scale * model.layers[-1].weight, scale * model.layers[-1].bias))
+    v = jnp.asarray([np.cos(angle), np.sin(angle)])
+    diag = jnp.diagonal(model.class_sqrt_informations(v), axis1=-2, axis2=-1)
+    log_det = jnp.sum(jnp.log(diag), axis=-1)
+    assert np.all(np.asarray(model.log_det_bound()) >= np.asarray(log_det) - 1e-12)
+    r, _ = model.residuals(jnp.zeros(3), v)
+    assert np.all(np.isfinite(r)) and np.all(np.asarray(r[:, -1]) >= np.sqrt(2.0) - 1e-12)

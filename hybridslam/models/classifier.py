@@ -47,6 +47,12 @@ class ClassifierModel(eqx.Module):
         return True
 
     @property
+    def residual_dim(self) -> int:
+        """Entries of one class's semantic residual: ``M``, or ``M + 1`` where a model's normalizer
+        depends on the viewpoint and rides in the residual (:class:`~.learned.Learned`)."""
+        return self.num_classes
+
+    @property
     def viewpoint_dependent(self) -> bool:
         """False where the semantic factor does not depend on the viewpoint, i.e. on the state: then
         class realizations change a factor graph's cost by a constant and not its solution, and
@@ -55,10 +61,13 @@ class ClassifierModel(eqx.Module):
 
     def residuals(
         self, scores: Float[Array, " M"], viewpoint: Float[Array, "2"]
-    ) -> tuple[Float[Array, "M M"], Float[Array, " M"]]:
+    ) -> tuple[Float[Array, "M R"], Float[Array, " M"]]:
         """Whitened residuals ``R_c (z − h_c)`` (row ``c``) and log normalizers ``log|R_c| − M/2 log 2π``.
 
-        For every class at once: ``log N(z; h_c, Σ_c) = −½‖r_c‖² + log_norm_c`` (Eq. 2).
+        For every class at once: ``log N(z; h_c, Σ_c) = −½‖r_c‖² + log_norm_c`` (Eq. 2). Everything
+        downstream uses only this identity, so a model may write part of a viewpoint-dependent
+        normalizer as one more residual entry (``R = residual_dim``; :class:`~.learned.Learned`):
+        then a least-squares solve over the poses minimizes the whole negative log-likelihood.
         """
         h = self.class_means(viewpoint)
         r = self.class_sqrt_informations(viewpoint)

@@ -86,14 +86,31 @@ class Learned(ClassifierModel):
         r = jnp.exp(log_diag)[:, :, None] * eye[None]
         return r.at[:, rows, cols].set(upper)
 
-    def residuals(self, scores, viewpoint):
-        """:meth:`ClassifierModel.residuals` (Eq. 2) from one evaluation of the network.
+    @property
+    def residual_dim(self) -> int:
+        """``M + 1``: the semantic residual also carries the normalizer's viewpoint dependence."""
+        return self.num_classes + 1
 
-        ``R_c (z − h_c)`` row by row straight from the heads, ``exp(d_ci) e_ci + Σ_{j>i} U_cij e_cj``
+    def log_det_bound(self) -> Float[Array, " M"]:
+        """``b_c ≥ log|R_c(θ)|`` for every viewpoint, from the weights alone.
+
+        ``log|R_c| = Σ_i d_ci`` is a linear layer's output summed over the log-diagonal heads, and that
+        layer's inputs (``tanh`` units, or the features ``(cos θ, sin θ)`` without a hidden layer) lie in
+        ``[−1, 1]``: so ``|Σ_i d_ci| ≤ Σ_j |Σ_i W_cij| + |Σ_i b_ci|``.
+        """
+        last = self.layers[-1]
+        m, size = self.num_classes, _head_size(self.num_classes)
+        w = jnp.sum(last.weight.reshape(m, size, -1)[:, m : 2 * m], axis=1)  # (M, inputs)
+        bound = jnp.sum(jnp.abs(w), axis=-1)
+        if last.bias is not None:
+            bound = bound + jnp.abs(jnp.sum(last.bias.reshape(m, size)[:, m : 2 * m], axis=-1))
+        return bound
+
+    def _whitened(self, scores, viewpoint) -> tuple[Float[Array, "M M"], Float[Array, " M"]]:
+        """``R_c (z − h_c)`` row by row straight from the heads, ``exp(d_ci) e_ci + Σ_{j>i} U_cij e_cj``
         with ``e_c = z − h_c``, and ``log|R_c| = Σ_i d_ci``: no ``M × M × M`` matrix, no scatter and
         no second network pass (the step evaluates this for every component, detection slot and
-        candidate object, and differentiates it). Equal to the base class's formula up to rounding.
-        """
+        candidate object, and differentiates it)."""
         h, log_diag, upper = self._heads(viewpoint)
         m = self.num_classes
         e = jnp.asarray(scores)[None, :] - h  # (classes, M)
@@ -104,8 +121,32 @@ class Learned(ClassifierModel):
             for j in range(i + 1, m):  # the base class's order of summation over j
                 acc = acc + upper[:, position[i, j]] * e[:, j]
             rows.append(acc)
-        log_norm = jnp.sum(log_diag, axis=-1) - 0.5 * m * math.log(2 * math.pi)
-        return jnp.stack(rows, axis=-1), log_norm
+        return jnp.stack(rows, axis=-1), jnp.sum(log_diag, axis=-1)
+
+    def residuals(self, scores, viewpoint):
+        """:meth:`ClassifierModel.residuals` (Eq. 2) from one evaluation of the network, with the
+        normalizer's viewpoint dependence as one more entry.
+
+        ``log N(z; h_c(θ), Σ_c(θ)) = −½‖R_c(z − h_c)‖² + log|R_c(θ)| − M/2 log 2π``, and ``log|R_c(θ)|``
+        varies with the viewpoint, i.e. with the robot's and the object's poses. A least-squares
+        solve sees only ``½‖r‖²``, so the last entry is ``e_c = √(2 (b_c + 1 − log|R_c(θ)|))`` with
+        the bound ``b_c`` of :meth:`log_det_bound` (``e_c ≥ √2``: real, with a bounded derivative).
+        Then ``½ e_c² = b_c + 1 − log|R_c(θ)|``, the returned normalizer is the constant
+        ``b_c + 1 − M/2 log 2π``, and ``−½‖r_c‖² + log_norm_c`` is Eq. 2's log-density: the smoother
+        minimizes the model's whole negative log-likelihood, and Gauss-Newton's gradient of the
+        normalizer term is exact.
+        """
+        r, log_det = self._whitened(scores, viewpoint)
+        b = self.log_det_bound() + 1.0
+        extra = jnp.sqrt(2.0 * (b - log_det))
+        return jnp.concatenate([r, extra[:, None]], axis=-1), b - 0.5 * self.num_classes * math.log(2 * math.pi)
+
+    def log_likelihood(self, scores, c, viewpoint):
+        """``log P(scores | c, viewpoint)`` (Eq. 2) without the residual's extra entry (fitting uses it)."""
+        r, log_det = self._whitened(scores, viewpoint)
+        pick = jnp.arange(self.num_classes) == c
+        return (jnp.sum(jnp.where(pick, log_det - 0.5 * jnp.sum(r**2, axis=-1), 0.0))
+                - 0.5 * self.num_classes * math.log(2 * math.pi))
 
 
 # --------------------------------------------------------------------------- #

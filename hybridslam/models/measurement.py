@@ -43,7 +43,7 @@ class SensorModel(eqx.Module):
 
     @property
     def residual_dim(self) -> int:
-        return 2 + self.classifier.num_classes
+        return 2 + self.classifier.residual_dim
 
     def geometric_sqrt_information(self) -> tuple[Float[Array, "2 2"], Float[Array, ""]]:
         """``W = L⁻¹`` with ``Σ_v = L Lᵀ``, and ``log|W| - log 2π`` (the 2-D normalizer)."""
@@ -58,7 +58,7 @@ def detection_residuals(
     obj: Float[Array, "3"],
     z_geo: Float[Array, "2"],
     scores: Float[Array, " M"],
-) -> tuple[Float[Array, "2"], Float[Array, "M M"], Float[Array, " M"]]:
+) -> tuple[Float[Array, "2"], Float[Array, "M Rs"], Float[Array, " M"]]:
     """Whitened residuals of one detection for every class hypothesis (Eq. 10).
 
     Returns the geometric residual ``W (z^geo − h^geo)``, the semantic residuals ``R_c (z^sem − h_c)``
@@ -80,7 +80,8 @@ def detection_residual(
     scores: Float[Array, " M"],
     c: Int[Array, ""],
 ) -> tuple[Float[Array, " R"], Float[Array, ""]]:
-    """The stacked whitened residual ``[r_geo, r_sem[c]]`` (length ``2 + M``) and log normalizer of class ``c``."""
+    """The stacked whitened residual ``[r_geo, r_sem[c]]`` (length ``sensor.residual_dim``: ``2 + M``, or
+    ``2 + M + 1`` for a learned classifier) and log normalizer of class ``c``."""
     r_geo, r_sem, log_norm = detection_residuals(sensor, x, obj, z_geo, scores)
     pick = jnp.arange(r_sem.shape[0]) == c  # one-hot select: elementwise, no gather
     r_c = jnp.sum(jnp.where(pick[:, None], r_sem, 0.0), axis=0)
