@@ -15,7 +15,8 @@ import pytest
 
 import hybridslam as hs
 from hybridslam import cli
-from hybridslam.estimators.smoothing import FINAL_ATOL, Full, Lag, parse_smoother, step_tolerance
+from hybridslam.estimators.smoothers import parse_smoother
+from hybridslam.estimators.smoothing import FINAL_ATOL, Full, Lag, step_tolerance
 from hybridslam.estimators.smoothing_graph import data_log
 
 STEPS = 6

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 import hybridslam as hs
-from hybridslam.estimators.smoothing import AbstractSmoother, Closing, Filter, Full, Incremental, Lag, parse_smoother
+from hybridslam.estimators.smoothers import SMOOTHERS, parse_smoother
+from hybridslam.estimators.smoothing import AbstractSmoother, Closing, Filter, Full, Incremental, Lag
 from hybridslam.estimators.smoothing_graph import data_log
 from hybridslam.inference import smoother as sm
 from tests.test_smoother import N, P, _graph
@@ -22,6 +23,31 @@ def test_a_smoother_prints_as_its_option_and_parses_back(text):
     assert isinstance(smoother, AbstractSmoother)
     assert str(smoother) == smoother.name == text
     assert parse_smoother(str(smoother)) == smoother
+
+
+def test_a_smoother_is_offered_by_its_line_in_the_registry(monkeypatch):
+    """Adding a smoother is one class and one line in ``SMOOTHERS``: the parser reads its spelling and
+    ``--smoother``'s metavar and help are written from the registry."""
+    from hybridslam.estimators import options, smoothers
+
+    class Every(Lag):  # a toy: spelled "every:L", a class of one argument like Lag
+        spelling = "every:L"
+        summary = "a toy"
+
+        @property
+        def name(self) -> str:
+            return f"every:{self.length}"
+
+    assert parse_smoother("lag:4") == Lag(4)
+    with pytest.raises(ValueError, match="expected full, lag:L, incremental:L or filter"):
+        parse_smoother("every:4")
+    monkeypatch.setattr(smoothers, "SMOOTHERS", (*SMOOTHERS, Every))
+    assert parse_smoother("every:4") == Every(4) and str(parse_smoother("every:4")) == "every:4"
+    for bad in ("every:0", "every:", "every"):
+        with pytest.raises(ValueError, match="or every:L"):
+            parse_smoother(bad)
+    assert options.SMOOTHER.metavar == "{" + ",".join(s.spelling for s in SMOOTHERS) + "}"
+    assert all(f"{s.spelling}: {s.summary}" in options.SMOOTHER.help for s in SMOOTHERS)
 
 
 def test_what_the_estimators_ask_a_smoother(unchecked_types):
@@ -97,7 +123,7 @@ def test_the_command_line_parses_the_smoother_once_into_the_object(text, smoothe
     assert isinstance(args.smoother, AbstractSmoother) and args.smoother == smoother
     assert hs.make_estimator("ml", smoother=args.smoother).smoother == smoother
     for bad in ("lag:0", "incremental:0", "incremental:", "incremental"):
-        with pytest.raises(cli.CLIError, match="--smoother: expected filter, full, lag:L or incremental:L"):
+        with pytest.raises(cli.CLIError, match="--smoother: expected full, lag:L, incremental:L or filter"):
             cli.build_parser().parse_args(["run", "s.json", "-o", "r.json", "--smoother", bad])
 
 

@@ -29,7 +29,8 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
 from . import novelty
-from .smoothing import parse_smoother
+from . import smoothers
+from .smoothers import parse_smoother
 
 SETTING = "hybridslam.setting"  # the key of a field's metadata that holds its Setting
 ANY = "*"  # Setting.notes: the note of a field's only option, whichever it is
@@ -132,13 +133,7 @@ CLUTTER = Option(
                "log(0.01 / (max_range * fov))); default: the file's sensor.clutter_log_density (written by "
                "hybridslam import), none without it; 'none': every detection is of an object",
     parse=clutter_density, metavar="{LOG_DENSITY,none}", default="file")
-SMOOTHER = Option(
-    "smoother", "full: every component keeps its trajectory and relinearizes it at every step, as the papers' "
-                "smoothers do; lag:L: only the last L steps and the map, older poses marginalized (bounded cost "
-                "per step); incremental:L: every step as lag:L, and the last step re-solves the whole graph, so "
-                "the result's trajectory is the batch solution (a long log's exact smoothing at lag:L's step cost); "
-                "filter: the joint Gaussian over the current pose and the map only",
-    parse=parse_smoother, metavar="{full,lag:L,incremental:L,filter}", convert=_smoother)
+SMOOTHER = Option("smoother", smoothers.help_text(), parse=parse_smoother, metavar=smoothers.METAVAR, convert=_smoother)
 MAX_DETECTIONS = Option("max_detections", "detection slots per step; a shared value lets files share one compiled "
                                           "step", none="the largest step", described=False)
 MAX_STEPS = Option("max_steps", "history length; a shared value lets files share one compiled step",

@@ -17,8 +17,9 @@ the new solution, so the next step's association and weights (Eq. 16-17) are com
 state. The graph (prior, odometry and measurement factors) is rebuilt from what the state already
 holds: :mod:`.smoothing_graph`.
 
-This module holds the smoother objects (:class:`Filter`, :class:`Full`, :class:`Lag`), what they
-keep between steps (:class:`SmootherState`) and their step (:func:`smooth`, :func:`smooth_lag`).
+This module holds the smoother objects (:class:`Filter`, :class:`Full`, :class:`Lag`,
+:class:`Incremental`), what they keep between steps (:class:`SmootherState`) and their step
+(:func:`smooth`, :func:`smooth_lag`); :mod:`.smoothers` lists those ``--smoother`` offers.
 
 ``Lag(L)`` (``--smoother lag:L``) is the bounded-cost online option: a fixed-lag smoother whose
 window holds the last ``L`` steps (poses ``x_{k-L}..x_k``) and the map. When the window slides, its
@@ -69,11 +70,28 @@ class AbstractSmoother(eqx.Module):
     trajectory and a data log), :attr:`whole_trajectory` (whether every solve covers ``x_0..x_k``),
     :meth:`init_window` (a window prior per component, or none) and :meth:`smooth` (one component's
     smoothing after ``k`` steps). ``str()`` of a smoother is its ``--smoother`` text
-    (:func:`parse_smoother` reads it back).
+    (:func:`~.smoothers.parse_smoother` reads it back).
+
+    ``spelling`` is how ``--smoother`` names the class (``"full"``, or ``"lag:L"`` where the text
+    carries a positive number of steps, the class's one argument) and ``summary`` what the option's
+    help says of it; a smoother is offered once it is listed in :data:`~.smoothers.SMOOTHERS`.
     """
 
     smooths: ClassVar[bool] = True
     whole_trajectory: ClassVar[bool] = False
+    spelling: ClassVar[str] = ""
+    summary: ClassVar[str] = ""
+
+    @classmethod
+    def from_text(cls, text: str) -> AbstractSmoother | None:
+        """This class's smoother if ``text`` spells it (``spelling``, with ``L`` a positive int), else ``None``."""
+        head, sep, _ = cls.spelling.partition(":")
+        if not sep:
+            return cls() if head and text == head else None
+        rest = text[len(head) + 1:]
+        if text.startswith(head + ":") and rest.isdigit() and int(rest) >= 1:
+            return cls(int(rest))  # type: ignore[call-arg]  # a spelling with ":L" is a class of one argument
+        return None
 
     @property
     @abc.abstractmethod
@@ -142,6 +160,8 @@ class Filter(AbstractSmoother):
     """No smoothing: the joint Gaussian over ``[x_k, objects]`` of the filter step."""
 
     smooths: ClassVar[bool] = False
+    spelling: ClassVar[str] = "filter"
+    summary: ClassVar[str] = "the joint Gaussian over the current pose and the map only"
 
     @property
     def name(self) -> str:
@@ -162,6 +182,10 @@ class Full(AbstractSmoother):
     a variable relinearized only when its update exceeds 0.1. On MRCLAM robot 3 the hybrid belief
     takes 60 instead of 85-89 ms per step with ``1e-2`` rather than ``1e-4``, and every error
     (online and smoothed APE, last pose) agrees to 1e-4 m; likewise on the hallway."""
+
+    spelling: ClassVar[str] = "full"
+    summary: ClassVar[str] = ("every component keeps its trajectory and relinearizes it at every step, as the papers' "
+                              "smoothers do")
 
     max_steps: int = eqx.field(default=20, static=True)
     step_atol: float = eqx.field(default=STEP_ATOL, static=True)
@@ -191,6 +215,9 @@ class Lag(AbstractSmoother):
     """Fixed-lag smoothing: the last ``length`` steps and the map re-solved at every step (at most
     ``max_steps`` Levenberg-Marquardt iterations), older poses marginalized (module docstring).
     The cost of a step is bounded by ``length``, not by the steps taken so far."""
+
+    spelling: ClassVar[str] = "lag:L"
+    summary: ClassVar[str] = "only the last L steps and the map, older poses marginalized (bounded cost per step)"
 
     length: int = eqx.field(static=True)
     max_steps: int = eqx.field(default=20, static=True)
@@ -251,6 +278,10 @@ class Incremental(Lag):
     ``closing_max_steps``: the Levenberg-Marquardt iterations of the closing solve (from the
     window's trajectory the old poses may move far: each iterate is one solve of the whole chain)."""
 
+    spelling: ClassVar[str] = "incremental:L"
+    summary: ClassVar[str] = ("every step as lag:L, and the last step re-solves the whole graph, so the result's "
+                              "trajectory is the batch solution (a long log's exact smoothing at lag:L's step cost)")
+
     closing_max_steps: int = eqx.field(default=100, static=True)
 
     @property
@@ -280,21 +311,6 @@ class Closing(Full):
 
 
 Smoother = AbstractSmoother
-
-
-def parse_smoother(text: str) -> Smoother:
-    """``"filter"``, ``"full"``, ``"lag:L"`` or ``"incremental:L"`` with ``L >= 1`` steps (the
-    ``--smoother`` option)."""
-    if text == "filter":
-        return Filter()
-    if text == "full":
-        return Full()
-    for prefix, kind in (("lag:", Lag), ("incremental:", Incremental)):
-        rest = text[len(prefix):]
-        if text.startswith(prefix) and rest.isdigit() and int(rest) >= 1:
-            return kind(int(rest))
-    raise ValueError("--smoother: expected filter, full, lag:L or incremental:L (L a positive number of steps), "
-                     f"got {text!r}")
 
 
 class SmootherState(eqx.Module):
