@@ -33,7 +33,8 @@ loop-closing re-detection right, the runs where some kept component does, and th
 (:class:`hybridslam.estimators.loop_online.OnlineLoopClosure`, the pass's default settings);
 ``--loop-threshold X`` sets its least log odds of a closure against the component searched
 (``LoopClosureSettings.threshold``, default 0; -5.01 = -log 150 adds every closure the hybrid
-belief's pruning would keep).
+belief's pruning would keep). ``--prune-ratio R`` sets the hybrid belief's pruning ratio (default 150, the
+paper's, Sec. V).
 """
 
 from __future__ import annotations
@@ -81,6 +82,7 @@ SETTINGS: dict[str, dict] = {
 
 NEW_LANDMARK = "density"  # main(new_landmark=...): every estimator's rule for a new object (.novelty)
 LOOPS = LoopClosureSettings()  # main(loop_threshold=...): the settings of loop closure during the run
+PRUNE_RATIO: float | None = None  # main(prune_ratio=...): the hybrid belief's (None: its default, Sec. V's 150)
 SMOOTHER = "full"  # main(smoother=...): "full" (the papers' smoothers, the default) or "filter"
 # Not estimators of their own: the hybrid belief or multimodal with loop closure during the run
 # (merge hypotheses added between steps, hybridslam.estimators.loop_online; full smoother only).
@@ -92,8 +94,9 @@ def estimator(name: str, max_detections: int | None = None) -> AbstractEstimator
     """Estimator ``name`` with the study's :data:`SETTINGS` and :data:`SMOOTHER`; ``max_detections`` pads
     every step to that many detection slots (``None``: the scenario's largest step)."""
     base = name.removesuffix(LOOPS_SUFFIX) if name in ONLINE_NAMES else name
+    extra = {"prune_ratio": PRUNE_RATIO} if base == "hybrid" and PRUNE_RATIO is not None else {}
     return make_estimator(base, max_detections=max_detections, smoother=SMOOTHER, new_landmark=NEW_LANDMARK,
-                          **SETTINGS.get(base, {}))
+                          **SETTINGS.get(base, {}), **extra)
 
 
 def _scenario(folder: str, trace: float, seed: int, steps: int | None):
@@ -310,9 +313,10 @@ def plot_examples(folder: str, records: list[dict], estimators: list[str]) -> st
 
 def main(output: str = os.path.join("runs", "hallway"), seeds: int = 3, estimators=DEFAULT_ESTIMATORS,
          levels=hallway.LEVELS, steps: int | None = None, smoother: str = "full", first_seed: int = 0,
-         new_landmark: str = "density", loop_threshold: float = 0.0, loop_tries: int = 8) -> list[dict]:
-    global SMOOTHER, NEW_LANDMARK, LOOPS
-    SMOOTHER, NEW_LANDMARK = smoother, new_landmark
+         new_landmark: str = "density", loop_threshold: float = 0.0, loop_tries: int = 8,
+         prune_ratio: float | None = None) -> list[dict]:
+    global SMOOTHER, NEW_LANDMARK, LOOPS, PRUNE_RATIO
+    SMOOTHER, NEW_LANDMARK, PRUNE_RATIO = smoother, new_landmark, prune_ratio
     LOOPS = LoopClosureSettings(threshold=loop_threshold, tries=loop_tries)
     estimators, levels = list(estimators), [float(t) for t in levels]
     unknown = [n for n in estimators if n not in ESTIMATORS and n not in ONLINE_NAMES]
@@ -358,6 +362,8 @@ if __name__ == "__main__":
                         help="+loops: the least log odds of a closure against the component searched (default 0)")
     parser.add_argument("--loop-tries", type=int, default=8,
                         help="+loops: the merge sets re-solved and verified per round (default 8)")
+    parser.add_argument("--prune-ratio", type=float, default=None,
+                        help="the hybrid belief's: drop components below w_max / R (default: 150, the paper's)")
     a = parser.parse_args()
     main(a.output, a.seeds, a.estimators.split(","), [float(t) for t in a.levels.split(",")], a.steps, a.smoother,
-         a.first_seed, a.new_landmark, a.loop_threshold, a.loop_tries)
+         a.first_seed, a.new_landmark, a.loop_threshold, a.loop_tries, a.prune_ratio)
