@@ -204,8 +204,8 @@ def messages(t: dict[str, float], per_step: bool) -> list[str]:
     if int(t["object_overflow"]) > 0:
         out.append("object capacity full (a likely component has no free object slot"
                    + ("" if per_step else f", at {int(t['object_overflow'])} step(s)") + "): a new landmark is not "
-                   "stored (its detections are weighed as unmapped new objects) (raise discovery.max_objects, e.g. "
-                   "import mrclam --max-objects)")
+                   "stored (its detections are weighed as unmapped new objects) (raise the file's discovery.max_objects: "
+                   "hybridslam import mrclam or kitti-tracking --max-objects N)")
     if (n := int(t["inconsistent"])) > 0:
         out.append("most detections the best hypothesis could not explain (left unassociated, or associated beyond "
                    "the 1e-6 tail of its prediction) " + ("at this step" if per_step else f"at {n} step(s)")
