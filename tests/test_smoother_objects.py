@@ -72,7 +72,7 @@ def test_what_the_estimators_ask_a_smoother(unchecked_types):
 @pytest.mark.parametrize("make", [lambda s: hs.Hybrid(smoother=s), lambda s: hs.Multimodal(smoother=s),
                                   lambda s: hs.make_estimator("ml", smoother=s)])
 def test_a_smoother_that_is_no_smoother_is_refused_by_name(make, unchecked_types):
-    with pytest.raises(ValueError, match=r"\.smoother: expected Full\(\), Lag\(L\) or Filter\(\)"):
+    with pytest.raises(ValueError, match=r"\.smoother: expected a smoother \(an AbstractSmoother: Full\(\), Lag\(L\), Incremental\(L\), Filter\(\)\)"):
         make(object())
 
 

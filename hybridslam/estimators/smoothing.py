@@ -153,7 +153,8 @@ class AbstractSmoother(eqx.Module):
 def check_smoother(owner: str, value: object) -> None:
     """A ``ValueError`` naming ``owner.smoother`` unless ``value`` is a smoother."""
     if not isinstance(value, AbstractSmoother):
-        raise ValueError(f"{owner}.smoother: expected Full(), Lag(L) or Filter(), got {value!r}")
+        raise ValueError(f"{owner}.smoother: expected a smoother (an AbstractSmoother: Full(), Lag(L), "
+                         f"Incremental(L), Filter()), got {value!r}")
 
 
 class Filter(AbstractSmoother):
