@@ -29,7 +29,8 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
 from . import novelty
-from . import smoothers
+from .smoothers import METAVAR as SMOOTHER_METAVAR
+from .smoothers import help_text as smoother_help
 from .smoothers import parse_smoother
 
 SETTING = "hybridslam.setting"  # the key of a field's metadata that holds its Setting
@@ -133,7 +134,7 @@ CLUTTER = Option(
                "log(0.01 / (max_range * fov))); default: the file's sensor.clutter_log_density (written by "
                "hybridslam import), none without it; 'none': every detection is of an object",
     parse=clutter_density, metavar="{LOG_DENSITY,none}", default="file")
-SMOOTHER = Option("smoother", smoothers.help_text(), parse=parse_smoother, metavar=smoothers.METAVAR, convert=_smoother)
+SMOOTHER = Option("smoother", smoother_help(), parse=parse_smoother, metavar=SMOOTHER_METAVAR, convert=_smoother)
 MAX_DETECTIONS = Option("max_detections", "detection slots per step; a shared value lets files share one compiled "
                                           "step", none="the largest step", described=False)
 MAX_STEPS = Option("max_steps", "history length; a shared value lets files share one compiled step",

@@ -335,10 +335,11 @@ def linearize(
 
     Each factor's Jacobian comes from ``jax.jacfwd`` on its own variables (3 or 6 columns), vmapped
     over factors; the prior's is ``R``, so its block is the constant ``Λ = RᵀR`` (``prior_info``,
-    computed here if not given). ``log η`` is treated as a constant (no Gauss-Newton term): exact
-    for the closed-form classifiers, whose score covariance does not depend on the viewpoint; a
-    learned model's does (:class:`~hybridslam.models.learned.Learned`: ``Σ_c(θ)``), and its
-    ``½ log|Σ_c(θ)|`` is then left out of what the smoother minimizes (docs/limits.md).
+    computed here if not given). ``log η`` is treated as a constant (no Gauss-Newton term): a
+    residual function returns a state-independent one. The closed-form classifiers' score
+    covariances do not depend on the viewpoint; a learned model's do, and it carries the varying
+    part ``log|R_c(θ)|`` as one more residual entry (:meth:`~hybridslam.models.learned.Learned.residuals`),
+    so ``½‖r‖² − log η`` is the whole negative log-likelihood here too.
     """
     check_shapes(graph, poses, objects)
     p, n = poses.shape[0], objects.shape[0]
