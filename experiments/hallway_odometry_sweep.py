@@ -33,7 +33,8 @@ loop-closing re-detection right, the runs where some kept component does, and th
 (:class:`hybridslam.estimators.loop_online.OnlineLoopClosure`, the pass's default settings);
 ``--loop-threshold X`` sets its least log odds of a closure against the component searched
 (``LoopClosureSettings.threshold``, default 0; -5.01 = -log 150 adds every closure the hybrid
-belief's pruning would keep). ``--prune-ratio R`` sets the hybrid belief's pruning ratio (default 150, the
+belief's pruning would keep); ``--loop-misses point`` charges its negative information at the point
+estimate (``LoopClosureSettings.misses``; default ``marginal``). ``--prune-ratio R`` sets the hybrid belief's pruning ratio (default 150, the
 paper's, Sec. V).
 """
 
@@ -314,10 +315,10 @@ def plot_examples(folder: str, records: list[dict], estimators: list[str]) -> st
 def main(output: str = os.path.join("runs", "hallway"), seeds: int = 3, estimators=DEFAULT_ESTIMATORS,
          levels=hallway.LEVELS, steps: int | None = None, smoother: str = "full", first_seed: int = 0,
          new_landmark: str = "density", loop_threshold: float = 0.0, loop_tries: int = 8,
-         prune_ratio: float | None = None) -> list[dict]:
+         prune_ratio: float | None = None, loop_misses: str = "marginal") -> list[dict]:
     global SMOOTHER, NEW_LANDMARK, LOOPS, PRUNE_RATIO
     SMOOTHER, NEW_LANDMARK, PRUNE_RATIO = smoother, new_landmark, prune_ratio
-    LOOPS = LoopClosureSettings(threshold=loop_threshold, tries=loop_tries)
+    LOOPS = LoopClosureSettings(threshold=loop_threshold, tries=loop_tries, misses=loop_misses)
     estimators, levels = list(estimators), [float(t) for t in levels]
     unknown = [n for n in estimators if n not in ESTIMATORS and n not in ONLINE_NAMES]
     if unknown:
@@ -362,8 +363,11 @@ if __name__ == "__main__":
                         help="+loops: the least log odds of a closure against the component searched (default 0)")
     parser.add_argument("--loop-tries", type=int, default=8,
                         help="+loops: the merge sets re-solved and verified per round (default 8)")
+    parser.add_argument("--loop-misses", choices=("marginal", "point"), default="marginal",
+                        help="+loops: a miss weighed by how surely the object was in view (marginal, default) or "
+                             "counted at the point estimate (point)")
     parser.add_argument("--prune-ratio", type=float, default=None,
                         help="the hybrid belief's: drop components below w_max / R (default: 150, the paper's)")
     a = parser.parse_args()
     main(a.output, a.seeds, a.estimators.split(","), [float(t) for t in a.levels.split(",")], a.steps, a.smoother,
-         a.first_seed, a.new_landmark, a.loop_threshold, a.loop_tries, a.prune_ratio)
+         a.first_seed, a.new_landmark, a.loop_threshold, a.loop_tries, a.prune_ratio, a.loop_misses)

@@ -8,7 +8,7 @@ whose detections are mostly of the same true landmark (right) or not (wrong). Th
 estimator.
 
     python3 experiments/hallway_odometry_sweep.py -o runs/hallway_full --estimators ml,max-mixture
-    python3 scripts/close_hallway_loops.py runs/hallway_full [--revisit-log-odds 5]
+    python3 scripts/close_hallway_loops.py runs/hallway_full [--revisit-log-odds 5] [--misses point]
 
 ``--gated-oracle`` judges the back end apart from the front end: on each scenario of the study, the
 true associations except that landmarks re-detected after ``--gap`` steps are new objects
@@ -33,7 +33,7 @@ from hybridslam.analysis import consistency
 from hybridslam.analysis.map_error import map_error, object_landmarks
 from hybridslam.analysis.trajectory import error_summary
 from hybridslam.estimators.loop_closure import close_loops, score_merges
-from hybridslam.estimators.loop_settings import LoopClosureSettings
+from hybridslam.estimators.loop_settings import MISS_MODELS, LoopClosureSettings
 from hybridslam.io.result import load_result
 from hybridslam.io.scenario import load_scenario
 from hybridslam.config import setup
@@ -48,10 +48,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("folder", help="a finished hallway study (scenarios/, results/<estimator>/)")
     parser.add_argument("--revisit-log-odds", type=float, default=0.0)
     parser.add_argument("--gap", type=int, default=20)
+    parser.add_argument("--misses", choices=MISS_MODELS, default=LoopClosureSettings.misses,
+                        help="negative information: marginal (default) or point (LoopClosureSettings.misses)")
     parser.add_argument("--gated-oracle", action="store_true",
                         help="the true associations with late re-detections as new objects, not the study's results")
     args = parser.parse_args(argv)
-    settings = LoopClosureSettings(gap=args.gap, revisit_log_odds=args.revisit_log_odds)
+    settings = LoopClosureSettings(gap=args.gap, revisit_log_odds=args.revisit_log_odds, misses=args.misses)
     print(f"{'estimator':<12} {'scenario':<28} {'last before':>11} {'after':>6} {'APE before':>10} {'after':>6} "
           f"{'map before':>10} {'after':>6} {'right':>5} {'wrong':>5}")
     scenarios = sorted(glob.glob(os.path.join(args.folder, "scenarios", "*.json")))

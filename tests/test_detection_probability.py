@@ -6,11 +6,10 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
-from hypothesis import given
-from hypothesis import strategies as st
 
-from hybridslam.estimators import loop_settings, loop_verify
+from hybridslam.estimators import loop_misses, loop_settings
 from hybridslam.io.scenario import ScenarioError, parse_scenario, scenario_to_json
 from hybridslam.sim.hallway import hallway
 
@@ -50,28 +49,28 @@ def test_the_loop_closure_search_takes_the_files_probability_else_0_9():
     assert default.for_scenario(without).detection_probability == loop_settings.DEFAULT_DETECTION_PROBABILITY == 0.9
     given_p = loop_settings.LoopClosureSettings(detection_probability=0.5)
     assert given_p.for_scenario(with_field).detection_probability == 0.5  # the setting overrides the file
-    # a file without the field keeps the old term: log(0.1) per miss
-    assert loop_verify.negative_information(3, default.for_scenario(without)) == pytest.approx(3 * math.log(0.1))
+    # a file without the field keeps the old term: log(0.1) per miss surely in view
+    assert _misses(3, default.for_scenario(without)) == pytest.approx(3 * math.log(0.1))
     # a sensor that never misses: each miss costs log(min_miss_probability), finite
-    assert loop_verify.negative_information(2, default.for_scenario(with_field)) == pytest.approx(2 * math.log(0.1))
+    assert _misses(2, default.for_scenario(with_field)) == pytest.approx(2 * math.log(0.1))
     sharp = loop_settings.LoopClosureSettings(min_miss_probability=0.01)
-    assert loop_verify.negative_information(2, sharp.for_scenario(with_field)) == pytest.approx(2 * math.log(0.01))
+    assert _misses(2, sharp.for_scenario(with_field)) == pytest.approx(2 * math.log(0.01))
     # a sensor that misses often charges a miss less than the floor
     half = without.replace(detection_probability=0.5)
-    assert loop_verify.negative_information(1, default.for_scenario(half)) == pytest.approx(math.log(0.5))
-    assert loop_verify.negative_information(5, loop_settings.LoopClosureSettings(detection_probability=0.0)) == 0.0
+    assert _misses(1, default.for_scenario(half)) == pytest.approx(math.log(0.5))
+    assert _misses(5, loop_settings.LoopClosureSettings(detection_probability=0.0)) == 0.0
 
 
-@given(st.floats(0.0, 1.0), st.integers(-20, 20), st.floats(1e-6, 1.0))
-def test_negative_information_is_linear_in_the_misses_and_penalizes_them(p, extra, floor):
-    settings = loop_settings.LoopClosureSettings(detection_probability=p, min_miss_probability=floor)
-    one = loop_verify.negative_information(1, settings)
-    assert one <= 0.0 and math.isfinite(one)
-    assert loop_verify.negative_information(extra, settings) == pytest.approx(extra * one, abs=1e-9)
+def _misses(count: int, settings: loop_settings.LoopClosureSettings) -> float:
+    """The negative information of ``count`` (step, object) pairs surely in view and undetected."""
+    in_view = np.zeros((count + 1, 1))
+    in_view[1:] = 1.0
+    return loop_misses.miss_log_likelihood(in_view, np.full((count, 1), -1), 1, settings)
 
 
 @pytest.mark.parametrize("bad", [dict(detection_probability=1.2), dict(detection_probability=-0.1),
-                                 dict(min_miss_probability=0.0), dict(min_miss_probability=2.0)])
+                                 dict(min_miss_probability=0.0), dict(min_miss_probability=2.0),
+                                 dict(misses="mean"), dict(fov_margin=(0.5, -1.0))])
 def test_bad_settings_name_the_setting(bad):
     with pytest.raises(ValueError, match=f"LoopClosureSettings.{next(iter(bad))}"):
         loop_settings.LoopClosureSettings(**bad)

@@ -180,6 +180,23 @@ def test_marginal_is_the_block_of_the_inverse_hessian(k):
         np.testing.assert_allclose(np.asarray(mean[:3]), np.asarray(sol.poses[k]))
 
 
+@pytest.mark.parametrize("independent", [False, True])
+def test_covariances_are_the_blocks_of_the_inverse_hessian(independent):
+    """Every pose's marginal, its cross-covariance with the map and the map's joint covariance: the
+    blocks of the dense ``H⁻¹``, with a dense or a block-diagonal object part."""
+    graph = _graph(np.random.default_rng(5), independent=independent)
+    sol = exact_solve(graph, jnp.zeros((P, 3)), jnp.zeros((N, 3)))
+    assert sol.linearization.object_blocks == independent
+    h, _ = sol.linearization.dense()
+    full = np.linalg.inv(np.asarray(h))
+    got = sm.covariances(sol)
+    poses = np.stack([full[3 * t: 3 * t + 3, 3 * t: 3 * t + 3] for t in range(P)])
+    np.testing.assert_allclose(np.asarray(got.poses), poses, rtol=1e-8, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(got.pose_object).reshape(3 * P, 3 * N), full[: 3 * P, 3 * P:], rtol=1e-8,
+                               atol=1e-12)
+    np.testing.assert_allclose(np.asarray(got.objects), full[3 * P:, 3 * P:], rtol=1e-8, atol=1e-12)
+
+
 def test_auto_order_eliminates_the_larger_set_or_a_small_pose_chain_last():
     """``"auto"``: objects first when they outnumber the poses, or when the pose system is small and
     the objects are independent (the paper setup); poses first on long chains; explicit orders kept."""

@@ -8,7 +8,7 @@ import math
 from ..analysis.map_error import map_error
 from ..analysis.trajectory import error_summary
 from ..estimators.loop_closure import close_loops
-from ..estimators.loop_settings import LoopClosureSettings
+from ..estimators.loop_settings import MISS_MODELS, LoopClosureSettings
 from ..io.result import load_result, save_result
 from ..io.scenario import load_scenario
 from .common import CLIError, add_result_format_option, check_writable, warn
@@ -29,7 +29,8 @@ def cmd_close_loops(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     result = load_result(args.result)
     try:
-        settings = LoopClosureSettings(gap=args.gap, revisit_log_odds=args.revisit_log_odds, beam=args.beam)
+        settings = LoopClosureSettings(gap=args.gap, revisit_log_odds=args.revisit_log_odds, beam=args.beam,
+                                       misses=args.misses)
     except ValueError as e:
         raise CLIError(str(e)) from None
     check_writable(args.output)
@@ -72,4 +73,8 @@ def add_parser(sub) -> None:
     p.add_argument("--beam", type=int, default=LoopClosureSettings.beam,
                    help=f"partial merge sets kept by the search (default {LoopClosureSettings.beam}; "
                         "what it drops is counted and warned about)")
+    p.add_argument("--misses", choices=MISS_MODELS, default=LoopClosureSettings.misses,
+                   help="how a (step, object) pair in view yet undetected counts against a merge: marginal "
+                        "(default: weighed by how surely the object was in view, under the solved graph's "
+                        "covariance) or point (in view at the estimate, 0.5 m and 0.2 rad inside the edge)")
     p.set_defaults(func=cmd_close_loops)

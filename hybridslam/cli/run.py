@@ -11,6 +11,7 @@ from ..analysis.map_error import map_error
 from ..analysis.trajectory import error_summary
 from ..driver import run
 from ..estimators.base import AbstractEstimator, StepInfo
+from ..estimators.loop_settings import MISS_MODELS, LoopClosureSettings
 from ..estimators.profiles import LONG_RUN_STEPS, PROFILES, Profile, file_summary, recommended
 from ..io.result import ResultWriter, StepRecord
 from ..io.scenario import Scenario, ScenarioError, load_scenario
@@ -133,15 +134,15 @@ def cmd_run(args: argparse.Namespace) -> int:
     hook = None
     loops = None if args.close_loops is not None or args.no_close_loops else profile.loops(smoother=args.smoother)
     if loops is not None:
-        hook = profile.between_steps(estimator, scenario, loops)
+        hook = profile.between_steps(estimator, scenario, loops, misses=args.loop_misses)
         loops = None if hook is None else loops
     print(settings_note(scenario, profile, chosen, loops))
     if args.close_loops is not None:
         from ..estimators.loop_online import OnlineLoopClosure
-        from ..estimators.loop_settings import LoopClosureSettings
 
         try:
-            hook = OnlineLoopClosure(estimator, scenario, LoopClosureSettings(gap=args.close_loops))
+            hook = OnlineLoopClosure(estimator, scenario,
+                                     LoopClosureSettings(gap=args.close_loops, misses=args.loop_misses))
         except ValueError as e:
             raise CLIError(f"--close-loops: {e}") from None
     print(f"{args.scenario}: {scenario.num_steps} steps, {scenario.num_objects} objects; estimator={estimator.name}; "
@@ -211,6 +212,10 @@ def add_parser(sub) -> None:
                         "loop closures (an object first seen more than GAP steps, default 20, after another's last "
                         "detection) and add what is found as a hypothesis (hybridslam.estimators.loop_online); "
                         "--profile auto adds it on larger unknown-map files with classes")
+    p.add_argument("--loop-misses", choices=MISS_MODELS, default=LoopClosureSettings.misses,
+                   help="loop closure: how a (step, object) pair in view yet undetected counts against a closure: "
+                        "marginal (default: weighed by how surely the object was in view, under the solved "
+                        "graph's covariance) or point (in view at the estimate, 0.5 m and 0.2 rad inside the edge)")
     p.add_argument("--no-close-loops", action="store_true",
                    help="no loop closure during the run, where the settings chosen for the file would add it")
     p.add_argument("--profile", choices=PROFILES, default="auto",

@@ -26,10 +26,10 @@ candidates, class realization equal, or new; injective), exact when the beam hol
 combination. The best ``tries`` sets are each applied, the graph re-solved (Levenberg-Marquardt,
 warm-started) and verified: its cost may rise by at most the chi-square ``verify_probability``
 quantile of the merged constraints, or the set is dropped and counted. The verified sets are
-re-scored with negative information, as the sensor model has it (a detection of every object in the
-footprint): each (step, object) pair whose solved object lies inside the footprint of the solved
-pose (by ``fov_margin``) with no detection associated to it, more or fewer than before the merge,
-adds ``log(1 − detection_probability)`` or takes it away. The best set scoring above ``threshold``
+re-scored with negative information (:mod:`.loop_misses`): each (step, object) pair with no
+detection associated to it has likelihood ``1 − detection_probability · P(in view)``, ``P(in view)``
+under the solved graph's covariance, and the set gains or loses the change of their sum's log
+against the graph before the merge. The best set scoring above ``threshold``
 is kept; rounds repeat until none is.
 
 The run's own loop closures are re-opened first (``reopen``): where an object's detections
@@ -122,6 +122,7 @@ class _Solved:
     cost: float
     mean: np.ndarray
     cov: np.ndarray
+    in_view: np.ndarray  # (P, N): each pair's probability of being in view (loop_misses)
 
 
 def _start(scenario: Scenario, result: Result, settings: LoopClosureSettings, reopen_closures: bool):
@@ -150,25 +151,24 @@ def _start(scenario: Scenario, result: Result, settings: LoopClosureSettings, re
     poses = result.trajectory if result.trajectory is not None else _online_trajectory(scenario, result)
     poses = np.asarray(poses, float)[: scenario.num_steps + 1]
     num = int(history.max(initial=-1)) + 1
-    p, o, cost, mean, cov, ok = solver(history, poses, _initial_objects(problem, history, poses), num)
-    return problem, solver, _Solved(history, classes, num, p, o, float(cost), mean, cov), origin, reopened, ok
+    p, o, cost, mean, cov, ok, in_view = solver(history, poses, _initial_objects(problem, history, poses), num)
+    return (problem, solver, _Solved(history, classes, num, p, o, float(cost), mean, cov, in_view), origin,
+            reopened, ok)
 
 
 def _merged(problem: _Problem, solver: Solver, g: _Solved, merges: Sequence[tuple[int, int]], lbf: float,
-            settings: LoopClosureSettings, base_misses: int) -> tuple[MergeScore, _Solved, np.ndarray, bool]:
+            settings: LoopClosureSettings, base_misses: float) -> tuple[MergeScore, _Solved, np.ndarray, bool]:
     """``merges`` applied to ``g`` and re-solved (warm-started): the score, the solved graph, the
     old index of each object, and convergence."""
     h2, c2, used = compact(g.history, g.classes, dict(merges))
-    p2, o2, cost2, mean2, cov2, ok = solver(h2, g.poses, _pad(g.objects[used], len(g.classes)), len(used))
-    extra = misses(problem.scenario, p2, o2, h2, len(used), settings) - base_misses
+    p2, o2, cost2, mean2, cov2, ok, in_view2 = solver(h2, g.poses, _pad(g.objects[used], len(g.classes)), len(used))
+    extra = misses(problem.scenario, p2, o2, in_view2, h2, len(used), settings) - base_misses
     return (judge(lbf, float(cost2 - g.cost), ok, extra, len(merges), settings),
-            _Solved(h2, c2, len(used), p2, o2, float(cost2), mean2, cov2), used, ok)
+            _Solved(h2, c2, len(used), p2, o2, float(cost2), mean2, cov2, in_view2), used, ok)
 
 
-def _base_misses(problem: _Problem, g: _Solved, settings: LoopClosureSettings) -> int:
-    if not settings.detection_probability:
-        return 0
-    return misses(problem.scenario, g.poses, g.objects, g.history, g.num, settings)
+def _base_misses(problem: _Problem, g: _Solved, settings: LoopClosureSettings) -> float:
+    return misses(problem.scenario, g.poses, g.objects, g.in_view, g.history, g.num, settings)
 
 
 def score_merges(scenario: Scenario, result: Result, merges: Sequence[tuple[int, int]],

@@ -31,10 +31,10 @@ class LoopClosureSettings:
     probability a miss is given, so a miss costs at most ``log 0.1``. The footprint test is on the
     solved estimate, not on the truth, so an object the estimate puts just inside may be truly
     outside; a sensor that never misses, detection probability 1 (the hallway simulator's), would
-    otherwise rule out every merge that adds one miss. Measured: with 0.01 the small hallway loop of
-    ``tests/test_online_loop_closure.py`` is no longer closed during the run, 1.76 m off at the end
-    against 0.5 m) and ``fov_margin`` (default 0.5 m, 0.2 rad) of the
-    negative-information term; ``max_rounds`` (default 5; 0: only re-solve the graph); ``max_steps``: Levenberg-Marquardt
+    otherwise rule out every merge that adds one miss), ``misses`` (default ``"marginal"``: how sure
+    it is that an object was in view, under the solved graph's covariance; ``"point"``: in view when
+    the solved object lies inside the solved pose's footprint by ``fov_margin``, default 0.5 m,
+    0.2 rad; :mod:`.loop_misses`) of the negative-information term; ``max_rounds`` (default 5; 0: only re-solve the graph); ``max_steps``: Levenberg-Marquardt
     iterations per solve (default 100)."""
 
     gap: int = 20
@@ -49,6 +49,7 @@ class LoopClosureSettings:
     reopen: bool = True
     detection_probability: float | None = None
     min_miss_probability: float = 0.1
+    misses: str = "marginal"
     fov_margin: tuple[float, float] = (0.5, 0.2)
     max_steps: int = 100
 
@@ -71,6 +72,8 @@ class LoopClosureSettings:
         if not 0.0 < self.min_miss_probability <= 1.0:
             raise ValueError("LoopClosureSettings.min_miss_probability: expected a number in (0, 1], got "
                              f"{self.min_miss_probability!r}")
+        if self.misses not in MISS_MODELS:
+            raise ValueError(f"LoopClosureSettings.misses: expected one of {', '.join(MISS_MODELS)}, got {self.misses!r}")
         if len(self.fov_margin) != 2 or not all(math.isfinite(m) and m >= 0 for m in self.fov_margin):
             raise ValueError(f"LoopClosureSettings.fov_margin: expected two non-negative numbers, got {self.fov_margin!r}")
 
@@ -85,6 +88,7 @@ class LoopClosureSettings:
 
 
 DEFAULT_DETECTION_PROBABILITY = 0.9  # a file without sensor.detection_probability
+MISS_MODELS = ("marginal", "point")  # LoopClosureSettings.misses (loop_misses)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -106,11 +106,12 @@ class Profile:
             return None
         return self.close_loops
 
-    def between_steps(self, estimator, scenario: Scenario, gap: int | None = None):
+    def between_steps(self, estimator, scenario: Scenario, gap: int | None = None, **settings: Any):
         """Loop closure during the run for :func:`hybridslam.run`'s ``between_steps`` (an
-        :class:`~.loop_online.OnlineLoopClosure`, gap ``gap`` or the chosen one), or ``None`` where
-        none was chosen and ``gap`` is ``None`` or the estimator cannot close loops (not the hybrid
-        belief or ``multimodal`` with the full smoother)."""
+        :class:`~.loop_online.OnlineLoopClosure`, gap ``gap`` or the chosen one, and ``settings`` the
+        other :class:`~.loop_settings.LoopClosureSettings` fields), or ``None`` where none was chosen
+        and ``gap`` is ``None`` or the estimator cannot close loops (not the hybrid belief or
+        ``multimodal`` with the full smoother)."""
         from .loop_online import OnlineLoopClosure
         from .loop_settings import LoopClosureSettings
 
@@ -119,7 +120,7 @@ class Profile:
         if (gap is None or estimator.loop_closure_access() is None or smoother is None
                 or not smoother.whole_trajectory):
             return None
-        return OnlineLoopClosure(estimator, scenario, LoopClosureSettings(gap=gap))
+        return OnlineLoopClosure(estimator, scenario, LoopClosureSettings(gap=gap, **settings))
 
 
 def file_summary(scenario: Scenario) -> str:

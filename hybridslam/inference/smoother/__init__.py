@@ -143,6 +143,8 @@ from .lm import Solution as Solution
 from .lm import TerminationConfig as TerminationConfig
 from .lm import levenberg_marquardt as levenberg_marquardt
 from .lm import retract as retract
+from .marginals import Covariances as Covariances
+from .marginals import covariances as covariances
 from .marginals import first_pose_factors as first_pose_factors
 from .marginals import marginal as marginal
 from .marginals import marginalize_first as marginalize_first

@@ -78,6 +78,32 @@ def tridiagonal_solve(
 
 
 
+def tridiagonal_inverse_diagonal(diag: Float[Array, "P 3 3"], off: Float[Array, "P1 3 3"]) -> Float[Array, "P 3 3"]:
+    """The diagonal blocks ``(A⁻¹)_ii`` of SPD block-tridiagonal ``A`` (:func:`tridiagonal_solve`'s
+    layout), in ``O(P)``: a forward scan of the Schur complements ``D_0 = A_00``,
+    ``D_i = A_ii − A_{i-1,i}ᵀ D_{i-1}⁻¹ A_{i-1,i}``, then the backward (Rauch-Tung-Striebel)
+    recursion ``Σ_{P-1} = D_{P-1}⁻¹``, ``Σ_i = D_i⁻¹ + G_i Σ_{i+1} G_iᵀ`` with ``G_i = D_i⁻¹ A_{i,i+1}``."""
+
+    def forward(d_inv_prev, inputs):
+        a, o_prev = inputs
+        d_inv = jnp.linalg.inv(a - _mm(jnp.swapaxes(o_prev, -1, -2), _mm(d_inv_prev, o_prev)))
+        return d_inv, d_inv
+
+    d_inv0 = jnp.linalg.inv(diag[0])
+    _, d_invs = jax.lax.scan(forward, d_inv0, (diag[1:], off))
+    d_invs = jnp.concatenate([d_inv0[None], d_invs])
+
+    def backward(sigma_next, inputs):
+        d_inv, o = inputs
+        g = _mm(d_inv, o)
+        sigma = d_inv + _mm(g, _mm(sigma_next, jnp.swapaxes(g, -1, -2)))
+        sigma = 0.5 * (sigma + jnp.swapaxes(sigma, -1, -2))
+        return sigma, sigma
+
+    _, sigmas = jax.lax.scan(backward, d_invs[-1], (d_invs[:-1], off), reverse=True)
+    return jnp.concatenate([sigmas, d_invs[-1][None]])
+
+
 def _tridiagonal_dense(diag: Float[Array, "P 3 3"], off: Float[Array, "P1 3 3"]) -> Float[Array, "P3 P3"]:
     """The dense ``3P × 3P`` block-tridiagonal matrix with diagonal blocks ``diag`` and ``off[i]`` at
     block ``(i, i+1)`` (its transpose at ``(i+1, i)``). Built by selects, not scatters: XLA's CPU

@@ -12,6 +12,7 @@ from jaxtyping import Array, Float, Int
 
 from .. import buckets
 from ..update import wrap_angles
+from .blocks import tridiagonal_inverse_diagonal, tridiagonal_solve
 from .elimination import AbstractElimination, Method, as_elimination
 from .graph import FactorGraph
 from .linearization import Linearization, linearize
@@ -45,6 +46,33 @@ def marginal(
     sizes, (live_p, live_o) = lin.buckets()
     live = (jnp.maximum(live_p, jnp.asarray(k) + 1), live_o)  # x_k itself must be in the head
     return mean, buckets.by_bucket(sizes, live, on_head, lin, k)
+
+
+class Covariances(eqx.Module):
+    """Blocks of the whole ``H⁻¹`` (Laplace covariance of every pose and object) at a solution:
+    ``poses (P, 3, 3)`` each pose's marginal, ``pose_object (P, 3, 3N)`` each pose's cross-covariance
+    with the map, ``objects (3N, 3N)`` the map's joint covariance."""
+
+    poses: Float[Array, "P 3 3"]
+    pose_object: Float[Array, "P 3 N3"]
+    objects: Float[Array, "N3 N3"]
+
+
+def covariances(solution: Solution) -> Covariances:
+    """:class:`Covariances` of ``solution`` by the poses-first block inverse: ``Σ_OO = S⁻¹`` with
+    ``S = C − BᵀA⁻¹B``, ``Σ_PO = −(A⁻¹B) S⁻¹``, ``Σ_tt = (A⁻¹)_tt + (A⁻¹B)_t S⁻¹ (A⁻¹B)_tᵀ``, the
+    diagonal blocks of ``A⁻¹`` by :func:`~.blocks.tridiagonal_inverse_diagonal`: ``O(P N²)`` work,
+    never the ``(3P)²`` pose covariance. Inactive slots keep their identity blocks (uncorrelated)."""
+    lin = solution.linearization
+    p, n3 = lin.pose_diag.shape[0], lin.grad_object.shape[0]
+    x = tridiagonal_solve(lin.pose_diag, lin.pose_off, lin.pose_object)  # A⁻¹B, (P, 3, 3N)
+    s = lin.object_dense() - lin.pose_object.reshape(3 * p, n3).T @ x.reshape(3 * p, n3)
+    chol = jnp.linalg.cholesky(0.5 * (s + s.T))
+    chol_inv = jsl.solve_triangular(chol, jnp.eye(n3, dtype=s.dtype), lower=True)
+    s_oo = chol_inv.T @ chol_inv
+    s_po = -jnp.einsum("pij,jk->pik", x, s_oo)
+    s_pp = tridiagonal_inverse_diagonal(lin.pose_diag, lin.pose_off) - jnp.einsum("pik,pjk->pij", s_po, x)
+    return Covariances(0.5 * (s_pp + jnp.swapaxes(s_pp, -1, -2)), s_po, s_oo)
 
 
 def first_pose_factors(graph: FactorGraph) -> FactorGraph:
