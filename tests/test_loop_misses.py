@@ -5,6 +5,7 @@ the log-likelihood of the undetected pairs, by hand and as properties."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import equinox as eqx
@@ -16,7 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from hybridslam.estimators import loop_misses
+from hybridslam.estimators import loop_misses, loop_verify
 from hybridslam.estimators.loop_settings import LoopClosureSettings
 from hybridslam.inference import smoother as sm
 from hybridslam.sim.hallway import hallway
@@ -128,3 +129,20 @@ def test_misses_cost_more_the_surer_the_object_was_in_view(in_view, history, p, 
     count = int(np.sum(indicator[1:] * ~seen))
     assert loop_misses.miss_log_likelihood(indicator, history, 4, s) == pytest.approx(
         count * math.log(max(1 - p, floor)))
+
+
+def test_a_pair_without_a_finite_probability_takes_the_point_test():
+    """Where the solved covariance is not finite (a singular ``H``), those pairs are judged at the
+    estimate; the others keep their marginal probability."""
+    scenario = hallway(0, steps=2).replace(max_range=2.0, fov=2.0)
+    poses = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    objects = np.array([[1.0, 0.0, 0.0], [0.0, 5.0, 0.0]])  # ahead of x_1, behind x_2; far to the side
+    history = np.array([[-1], [-1]])
+    s = LoopClosureSettings(detection_probability=0.9, min_miss_probability=0.05)
+    in_view = np.array([[0.5, 0.0], [0.3, 0.2], [np.nan, 0.1]])
+    got = loop_verify.misses(scenario, poses, objects, in_view, history, 2, s)
+    # object 0 lies behind x_2: the point test says 0 there
+    want = loop_misses.miss_log_likelihood(np.array([[0.5, 0.0], [0.3, 0.2], [0.0, 0.1]]), history, 2, s)
+    assert got == pytest.approx(want)
+    point = loop_verify.misses(scenario, poses, objects, in_view, history, 2, dataclasses.replace(s, misses="point"))
+    assert point == pytest.approx(math.log(1 - 0.9))  # object 0 from x_1 only

@@ -80,10 +80,18 @@ def misses(scenario: Scenario, poses: np.ndarray, objects: np.ndarray, in_view: 
     """The log-likelihood of the (step, object) pairs of a solved graph that were in view yet
     undetected (:func:`~.loop_misses.miss_log_likelihood`), ``P(in view)`` as ``settings.misses``
     says: ``in_view`` (the solve's :func:`~.loop_misses.in_view_probability`) for ``"marginal"``,
-    the solved ``poses (≥ T+1, 3)`` and ``objects (N, 3)`` with ``fov_margin`` for ``"point"``."""
+    the solved ``poses (≥ T+1, 3)`` and ``objects (N, 3)`` with ``fov_margin`` for ``"point"`` (and
+    for the pairs whose marginal probability is not finite)."""
     settings = settings.for_scenario(scenario)  # the file's detection probability where none is set
     if not settings.detection_probability:
         return 0.0
-    if settings.misses == "point":
-        in_view = point_in_view(scenario, poses[: history.shape[0] + 1], objects[:num], settings.fov_margin)
-    return miss_log_likelihood(in_view, history, num, settings)
+    t = history.shape[0]
+    if settings.misses == "marginal":
+        in_view = np.asarray(in_view, float)[: t + 1, :num]
+        if np.all(np.isfinite(in_view)):
+            return miss_log_likelihood(in_view, history, num, settings)
+    # the point test, or where the solved covariance was not finite (a singular H) for those pairs
+    point = point_in_view(scenario, poses[: t + 1], objects[:num], settings.fov_margin)
+    if settings.misses == "marginal":
+        point = np.where(np.isfinite(in_view), in_view, point)
+    return miss_log_likelihood(point, history, num, settings)
