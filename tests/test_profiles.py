@@ -110,6 +110,8 @@ def test_the_rule(slots, detections, steps, unknown, classes, model, name):
     merged = p.merged(**explicit)
     assert merged["capacity"] == 5 and merged["smoother"] == "filter" and merged.get("gate") == p.options.get("gate")
     assert p.loops(smoother="filter") is None and p.loops(smoother="full") == p.close_loops
+    # the parsed smoothers too (what --smoother gives): only a whole-trajectory one keeps the search
+    assert p.loops(smoother=hs.Incremental(50)) is None and p.loops(smoother=hs.Full()) == p.close_loops
     assert profiles.recommended(scenario, name, "paper").options == {}
 
 

@@ -45,6 +45,7 @@ import dataclasses
 from typing import Any
 
 from ..io.scenario import Scenario
+from .smoothers import parse_smoother
 
 PROFILES = ("auto", "paper")
 EXACT_MAX_OBJECTS = 10  # the paper's map has 6 objects; MRCLAM 15 landmarks, the hallway 60-100 slots
@@ -102,7 +103,9 @@ class Profile:
         if self.close_loops is None:
             return None
         smoother = explicit.get("smoother")
-        if smoother is not None and str(smoother) != "full":
+        if isinstance(smoother, str):
+            smoother = parse_smoother(smoother)
+        if smoother is not None and not smoother.whole_trajectory:  # the search re-solves the whole graph
             return None
         return self.close_loops
 
