@@ -34,7 +34,8 @@ loop-closing re-detection right, the runs where some kept component does, and th
 ``--loop-threshold X`` sets its least log odds of a closure against the component searched
 (``LoopClosureSettings.threshold``, default 0; -5.01 = -log 150 adds every closure the hybrid
 belief's pruning would keep); ``--loop-misses point`` charges its negative information at the point
-estimate (``LoopClosureSettings.misses``; default ``marginal``). ``--prune-ratio R`` sets the hybrid belief's pruning ratio (default 150, the
+estimate (``LoopClosureSettings.misses``; default ``marginal``); ``--capacity N`` sets the hybrid
+belief's and ``multimodal``'s components (default 16). ``--prune-ratio R`` sets the hybrid belief's pruning ratio (default 150, the
 paper's, Sec. V).
 """
 
@@ -84,6 +85,7 @@ SETTINGS: dict[str, dict] = {
 NEW_LANDMARK = "density"  # main(new_landmark=...): every estimator's rule for a new object (.novelty)
 LOOPS = LoopClosureSettings()  # main(loop_threshold=...): the settings of loop closure during the run
 PRUNE_RATIO: float | None = None  # main(prune_ratio=...): the hybrid belief's (None: its default, Sec. V's 150)
+CAPACITY: int | None = None  # main(capacity=...): the mixtures' components (None: SETTINGS', 16)
 SMOOTHER = "full"  # main(smoother=...): "full" (the papers' smoothers, the default) or "filter"
 # Not estimators of their own: the hybrid belief or multimodal with loop closure during the run
 # (merge hypotheses added between steps, hybridslam.estimators.loop_online; full smoother only).
@@ -95,9 +97,11 @@ def estimator(name: str, max_detections: int | None = None) -> AbstractEstimator
     """Estimator ``name`` with the study's :data:`SETTINGS` and :data:`SMOOTHER`; ``max_detections`` pads
     every step to that many detection slots (``None``: the scenario's largest step)."""
     base = name.removesuffix(LOOPS_SUFFIX) if name in ONLINE_NAMES else name
-    extra = {"prune_ratio": PRUNE_RATIO} if base == "hybrid" and PRUNE_RATIO is not None else {}
+    extra: dict = {"prune_ratio": PRUNE_RATIO} if base == "hybrid" and PRUNE_RATIO is not None else {}
+    if CAPACITY is not None and "capacity" in SETTINGS.get(base, {}):
+        extra["capacity"] = CAPACITY
     return make_estimator(base, max_detections=max_detections, smoother=SMOOTHER, new_landmark=NEW_LANDMARK,
-                          **SETTINGS.get(base, {}), **extra)
+                          **{**SETTINGS.get(base, {}), **extra})
 
 
 def _scenario(folder: str, trace: float, seed: int, steps: int | None):
@@ -315,9 +319,9 @@ def plot_examples(folder: str, records: list[dict], estimators: list[str]) -> st
 def main(output: str = os.path.join("runs", "hallway"), seeds: int = 3, estimators=DEFAULT_ESTIMATORS,
          levels=hallway.LEVELS, steps: int | None = None, smoother: str = "full", first_seed: int = 0,
          new_landmark: str = "density", loop_threshold: float = 0.0, loop_tries: int = 8,
-         prune_ratio: float | None = None, loop_misses: str = "marginal") -> list[dict]:
-    global SMOOTHER, NEW_LANDMARK, LOOPS, PRUNE_RATIO
-    SMOOTHER, NEW_LANDMARK, PRUNE_RATIO = smoother, new_landmark, prune_ratio
+         prune_ratio: float | None = None, loop_misses: str = "marginal", capacity: int | None = None) -> list[dict]:
+    global SMOOTHER, NEW_LANDMARK, LOOPS, PRUNE_RATIO, CAPACITY
+    SMOOTHER, NEW_LANDMARK, PRUNE_RATIO, CAPACITY = smoother, new_landmark, prune_ratio, capacity
     LOOPS = LoopClosureSettings(threshold=loop_threshold, tries=loop_tries, misses=loop_misses)
     estimators, levels = list(estimators), [float(t) for t in levels]
     unknown = [n for n in estimators if n not in ESTIMATORS and n not in ONLINE_NAMES]
@@ -368,6 +372,8 @@ if __name__ == "__main__":
                              "counted at the point estimate (point)")
     parser.add_argument("--prune-ratio", type=float, default=None,
                         help="the hybrid belief's: drop components below w_max / R (default: 150, the paper's)")
+    parser.add_argument("--capacity", type=int, default=None,
+                        help="the hybrid belief's and multimodal's components (default 16)")
     a = parser.parse_args()
     main(a.output, a.seeds, a.estimators.split(","), [float(t) for t in a.levels.split(",")], a.steps, a.smoother,
-         a.first_seed, a.new_landmark, a.loop_threshold, a.loop_tries, a.prune_ratio, a.loop_misses)
+         a.first_seed, a.new_landmark, a.loop_threshold, a.loop_tries, a.prune_ratio, a.loop_misses, a.capacity)
