@@ -33,13 +33,8 @@ from jaxtyping import Array, Float
 
 from ..inference import smoother as sm
 from ..io.scenario import Scenario
+from ..models.geometry import range_bearing, range_bearing_jacobians
 from .loop_settings import LoopClosureSettings
-
-
-def _range_bearing(x: Float[Array, "3"], o: Float[Array, "2"]) -> Float[Array, "2"]:
-    d = o - x[:2]
-    bearing = jnp.arctan2(d[1], d[0]) - x[2]
-    return jnp.stack([jnp.hypot(d[0], d[1]), jnp.arctan2(jnp.sin(bearing), jnp.cos(bearing))])
 
 
 def in_view_probability(solution: sm.Solution, max_range: Float[Array, ""] | float,
@@ -53,10 +48,9 @@ def in_view_probability(solution: sm.Solution, max_range: Float[Array, ""] | flo
     half = jnp.asarray(fov) / 2
 
     def one(x, o, s_xx, s_xo, s_oo):
-        z = jnp.concatenate([x, o[:2]])
-        mean = _range_bearing(x, o[:2])
-        jac = jax.jacfwd(lambda z: _range_bearing(z[:3], z[3:]))(z)  # (2, 5)
-        joint = jnp.block([[s_xx, s_xo[:, :2]], [s_xo[:, :2].T, s_oo[:2, :2]]])
+        mean = range_bearing(x, o)  # Eq. 10's h^geo
+        jac = jnp.concatenate(range_bearing_jacobians(x, o), axis=1)  # (2, 6): pose, object
+        joint = jnp.block([[s_xx, s_xo], [s_xo.T, s_oo]])
         var = jnp.maximum(jnp.diagonal(jac @ joint @ jac.T), 1e-12)
         sd = jnp.sqrt(var)
         in_range = ndtr((max_range - mean[0]) / sd[0])
