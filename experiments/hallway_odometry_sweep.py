@@ -59,7 +59,7 @@ from hybridslam.analysis.recall import closure_recall
 from hybridslam.analysis.plot import plot_trajectory
 from hybridslam.estimators import ESTIMATORS, AbstractEstimator, make_estimator
 from hybridslam.estimators.loop_online import OnlineLoopClosure
-from hybridslam.estimators.loop_settings import LoopClosureSettings
+from hybridslam.estimators.loop_settings import MISS_MODELS, LoopClosureSettings
 from hybridslam.io.result import load_result, save_result
 from hybridslam.io.scenario import load_scenario, save_scenario
 from hybridslam.sim import hallway
@@ -319,7 +319,8 @@ def plot_examples(folder: str, records: list[dict], estimators: list[str]) -> st
 def main(output: str = os.path.join("runs", "hallway"), seeds: int = 3, estimators=DEFAULT_ESTIMATORS,
          levels=hallway.LEVELS, steps: int | None = None, smoother: str = "full", first_seed: int = 0,
          new_landmark: str = "density", loop_threshold: float = 0.0, loop_tries: int = 8,
-         prune_ratio: float | None = None, loop_misses: str = "marginal", capacity: int | None = None) -> list[dict]:
+         prune_ratio: float | None = None, loop_misses: str = LoopClosureSettings.misses,
+         capacity: int | None = None) -> list[dict]:
     global SMOOTHER, NEW_LANDMARK, LOOPS, PRUNE_RATIO, CAPACITY
     SMOOTHER, NEW_LANDMARK, PRUNE_RATIO, CAPACITY = smoother, new_landmark, prune_ratio, capacity
     LOOPS = LoopClosureSettings(threshold=loop_threshold, tries=loop_tries, misses=loop_misses)
@@ -367,7 +368,7 @@ if __name__ == "__main__":
                         help="+loops: the least log odds of a closure against the component searched (default 0)")
     parser.add_argument("--loop-tries", type=int, default=8,
                         help="+loops: the merge sets re-solved and verified per round (default 8)")
-    parser.add_argument("--loop-misses", choices=("marginal", "point"), default="marginal",
+    parser.add_argument("--loop-misses", choices=MISS_MODELS, default=LoopClosureSettings.misses,
                         help="+loops: a miss weighed by how surely the object was in view (marginal, default) or "
                              "counted at the point estimate (point)")
     parser.add_argument("--prune-ratio", type=float, default=None,

@@ -146,3 +146,9 @@ def test_a_pair_without_a_finite_probability_takes_the_point_test():
     assert got == pytest.approx(want)
     point = loop_verify.misses(scenario, poses, objects, in_view, history, 2, dataclasses.replace(s, misses="point"))
     assert point == pytest.approx(math.log(1 - 0.9))  # object 0 from x_1 only
+    # the point test needs no probabilities (a solve skips them); the marginal one refuses to go without
+    assert loop_verify.misses(scenario, poses, objects, None, history, 2, dataclasses.replace(s, misses="point")) == point
+    assert not loop_misses.uses_marginal(dataclasses.replace(s, misses="point"))
+    assert not loop_misses.uses_marginal(dataclasses.replace(s, detection_probability=0.0))
+    with pytest.raises(ValueError, match="in_view"):
+        loop_verify.misses(scenario, poses, objects, None, history, 2, s)

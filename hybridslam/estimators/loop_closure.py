@@ -61,6 +61,7 @@ from . import smoothing_graph
 from .loop_merge import compact, pauses, reopen, used_slots
 from .loop_search import candidates, creating_ranges, log_bayes_factor, object_spans, search
 from .loop_settings import Closure
+from .loop_misses import uses_marginal
 from .loop_verify import Solver, judge, misses
 
 # The pass's settings and outcomes, documented (docs/api.md) as importable from here:
@@ -122,7 +123,7 @@ class _Solved:
     cost: float
     mean: np.ndarray
     cov: np.ndarray
-    in_view: np.ndarray  # (P, N): each pair's probability of being in view (loop_misses)
+    in_view: np.ndarray | None  # (P, N): each pair's probability of being in view (loop_misses), if needed
 
 
 def _start(scenario: Scenario, result: Result, settings: LoopClosureSettings, reopen_closures: bool):
@@ -142,7 +143,7 @@ def _start(scenario: Scenario, result: Result, settings: LoopClosureSettings, re
         if short > 0:
             extra = -(-short // 8) * 8
             problem = _problem(scenario, dataclasses.replace(top, classes=[*top.classes, *[-1] * extra]))
-    solver = Solver(problem.scenario, problem.log, settings.max_steps)
+    solver = Solver(problem.scenario, problem.log, settings.max_steps, uses_marginal(settings))
     history, classes = problem.history, problem.classes
     origin = np.arange(len(classes))  # each current object's index in the run's own numbering
     reopened = 0

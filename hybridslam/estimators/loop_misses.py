@@ -66,6 +66,12 @@ def in_view_probability(solution: sm.Solution, max_range: Float[Array, ""] | flo
         solution.poses, solution.objects, cov.poses, jnp.moveaxis(s_po, 2, 1), s_oo)
 
 
+def uses_marginal(settings: LoopClosureSettings) -> bool:
+    """Whether :func:`in_view_probability` is needed: the marginal test with a detection probability
+    (``settings`` decided by ``for_scenario``). A solve skips it otherwise."""
+    return settings.misses == "marginal" and bool(settings.detection_probability)
+
+
 def point_in_view(scenario: Scenario, poses: np.ndarray, objects: np.ndarray,
                   margin: tuple[float, float]) -> np.ndarray:
     """1 where object ``j`` lies inside the footprint of pose ``t`` by ``margin`` (m, rad) at the

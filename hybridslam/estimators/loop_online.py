@@ -55,7 +55,7 @@ from .loop_access import MergedComponent as MergedComponent
 from .loop_merge import compact, reopen
 from .loop_search import candidates, creating_ranges, log_bayes_factor, search
 from .loop_settings import LoopClosureSettings
-from .loop_misses import in_view_probability
+from .loop_misses import in_view_probability, uses_marginal
 from .loop_verify import judge, misses
 from .smoothing import FINAL_ATOL
 from .smoothing_graph import DataLog, graph, history_factors
@@ -63,17 +63,17 @@ from .smoothing_graph import DataLog, graph, history_factors
 
 @eqx.filter_jit
 def _solve(log: DataLog, model, history, classes, num_created, poses, objects, k, semantic: bool, realize: bool,
-           max_steps: int, max_range, fov):
+           max_steps: int, max_range, fov, marginal: bool):
     """A component's whole graph after ``k`` steps (the estimator's own: its semantic factors, class
     realizations where it has them), solved to the final tolerance: the trajectory, the marginal of
-    ``[x_k, objects]``, the cost, whether it converged and each (pose, object) pair's
-    :func:`~.loop_misses.in_view_probability` (one compile per run)."""
+    ``[x_k, objects]``, the cost, whether it converged and, where ``marginal``, each (pose, object)
+    pair's :func:`~.loop_misses.in_view_probability` (else ``None``; one compile per run)."""
     factors = history_factors(history, classes if realize else None)
     g = graph(log, factors, k, num_created, model.sensor, model.motion_cov, semantic, "sum")
     sol = sm.solve(g, poses, objects, max_steps=max_steps, cost_atol=FINAL_ATOL)
     mean, cov = sm.marginal(sol, k)
     ok = (sol.result == optx.RESULTS.successful) & jnp.all(jnp.isfinite(mean)) & jnp.all(jnp.isfinite(cov))
-    return sol.poses, mean, cov, sol.cost, ok, in_view_probability(sol, max_range, fov)
+    return sol.poses, mean, cov, sol.cost, ok, in_view_probability(sol, max_range, fov) if marginal else None
 
 
 def _renumber(history: np.ndarray, classes: np.ndarray, objects: np.ndarray, num: int, merges: dict[int, int]
@@ -205,15 +205,16 @@ class OnlineLoopClosure:
         semantic, realize = access.factors(b)
         assert self.scenario.discovery is not None  # checked on construction
         density = self.scenario.discovery.new_object_log_density
+        marginal = uses_marginal(settings)
 
         def solve(h, c, n, p, objects):
             out = _solve(belief.smoothing.log, belief.model, jnp.asarray(h), jnp.asarray(c),
                          jnp.asarray(n, jnp.int32), jnp.asarray(p), jnp.asarray(objects), jnp.asarray(k), semantic,
                          realize, access.max_steps, jnp.asarray(self.scenario.max_range, float),
-                         jnp.asarray(self.scenario.fov, float))
+                         jnp.asarray(self.scenario.fov, float), marginal)
             p2, m2, c2, cost, ok, in_view = jax.device_get(out)
             objects2 = np.asarray(m2)[3:].reshape(-1, 3)
-            missed = misses(self.scenario, np.asarray(p2), objects2, np.asarray(in_view), h[:k], n, settings)
+            missed = misses(self.scenario, np.asarray(p2), objects2, in_view, h[:k], n, settings)
             return np.asarray(p2), np.asarray(m2), np.asarray(c2), float(cost), bool(ok), missed
 
         # The component's own closures re-opened (the pass's reopen): each stretch of an object's

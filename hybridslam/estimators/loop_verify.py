@@ -23,38 +23,41 @@ from ..io.scenario import Scenario
 from ..models.model import model_from_scenario
 from . import smoothing_graph
 from .gaussian import chi2_gate
-from .loop_misses import in_view_probability, miss_log_likelihood, point_in_view
+from .loop_misses import in_view_probability, miss_log_likelihood, point_in_view, uses_marginal
 from .loop_settings import LoopClosureSettings, MergeScore
 
 
 @eqx.filter_jit
 def solve_graph(log: smoothing_graph.DataLog, model, history, poses, objects, num_created, max_steps: int,
-                max_range, fov):
-    """Solve the whole graph of ``history``: the solution, the marginal of ``[x_T, objects]`` and
-    each (pose, object) pair's :func:`~.loop_misses.in_view_probability` (one compile per shape)."""
+                max_range, fov, marginal: bool):
+    """Solve the whole graph of ``history``: the solution, the marginal of ``[x_T, objects]`` and,
+    where ``marginal``, each (pose, object) pair's :func:`~.loop_misses.in_view_probability`, else
+    ``None`` (one compile per shape)."""
     t = log.mask.shape[0]
     g = smoothing_graph.graph(log, smoothing_graph.history_factors(history), jnp.asarray(t), num_created, model.sensor,
                               model.motion_cov, semantic=False)
     sol = sm.solve(g, poses, objects, max_steps=max_steps)
     mean, cov = sm.marginal(sol, t)
-    in_view = in_view_probability(sol, max_range, fov)
+    in_view = in_view_probability(sol, max_range, fov) if marginal else None
     return sol.poses, sol.objects, sol.cost, mean, cov, sol.result == optx.RESULTS.successful, in_view
 
 
 class Solver:
     """:func:`solve_graph` for one run of ``scenario`` (its data ``log``; the history is an argument:
-    merges do not recompile). A call returns ``poses, objects, cost, mean, cov, converged, in_view``."""
+    merges do not recompile). A call returns ``poses, objects, cost, mean, cov, converged, in_view``
+    (``in_view`` ``None`` unless ``marginal``: :func:`~.loop_misses.uses_marginal`)."""
 
-    def __init__(self, scenario: Scenario, log: smoothing_graph.DataLog, max_steps: int):
+    def __init__(self, scenario: Scenario, log: smoothing_graph.DataLog, max_steps: int, marginal: bool):
         self._model = model_from_scenario(scenario.replace(discovery=None))
-        self._log, self._max_steps = log, max_steps
+        self._log, self._max_steps, self._marginal = log, max_steps, marginal
         self._footprint = (jnp.asarray(scenario.max_range, float), jnp.asarray(scenario.fov, float))
 
     def __call__(self, history, poses, objects, num_created):
         out = jax.device_get(solve_graph(self._log, self._model, jnp.asarray(history), jnp.asarray(poses),
                                          jnp.asarray(objects), jnp.asarray(num_created), self._max_steps,
-                                         *self._footprint))
-        return tuple(np.asarray(x) for x in out[:5]) + (bool(out[5]), np.asarray(out[6]))
+                                         *self._footprint, self._marginal))
+        in_view = None if out[6] is None else np.asarray(out[6])
+        return tuple(np.asarray(x) for x in out[:5]) + (bool(out[5]), in_view)
 
 
 def judge(log_bayes_factor: float, cost_rise: float, converged: bool, negative_information: float, merged: int,
@@ -75,23 +78,27 @@ def chi2_quantile(dof: int, probability: float) -> float:
     return dof * (1.0 - 2.0 / (9.0 * dof) + z * math.sqrt(2.0 / (9.0 * dof))) ** 3
 
 
-def misses(scenario: Scenario, poses: np.ndarray, objects: np.ndarray, in_view: np.ndarray, history: np.ndarray,
-           num: int, settings: LoopClosureSettings) -> float:
+def misses(scenario: Scenario, poses: np.ndarray, objects: np.ndarray, in_view: np.ndarray | None,
+           history: np.ndarray, num: int, settings: LoopClosureSettings) -> float:
     """The log-likelihood of the (step, object) pairs of a solved graph that were in view yet
     undetected (:func:`~.loop_misses.miss_log_likelihood`), ``P(in view)`` as ``settings.misses``
-    says: ``in_view`` (the solve's :func:`~.loop_misses.in_view_probability`) for ``"marginal"``,
+    says: ``in_view`` (the solve's :func:`~.loop_misses.in_view_probability`; ``None`` where
+    :func:`~.loop_misses.uses_marginal` is false) for ``"marginal"``,
     the solved ``poses (≥ T+1, 3)`` and ``objects (N, 3)`` with ``fov_margin`` for ``"point"`` (and
     for the pairs whose marginal probability is not finite)."""
     settings = settings.for_scenario(scenario)  # the file's detection probability where none is set
     if not settings.detection_probability:
         return 0.0
     t = history.shape[0]
-    if settings.misses == "marginal":
-        in_view = np.asarray(in_view, float)[: t + 1, :num]
-        if np.all(np.isfinite(in_view)):
-            return miss_log_likelihood(in_view, history, num, settings)
+    marginal = None
+    if uses_marginal(settings):
+        if in_view is None:
+            raise ValueError("misses: the marginal test needs the solve's in_view probabilities")
+        marginal = np.asarray(in_view, float)[: t + 1, :num]
+        if np.all(np.isfinite(marginal)):
+            return miss_log_likelihood(marginal, history, num, settings)
     # the point test, or where the solved covariance was not finite (a singular H) for those pairs
     point = point_in_view(scenario, poses[: t + 1], objects[:num], settings.fov_margin)
-    if settings.misses == "marginal":
-        point = np.where(np.isfinite(in_view), in_view, point)
+    if marginal is not None:
+        point = np.where(np.isfinite(marginal), marginal, point)
     return miss_log_likelihood(point, history, num, settings)
