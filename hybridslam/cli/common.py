@@ -16,10 +16,20 @@ from ..estimators import ESTIMATORS, make_estimator
 from ..estimators.base import AbstractEstimator
 from ..estimators.options import Option, option_help
 from ..estimators.options import clutter_density as _clutter_density
+from ..estimators.loop_settings import MISS_MODELS, LoopClosureSettings
 from ..estimators.registry import DEFAULT, estimator_options
 
 PROG = "hybridslam"
 CLASSIFIERS = ("mirror", "independent", "none")
+
+
+def add_misses_option(p: argparse.ArgumentParser, flag: str, what: str) -> None:
+    """``flag`` (``LoopClosureSettings.misses``): how an undetected (step, object) pair in view counts
+    against ``what`` (a merge, a closure)."""
+    p.add_argument(flag, choices=MISS_MODELS, default=LoopClosureSettings.misses,
+                   help=f"how a (step, object) pair in view yet undetected counts against {what}: marginal "
+                        "(default: weighed by how surely the object was in view, under the solved graph's "
+                        "covariance) or point (in view at the estimate, 0.5 m and 0.2 rad inside the edge)")
 
 
 class CLIError(Exception):

@@ -8,10 +8,10 @@ import math
 from ..analysis.map_error import map_error
 from ..analysis.trajectory import error_summary
 from ..estimators.loop_closure import close_loops
-from ..estimators.loop_settings import MISS_MODELS, LoopClosureSettings
+from ..estimators.loop_settings import LoopClosureSettings
 from ..io.result import load_result, save_result
 from ..io.scenario import load_scenario
-from .common import CLIError, add_result_format_option, check_writable, warn
+from .common import CLIError, add_misses_option, add_result_format_option, check_writable, warn
 
 
 def _errors(label: str, result, scenario) -> str:
@@ -73,8 +73,5 @@ def add_parser(sub) -> None:
     p.add_argument("--beam", type=int, default=LoopClosureSettings.beam,
                    help=f"partial merge sets kept by the search (default {LoopClosureSettings.beam}; "
                         "what it drops is counted and warned about)")
-    p.add_argument("--misses", choices=MISS_MODELS, default=LoopClosureSettings.misses,
-                   help="how a (step, object) pair in view yet undetected counts against a merge: marginal "
-                        "(default: weighed by how surely the object was in view, under the solved graph's "
-                        "covariance) or point (in view at the estimate, 0.5 m and 0.2 rad inside the edge)")
+    add_misses_option(p, "--misses", "a merge")
     p.set_defaults(func=cmd_close_loops)

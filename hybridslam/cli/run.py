@@ -11,7 +11,7 @@ from ..analysis.map_error import map_error
 from ..analysis.trajectory import error_summary
 from ..driver import run
 from ..estimators.base import AbstractEstimator, StepInfo
-from ..estimators.loop_settings import MISS_MODELS, LoopClosureSettings
+from ..estimators.loop_settings import LoopClosureSettings
 from ..estimators.profiles import LONG_RUN_STEPS, PROFILES, Profile, file_summary, recommended
 from ..io.result import ResultWriter, StepRecord
 from ..io.scenario import Scenario, ScenarioError, load_scenario
@@ -19,6 +19,7 @@ from .common import (
     CLASSIFIERS,
     CLIError,
     add_estimator_options,
+    add_misses_option,
     command_line_options,
     add_result_format_option,
     check_writable,
@@ -212,10 +213,7 @@ def add_parser(sub) -> None:
                         "loop closures (an object first seen more than GAP steps, default 20, after another's last "
                         "detection) and add what is found as a hypothesis (hybridslam.estimators.loop_online); "
                         "--profile auto adds it on larger unknown-map files with classes")
-    p.add_argument("--loop-misses", choices=MISS_MODELS, default=LoopClosureSettings.misses,
-                   help="loop closure: how a (step, object) pair in view yet undetected counts against a closure: "
-                        "marginal (default: weighed by how surely the object was in view, under the solved "
-                        "graph's covariance) or point (in view at the estimate, 0.5 m and 0.2 rad inside the edge)")
+    add_misses_option(p, "--loop-misses", "a loop closure")
     p.add_argument("--no-close-loops", action="store_true",
                    help="no loop closure during the run, where the settings chosen for the file would add it")
     p.add_argument("--profile", choices=PROFILES, default="auto",
