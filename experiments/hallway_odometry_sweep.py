@@ -36,7 +36,7 @@ loop-closing re-detection right, the runs where some kept component does, and th
 belief's pruning would keep); ``--loop-misses point`` charges its negative information at the point
 estimate (``LoopClosureSettings.misses``; default ``marginal``); ``--capacity N`` sets the hybrid
 belief's and ``multimodal``'s components (default 16). ``--prune-ratio R`` sets the hybrid belief's pruning ratio (default 150, the
-paper's, Sec. V).
+paper's, Sec. V); ``--merge-threshold D2`` merges its equivalent components (``Hybrid.merge_threshold``, default none).
 """
 
 from __future__ import annotations
@@ -86,6 +86,7 @@ NEW_LANDMARK = "density"  # main(new_landmark=...): every estimator's rule for a
 LOOPS = LoopClosureSettings()  # main(loop_threshold=...): the settings of loop closure during the run
 PRUNE_RATIO: float | None = None  # main(prune_ratio=...): the hybrid belief's (None: its default, Sec. V's 150)
 CAPACITY: int | None = None  # main(capacity=...): the mixtures' components (None: SETTINGS', 16)
+MERGE: float | None = None  # main(merge=...): the hybrid belief's Hybrid.merge_threshold (None: no merging)
 SMOOTHER = "full"  # main(smoother=...): "full" (the papers' smoothers, the default) or "filter"
 # Not estimators of their own: the hybrid belief or multimodal with loop closure during the run
 # (merge hypotheses added between steps, hybridslam.estimators.loop_online; full smoother only).
@@ -100,6 +101,8 @@ def estimator(name: str, max_detections: int | None = None) -> AbstractEstimator
     extra: dict = {"prune_ratio": PRUNE_RATIO} if base == "hybrid" and PRUNE_RATIO is not None else {}
     if CAPACITY is not None and "capacity" in SETTINGS.get(base, {}):
         extra["capacity"] = CAPACITY
+    if MERGE is not None and base == "hybrid":
+        extra["merge_threshold"] = MERGE
     return make_estimator(base, max_detections=max_detections, smoother=SMOOTHER, new_landmark=NEW_LANDMARK,
                           **{**SETTINGS.get(base, {}), **extra})
 
@@ -320,9 +323,9 @@ def main(output: str = os.path.join("runs", "hallway"), seeds: int = 3, estimato
          levels=hallway.LEVELS, steps: int | None = None, smoother: str = "full", first_seed: int = 0,
          new_landmark: str = "density", loop_threshold: float = 0.0, loop_tries: int = 8,
          prune_ratio: float | None = None, loop_misses: str = LoopClosureSettings.misses,
-         capacity: int | None = None) -> list[dict]:
-    global SMOOTHER, NEW_LANDMARK, LOOPS, PRUNE_RATIO, CAPACITY
-    SMOOTHER, NEW_LANDMARK, PRUNE_RATIO, CAPACITY = smoother, new_landmark, prune_ratio, capacity
+         capacity: int | None = None, merge: float | None = None) -> list[dict]:
+    global SMOOTHER, NEW_LANDMARK, LOOPS, PRUNE_RATIO, CAPACITY, MERGE
+    SMOOTHER, NEW_LANDMARK, PRUNE_RATIO, CAPACITY, MERGE = smoother, new_landmark, prune_ratio, capacity, merge
     LOOPS = LoopClosureSettings(threshold=loop_threshold, tries=loop_tries, misses=loop_misses)
     estimators, levels = list(estimators), [float(t) for t in levels]
     unknown = [n for n in estimators if n not in ESTIMATORS and n not in ONLINE_NAMES]
@@ -375,6 +378,9 @@ if __name__ == "__main__":
                         help="the hybrid belief's: drop components below w_max / R (default: 150, the paper's)")
     parser.add_argument("--capacity", type=int, default=None,
                         help="the hybrid belief's and multimodal's components (default 16)")
+    parser.add_argument("--merge-threshold", type=float, default=None,
+                        help="the hybrid belief's Hybrid.merge_threshold (squared Mahalanobis; default: none)")
     a = parser.parse_args()
     main(a.output, a.seeds, a.estimators.split(","), [float(t) for t in a.levels.split(",")], a.steps, a.smoother,
-         a.first_seed, a.new_landmark, a.loop_threshold, a.loop_tries, a.prune_ratio, a.loop_misses, a.capacity)
+         a.first_seed, a.new_landmark, a.loop_threshold, a.loop_tries, a.prune_ratio, a.loop_misses, a.capacity,
+         a.merge_threshold)

@@ -70,7 +70,8 @@ def test_a_registered_estimator_is_offered_with_its_options(monkeypatch):
 COMMON = {"classifier", "gn_max_steps", "max_detections", "max_steps", "smoother", "new_landmark"}
 TAKEN = {
     "hybrid": COMMON | {"capacity", "prune_ratio",
-               "gate", "weights", "samples", "visibility_temperature", "max_children", "exhaustive", "clutter"},
+               "gate", "weights", "samples", "visibility_temperature", "max_children", "exhaustive", "clutter",
+               "merge_threshold"},
     "ml": COMMON | {"gate", "gate_probability",
            "max_children", "clutter"},
     "multimodal": COMMON | {"capacity", "samples",
@@ -88,7 +89,7 @@ def test_the_commands_offer_the_flags_they_always_offered():
     offered = {o.flag for o in all_options(hs.ESTIMATORS).values() if o.command_line}
     assert offered == {"--samples", "--capacity", "--prune-ratio", "--weights", "--gate", "--max-children",
                        "--exhaustive", "--clutter", "--smoother", "--max-detections", "--max-steps",
-                       "--new-landmark"}
+                       "--new-landmark", "--merge-threshold"}
 
 
 @pytest.mark.parametrize("options, field, value", [

@@ -109,6 +109,8 @@ class StepInfo(eqx.Module):
     log_overflow: Int[Array, ""] = eqx.field(default_factory=_zero_int)  # detections beyond the smoother's factor budget
     # Most detections of the step unexplained by the best component (gating.contradicted).
     inconsistent: Bool[Array, ""] = eqx.field(default_factory=lambda: jnp.zeros((), bool))
+    # Components merged into a likelier one with the same Gaussian (the hybrid belief's merge_threshold).
+    merged: Int[Array, ""] = eqx.field(default_factory=_zero_int)
     details: Any = None  # estimator-specific diagnostics (e.g. the hybrid belief's per-component solver results)
 
     def warnings(self) -> list[str]:
@@ -135,7 +137,7 @@ def lacks_object_slots(mask: Bool[Array, " Dmax"], num_created: Int[Array, "*K"]
 
 _COUNTS = ("dropped_capacity", "dropped_budget", "dropped_mass", "visibility_ignored", "solver_failures",
            "is_failures", "skipped", "rejected", "unmapped", "object_overflow", "log_overflow",
-           "num_components", "inconsistent")
+           "num_components", "inconsistent", "merged")
 
 
 def _totals(info: StepInfo) -> dict[str, float]:
@@ -211,6 +213,9 @@ def messages(t: dict[str, float], per_step: bool) -> list[str]:
                    "the 1e-6 tail of its prediction) " + ("at this step" if per_step else f"at {n} step(s)")
                    + ": the pose belief contradicts the detections (a kidnapped robot, wrong odometry, a wrong map) "
                      "or they are spurious (--clutter)")
+    if (n := int(t["merged"])) > 0:
+        out.append(f"{n} component(s) merged into a likelier one with the same Gaussian (--merge-threshold): their weight "
+                   "kept, their association histories dropped")
     if (n := int(t["log_overflow"])) > 0:
         out.append(f"{n} detection(s) beyond the smoother's factor budget are not in its graph (the state was sized "
                    "for a scenario with fewer detections, in all or in a fixed-lag window; build it with max_steps "

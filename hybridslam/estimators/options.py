@@ -147,11 +147,15 @@ NEW_LANDMARK = Option(
                     "object lies beyond the squared Mahalanobis distance TAU, e.g. 9.21)",
     parse=new_landmark_text, metavar="{density,mahalanobis:TAU}", default="density")
 GN_MAX_STEPS = Option("gn_max_steps", "Gauss-Newton iteration budget of an update", command_line=False)
+MERGE_THRESHOLD = Option(
+    "merge_threshold", "squared Mahalanobis distance below which a component merges into a likelier one with the "
+                       "same objects (hybrid: and classes; their weights added; multimodal: moment-matched)",
+    parse=float, none="none, as in the paper's Algorithm 1")
 
 _SHOWN = {"new_landmark": _new_landmark_shown}  # shared options written their own way in the estimator text
 SHARED: dict[str, Option] = {o.name: o for o in (CAPACITY, SAMPLES, GATE, MAX_CHILDREN, CLUTTER, SMOOTHER,
                                                   MAX_DETECTIONS, MAX_STEPS, CLASSIFIER, GN_MAX_STEPS,
-                                                  NEW_LANDMARK)}
+                                                  NEW_LANDMARK, MERGE_THRESHOLD)}
 
 
 # --------------------------------------------------------------------------- #
@@ -281,5 +285,5 @@ def shown(estimator: Any, order: Sequence[str] | None) -> list[tuple[str, Callab
 
 
 __all__ = ["CAPACITY", "CLASSIFIER", "CLUTTER", "GATE", "GN_MAX_STEPS", "MAX_CHILDREN", "MAX_DETECTIONS", "MAX_STEPS",
-           "NEW_LANDMARK", "SAMPLES", "SHARED", "SMOOTHER", "Option", "Setting", "all_options", "clutter_density", "field_values",
+           "MERGE_THRESHOLD", "NEW_LANDMARK", "SAMPLES", "SHARED", "SMOOTHER", "Option", "Setting", "all_options", "clutter_density", "field_values",
            "option_help", "options_of", "setting", "value_text"]

@@ -47,7 +47,7 @@ TABLE = "table.csv"
 METRICS = ("entropy", "det_cov", "err_wmax", "err_wavg", "num_components")
 DIAGNOSTICS = ("num_components", "dropped_capacity", "dropped_budget", "dropped_mass", "visibility_ignored",
                "solver_failures", "is_failures", "min_ess", "skipped", "rejected", "unmapped", "object_overflow",
-               "inconsistent")
+               "inconsistent", "merged")
 ALPHA_COLUMNS = ("alpha", "model", "track", "seed", "step", *METRICS)
 FILE_COLUMNS = ("scenario", "model", "track", "step", *METRICS)
 

@@ -16,7 +16,7 @@ from ...models.classifier import ClassifierModel
 from ...models.measurement import Detections
 from ...models.model import NewObjects, model_from_scenario
 from .. import novelty
-from ..options import GATE, MAX_CHILDREN, SAMPLES, Option, setting
+from ..options import GATE, MAX_CHILDREN, MERGE_THRESHOLD, SAMPLES, Option, setting
 from ..smoothing import Full, Smoother, check_smoother
 from ..base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, detection_slots,
                     history_length, object_slots, resolve_clutter)
@@ -83,6 +83,12 @@ class Hybrid(AbstractEstimator):
     * ``new_landmark`` — an unknown map's rule for a new object: ``"density"`` (default: "new" is a
       hypothesis of the scenario's new-object density everywhere) or ``"mahalanobis:TAU"`` (thesis
       Sec. 3.2.1: "new" only where no known object lies within ``d² <= TAU``; :mod:`..novelty`);
+    * ``merge_threshold`` — ``None`` (default, Algorithm 1 as published): no merging; a squared Mahalanobis
+      distance: after each step every component merges into the likeliest component with the same
+      class realization and objects whose Gaussian holds its mean within that distance, their
+      weights added (:mod:`hybridslam.inference.merging`; counted in ``StepInfo.merged``). Repeated
+      readings of a landmark cluster otherwise fill the capacity with copies of one hypothesis
+      (docs/studies/mrclam_unfiltered.md);
     * ``gn_max_steps`` — Gauss-Newton iteration budget of the update (Eq. 9) and of the laplace-is
       mode search. 50: the semantic factors of a strongly viewpoint-dependent classifier make
       Gauss-Newton converge only linearly (the default study at alpha 0.5 has 4 of 263 mode
@@ -123,13 +129,16 @@ class Hybrid(AbstractEstimator):
     max_steps: int | None = eqx.field(default=None, static=True)
     visibility_temperature: float | tuple[float, float] | None = eqx.field(
         default=None, static=True, metadata=setting(VISIBILITY_TEMPERATURE))
+    merge_threshold: float | None = eqx.field(default=None, static=True, metadata=setting(
+        MERGE_THRESHOLD, show=lambda e: "" if e.merge_threshold is None else f"merge_threshold={e.merge_threshold:g}"))
     batch_axis: str | None = eqx.field(default=None, static=True)
 
     name: ClassVar[str] = "hybrid"
     title: ClassVar[str] = "hybrid belief"
     reference: ClassVar[str] = "Tchuiev et al. 2019, Alg. 1"
     init_settings = ("prune_ratio", "clutter", "new_landmark", "classifier", "visibility_temperature")
-    described = ("weights", "capacity", "prune_ratio", "gate", "branching", "clutter", "new_landmark", "smoother")
+    described = ("weights", "capacity", "prune_ratio", "gate", "branching", "clutter", "new_landmark", "merge_threshold",
+                 "smoother")
 
     def __check_init__(self):
         if not isinstance(self.branching, (Exhaustive, Beam)):
@@ -149,6 +158,11 @@ class Hybrid(AbstractEstimator):
         _positive_int("max_steps", self.max_steps, allow_none=True)
         if not (isinstance(self.prune_ratio, (int, float)) and self.prune_ratio >= 1.0):
             raise ValueError(f"Hybrid.prune_ratio: must be >= 1, got {self.prune_ratio!r}")
+        d2 = self.merge_threshold
+        if d2 is not None and not (isinstance(d2, (int, float)) and not isinstance(d2, bool) and math.isfinite(d2)
+                                   and d2 >= 0):
+            raise ValueError(f"Hybrid.merge_threshold: expected a non-negative squared Mahalanobis distance or None, "
+                             f"got {d2!r}")
         if self.batch_axis is not None and not isinstance(self.batch_axis, str):
             raise ValueError(f"Hybrid.batch_axis: expected a vmap axis name (str) or None, got {self.batch_axis!r}")
 

@@ -32,6 +32,7 @@ from ...config import x64_enabled
 from ...inference.batching import map_distinct, map_live, smoothing_chunk
 from ...inference.discovery import create_objects
 from ...inference.gating import contradicted, gate, mahalanobis
+from ...inference.merging import merge_equivalent
 from ...inference.update import gauss_newton_update
 from ...inference.ties import best_slot
 from ...models.measurement import Detections
@@ -65,6 +66,8 @@ class HybridSettings(Protocol):
     def smoother(self) -> Smoother: ...
     @property
     def batch_axis(self) -> str | None: ...
+    @property
+    def merge_threshold(self) -> float | None: ...
 
 
 class HybridDetails(eqx.Module):
@@ -75,6 +78,7 @@ class HybridDetails(eqx.Module):
     solver_result: optx.RESULTS  # Gauss-Newton outcome per component (Eq. 9)
     ess: Float[Array, " K"]  # normalized effective sample size of each kept weight (1 = exact; NaN if empty)
     smoothings: Int[Array, ""]  # distinct factor graphs smoothed this step (0 with the filter)
+    merged_into: Int[Array, " K"] | None = None  # each slot's survivor (itself if kept) with merge_threshold
 
 
 def _realize(classes: Int[Array, " N"], assign: Int[Array, " Dmax"], slot_class: Int[Array, " Dmax"], new):
@@ -348,6 +352,16 @@ def hybrid_step(
     new_mean = jnp.where(alive[:, None], new_mean, new_mean[:1])
     new_cov = jnp.where(alive[:, None, None], new_cov, new_cov[:1])
     kept = kept.where(alive, kept.components(slice(0, 1)))
+    merged_into, num_merged = None, jnp.zeros((), jnp.int32)
+    if settings.merge_threshold is not None:
+        # Copies of one hypothesis (same classes and objects, the same Gaussian) become one, their
+        # weights added: the freed slots go to the next step's alternatives (inference.merging).
+        same = jnp.all(classes[:, None] == classes[None, :], axis=-1)
+        if num_created is not None:
+            same &= num_created[:, None] == num_created[None, :]
+        new_log_w, merged_into, num_merged = merge_equivalent(new_log_w, new_mean, new_cov, same,
+                                                              settings.merge_threshold)
+        alive = new_log_w > -jnp.inf  # a merged slot is empty (its Gaussian stays finite for the batched math)
 
     new_belief = Belief(
         log_weights=new_log_w,
@@ -391,6 +405,7 @@ def hybrid_step(
         min_ess=jnp.where(visibility_ignored | ~jnp.any(alive), jnp.nan, jnp.min(jnp.where(alive, kept_ess, jnp.inf))),
         log_overflow=new_overflow(belief.smoothing.log, kept.log),
         object_overflow=_lacks_object_slots(belief, detections) if discovery else jnp.zeros((), bool),
-        details=HybridDetails(stats, parent, result, kept_ess, num_smoothed),
+        merged=num_merged,
+        details=HybridDetails(stats, parent, result, kept_ess, num_smoothed, merged_into),
     )
     return new_belief, info

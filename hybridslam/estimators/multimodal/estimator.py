@@ -19,7 +19,7 @@ from ...models.model import model_from_scenario
 from .. import novelty
 from ..base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, detection_slots,
                     history_length, object_slots, resolve_clutter)
-from ..options import GATE, MAX_CHILDREN, Option, setting
+from ..options import GATE, MAX_CHILDREN, MERGE_THRESHOLD, Option, setting
 from ..smoothing import Full, Smoother, check_smoother
 from .state import (ASSOCIATION_PRIORS, DEFAULT_CANDIDATES, DEFAULT_MERGE_THRESHOLD, DEFAULT_SAMPLES,
                     PROPOSALS, Params, State, Structure)
@@ -56,8 +56,7 @@ class Multimodal(AbstractEstimator):
         MAX_CHILDREN, note="children that get a Gauss-Newton update, default 2 x capacity",
         show=lambda e: f"children={2 * e.capacity if e.children is None else e.children}"))
     merge_threshold: float = eqx.field(default=DEFAULT_MERGE_THRESHOLD, static=True, metadata=setting(
-        Option("merge_threshold", "squared Mahalanobis distance below which components merge", parse=float,
-               command_line=False), show=lambda e: f"merge_threshold={e.merge_threshold}"))
+        MERGE_THRESHOLD, show=lambda e: f"merge_threshold={e.merge_threshold}"))
     max_assignments: int | None = eqx.field(default=64, static=True, metadata=setting(show=False))
     association_prior: str = eqx.field(default="mc", static=True, metadata=setting(
         Option("association_prior", "mc (thesis Eq. 5.11) or uniform", parse=str, command_line=False)))
