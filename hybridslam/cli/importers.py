@@ -5,7 +5,7 @@
         [--robot-prior-cov a,b,c] [--correct-range-bias] [--no-motion-compensation] [--odometry-delay S]
         [--measurement-noise-from {written,raw}] [--motion-noise-from {steps,drift}]
         [--identity-filter] [--merge-repeats] [--object-slots N] [--clutter-log-density {D,none}]
-        [--unmapped-objects N]
+        [--unmapped-objects N] [--new-object-log-density D]
     hybridslam import kitti-tracking DIR --sequence N -o FILE [--unknown-map] [--every E]
         [--odometry {noisy-truth,orbslam3}] [--max-range R] [--fov F] [--min-logit L] (docs/studies/kitti.md)
 
@@ -143,7 +143,8 @@ def cmd_import_mrclam(args: argparse.Namespace) -> int:
         odometry_delay=args.odometry_delay, max_objects=args.max_objects,
         measurement_noise_from=args.measurement_noise_from, motion_noise_from=args.motion_noise_from,
         identity_filter=args.identity_filter, merge_repeats=args.merge_repeats,
-        clutter_log_density=args.clutter_log_density, unmapped_objects=args.unmapped_objects, **covs),
+        clutter_log_density=args.clutter_log_density, unmapped_objects=args.unmapped_objects,
+        new_object_log_density=args.new_object_log_density, **covs),
         MRCLAMError, mrclam_summary)
 
 
@@ -182,6 +183,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     m.add_argument("--unmapped-objects", type=int, default=0, metavar="N",
                    help="known map: room for N objects the survey does not hold (another robot standing still, "
                         "read at every step, is one; a discovery section beside the landmarks; default 0)")
+    m.add_argument("--new-object-log-density", type=float, default=None, metavar="D",
+                   help="discovery.new_object_log_density written with --unknown-map or --unmapped-objects: the "
+                        "log density over [range, bearing] of a new object's detection, its prior probability "
+                        "included (default: -log(max_range * fov), uniform over the footprint)")
     m.add_argument("--identity-filter", action="store_true",
                    help="oracle-assisted: keep only readings whose barcode names a landmark, one per landmark "
                         "and step (the barcodes are identities the estimators are meant not to know)")
