@@ -716,6 +716,13 @@ def test_unmapped_objects_keep_the_map_and_add_room_beside_it(tmp_path):
     out = tmp_path / "r1.json"
     assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out), "--unmapped-objects", "4"]) == 0
     assert hs.load_scenario(out).discovery.max_objects == 19
+    # --new-object-log-density writes the density those objects' detections get (a rarer source
+    # than the footprint's uniform density), and a bad value names the field.
+    assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out), "--unmapped-objects", "4",
+                     "--new-object-log-density", "-6"]) == 0
+    assert hs.load_scenario(out).discovery.new_object_log_density == -6.0
+    assert cli.main(["import", "mrclam", DATA, "--robot", "1", "-o", str(out), "--unmapped-objects", "4",
+                     "--new-object-log-density", "inf"]) == 2
     with pytest.raises(MRCLAMError, match="unmapped_objects: room for objects beside a known map"):
         import_mrclam(DATA, 1, unknown_map=True, unmapped_objects=4)
     with pytest.raises(MRCLAMError, match="unmapped_objects: expected a non-negative integer"):
