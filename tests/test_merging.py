@@ -38,6 +38,14 @@ def test_squared_distances_are_mahalanobis_under_the_second_component():
     np.testing.assert_allclose(d2, [[0.0, 1 / 0.25 + 4 / 1.0], [1 / 1.0 + 4 / 4.0, 0.0]])
 
 
+def test_headings_across_pi_are_close():
+    """A heading of π − 0.01 and one of −π + 0.01 are 0.02 rad apart, not 2π − 0.02."""
+    mean = np.array([[0.0, 0.0, np.pi - 0.01], [0.0, 0.0, -np.pi + 0.01]])
+    cov = np.tile(np.diag([1.0, 1.0, 0.01]), (2, 1, 1))
+    d2 = np.asarray(squared_distances(jnp.asarray(mean), jnp.asarray(cov)))
+    np.testing.assert_allclose(d2, [[0.0, 0.04], [0.04, 0.0]], atol=1e-9)
+
+
 def test_copies_become_one_component_with_their_summed_weight():
     """Three copies of one Gaussian and a distinct one: the copies merge into the likeliest (its
     weight their sum), the distinct one stays, the total mass is unchanged."""

@@ -35,15 +35,21 @@ from jax.scipy.special import logsumexp
 from jaxtyping import Array, Bool, Float, Int
 
 from .ties import rank_key
+from .update import wrap_angles
+
+
+def mahalanobis_to(chol: Float[Array, "D D"], centre: Float[Array, " D"], means: Float[Array, "C D"]) -> Float[Array, " C"]:
+    """``(μ_c − centre)ᵀ Σ⁻¹ (μ_c − centre)`` for each row of ``means``, ``Σ = chol cholᵀ`` (angles of
+    the differences wrapped to (-π, π]: a heading is on the circle)."""
+    diff = jax.vmap(wrap_angles)(means - centre[None, :])
+    z = jax.scipy.linalg.solve_triangular(chol, diff.T, lower=True)
+    return jnp.sum(z**2, axis=0)
 
 
 def squared_distances(mean: Float[Array, "K D"], cov: Float[Array, "K D D"]) -> Float[Array, "K K"]:
     """``d2[i, j] = (μ_i − μ_j)ᵀ Σ_j⁻¹ (μ_i − μ_j)``: component ``i``'s mean under ``j``'s Gaussian
     (dimensionless; ``inf`` where ``Σ_j`` has no Cholesky factor)."""
-    chol = jnp.linalg.cholesky(cov)  # (K, D, D)
-    diff = mean[:, None, :] - mean[None, :, :]  # (i, j, D)
-    white = jax.vmap(lambda L, d: jax.scipy.linalg.solve_triangular(L, d.T, lower=True).T, (0, 1), 1)(chol, diff)
-    d2 = jnp.sum(white**2, axis=-1)
+    d2 = jax.vmap(mahalanobis_to, (0, 0, None))(jnp.linalg.cholesky(cov), mean, mean).T  # row j -> column j
     return jnp.where(jnp.isfinite(d2), d2, jnp.inf)
 
 

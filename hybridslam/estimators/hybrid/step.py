@@ -78,7 +78,6 @@ class HybridDetails(eqx.Module):
     solver_result: optx.RESULTS  # Gauss-Newton outcome per component (Eq. 9)
     ess: Float[Array, " K"]  # normalized effective sample size of each kept weight (1 = exact; NaN if empty)
     smoothings: Int[Array, ""]  # distinct factor graphs smoothed this step (0 with the filter)
-    merged_into: Int[Array, " K"] | None = None  # each slot's survivor (itself if kept) with merge_threshold
 
 
 def _realize(classes: Int[Array, " N"], assign: Int[Array, " Dmax"], slot_class: Int[Array, " Dmax"], new):
@@ -352,15 +351,14 @@ def hybrid_step(
     new_mean = jnp.where(alive[:, None], new_mean, new_mean[:1])
     new_cov = jnp.where(alive[:, None, None], new_cov, new_cov[:1])
     kept = kept.where(alive, kept.components(slice(0, 1)))
-    merged_into, num_merged = None, jnp.zeros((), jnp.int32)
+    num_merged = jnp.zeros((), jnp.int32)
     if settings.merge_threshold is not None:
         # Copies of one hypothesis (same classes and objects, the same Gaussian) become one, their
         # weights added: the freed slots go to the next step's alternatives (inference.merging).
         same = jnp.all(classes[:, None] == classes[None, :], axis=-1)
         if num_created is not None:
             same &= num_created[:, None] == num_created[None, :]
-        new_log_w, merged_into, num_merged = merge_equivalent(new_log_w, new_mean, new_cov, same,
-                                                              settings.merge_threshold)
+        new_log_w, _, num_merged = merge_equivalent(new_log_w, new_mean, new_cov, same, settings.merge_threshold)
         alive = new_log_w > -jnp.inf  # a merged slot is empty (its Gaussian stays finite for the batched math)
 
     new_belief = Belief(
@@ -406,6 +404,6 @@ def hybrid_step(
         log_overflow=new_overflow(belief.smoothing.log, kept.log),
         object_overflow=_lacks_object_slots(belief, detections) if discovery else jnp.zeros((), bool),
         merged=num_merged,
-        details=HybridDetails(stats, parent, result, kept_ess, num_smoothed, merged_into),
+        details=HybridDetails(stats, parent, result, kept_ess, num_smoothed),
     )
     return new_belief, info

@@ -6,10 +6,10 @@ from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
-import jax.scipy.linalg as jsl
 from jaxtyping import Array, Bool, Float, Int
 
 from ...inference.laplace import logsumexp_or_minus_inf
+from ...inference.merging import mahalanobis_to
 from ...inference.ties import best_slot
 from ...inference.update import wrap_angles
 
@@ -17,12 +17,6 @@ from ...inference.update import wrap_angles
 # --------------------------------------------------------------------------- #
 # Reduction: greedy moment-matching merging (no mode is dropped)
 # --------------------------------------------------------------------------- #
-
-
-def _mahalanobis2(chol: Float[Array, "D D"], centre: Float[Array, " D"], means: Float[Array, "C D"]) -> Float[Array, " C"]:
-    diff = jax.vmap(wrap_angles)(means - centre[None, :])
-    z = jsl.solve_triangular(chol, diff.T, lower=True)
-    return jnp.sum(z**2, axis=0)
 
 
 def cluster(
@@ -71,14 +65,14 @@ def clustered(
         c = best_slot(jnp.where(free & centre_ok, log_w, -jnp.inf))  # of tied ones, the first
         # Only the centres' factors are needed: K of them, not C.
         cov_c = cov_of(c)
-        d2 = _mahalanobis2(jnp.linalg.cholesky(cov_c), mean[c], mean)
+        d2 = mahalanobis_to(jnp.linalg.cholesky(cov_c), mean[c], mean)
         close = free & (num_created == num_created[c]) & (d2 <= threshold)
         close = close | (jnp.arange(owner.shape[0]) == c)
         return jnp.where(close & jnp.any(free & centre_ok), r, owner), (c, jnp.any(free & centre_ok), d2, cov_c)
 
     owner, (centres, used, full_d2, centre_cov) = jax.lax.scan(round_, jnp.full(log_w.shape, -1),
                                                                jnp.arange(capacity))
-    pose_d2 = jax.vmap(_mahalanobis2, (0, 0, None))(pose_chol[centres], mean[centres, :3], mean[:, :3])
+    pose_d2 = jax.vmap(mahalanobis_to, (0, 0, None))(pose_chol[centres], mean[centres, :3], mean[:, :3])
     comparable = used[:, None] & (num_created[centres][:, None] == num_created[None, :])
     has_full = jnp.any(comparable, axis=0)
     nearest = jnp.where(has_full, jnp.argmin(jnp.where(comparable, full_d2, jnp.inf), axis=0),
