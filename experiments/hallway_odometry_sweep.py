@@ -30,7 +30,7 @@ loop-closing re-detection right, the runs where some kept component does, and th
 
 ``--estimators`` also takes ``hybrid+loops`` and ``multimodal+loops``: the hybrid belief or
 ``multimodal`` with loop closure during the run
-(:class:`hybridslam.estimators.loop_online.OnlineLoopClosure`, the pass's default settings);
+(:class:`hybridslam.estimators.loops.online.OnlineLoopClosure`, the pass's default settings);
 ``--loop-threshold X`` sets its least log odds of a closure against the component searched
 (``LoopClosureSettings.threshold``, default 0; -5.01 = -log 150 adds every closure the hybrid
 belief's pruning would keep); ``--loop-misses point`` charges its negative information at the point
@@ -58,8 +58,8 @@ from hybridslam.analysis.map_error import map_error
 from hybridslam.analysis.recall import closure_recall
 from hybridslam.analysis.plot import plot_trajectory
 from hybridslam.estimators import ESTIMATORS, AbstractEstimator, make_estimator
-from hybridslam.estimators.loop_online import OnlineLoopClosure
-from hybridslam.estimators.loop_settings import MISS_MODELS, LoopClosureSettings
+from hybridslam.estimators.loops.online import OnlineLoopClosure
+from hybridslam.estimators.loops.settings import MISS_MODELS, LoopClosureSettings
 from hybridslam.io.result import load_result, save_result
 from hybridslam.io.scenario import load_scenario, save_scenario
 from hybridslam.sim import hallway
@@ -89,7 +89,7 @@ CAPACITY: int | None = None  # main(capacity=...): the mixtures' components (Non
 MERGE: float | None = None  # main(merge=...): the hybrid belief's Hybrid.merge_threshold (None: no merging)
 SMOOTHER = "full"  # main(smoother=...): "full" (the papers' smoothers, the default) or "filter"
 # Not estimators of their own: the hybrid belief or multimodal with loop closure during the run
-# (merge hypotheses added between steps, hybridslam.estimators.loop_online; full smoother only).
+# (merge hypotheses added between steps, hybridslam.estimators.loops.online; full smoother only).
 LOOPS_SUFFIX = "+loops"
 ONLINE_NAMES = ("hybrid+loops", "multimodal+loops")
 

@@ -81,8 +81,7 @@ from hybridslam.analysis import trajectory
 from hybridslam.analysis.map_error import map_error, majority
 from hybridslam.analysis.plot import plot_trajectory
 from hybridslam.estimators import ESTIMATORS, AbstractEstimator, make_estimator
-from hybridslam.estimators.smoothers import parse_smoother
-from hybridslam.estimators.smoothing import Lag
+from hybridslam.estimators.smoothers import Lag, parse_smoother
 from hybridslam.datasets.mrclam import import_mrclam
 from hybridslam.datasets.mrclam_calibration import compose
 from hybridslam.datasets.mrclam_files import MRCLAMError

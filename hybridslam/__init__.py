@@ -51,10 +51,10 @@ from .estimators import recommended as recommended
 from .estimators.hybrid.branching import Beam as Beam
 from .estimators.hybrid.branching import Exhaustive as Exhaustive
 from .estimators.hybrid.weighers import make_weigher as make_weigher
-from .estimators.smoothing import Filter as Filter
-from .estimators.smoothing import Full as Full
-from .estimators.smoothing import Incremental as Incremental
-from .estimators.smoothing import Lag as Lag
+from .estimators.smoothers import Filter as Filter
+from .estimators.smoothers import Full as Full
+from .estimators.smoothers import Incremental as Incremental
+from .estimators.smoothers import Lag as Lag
 from .estimators.hybrid.belief import Belief as Belief
 from .estimators.hybrid.belief import Priors as Priors
 from .estimators.hybrid.belief import priors_from_scenario as priors_from_scenario

@@ -194,7 +194,7 @@ def run(
     the info's warnings). ``between_steps(k, state)``, if given, returns the state the next step
     starts from, after step ``k`` (1-based, not the last) and its record: a host-side edit of the
     same shapes, e.g.
-    :class:`hybridslam.estimators.loop_online.OnlineLoopClosure`. The same estimator, scenario and
+    :class:`hybridslam.estimators.loops.online.OnlineLoopClosure`. The same estimator, scenario and
     seed give the same result.
 
     ``keep_associations=False``: each record (the one ``on_step`` gets and the one returned) holds

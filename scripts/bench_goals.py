@@ -69,7 +69,7 @@ import hybridslam as hs
 from hybridslam import compilation
 from hybridslam.analysis.trajectory import error_summary
 from hybridslam.driver import clear_compiled
-from hybridslam.estimators.smoothing import Filter, Full
+from hybridslam.estimators.smoothers import Filter, Full
 from hybridslam.sim import hallway
 from hybridslam.studies import study
 

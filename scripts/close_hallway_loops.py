@@ -1,9 +1,9 @@
-"""The loop-closure pass (:mod:`hybridslam.estimators.loop_closure`) over a finished hallway study.
+"""The loop-closure pass (:mod:`hybridslam.estimators.loops.closure`) over a finished hallway study.
 
 For every estimator of the study and every scenario: the smoothed trajectory's last-pose error and
 APE and the map error (:func:`~hybridslam.analysis.map_error.map_error`: each object against the true
 landmark most of its detections are of) before and after
-:func:`~hybridslam.estimators.loop_closure.close_loops`, and how many of its merges join two objects
+:func:`~hybridslam.estimators.loops.closure.close_loops`, and how many of its merges join two objects
 whose detections are mostly of the same true landmark (right) or not (wrong). Then the means per
 estimator.
 
@@ -14,7 +14,7 @@ estimator.
 true associations except that landmarks re-detected after ``--gap`` steps are new objects
 (:func:`hybridslam.analysis.consistency.gated_oracle_result`, what a gated one-step association
 that made no other mistake leaves at the loop), then the same pass. It also prints how the pass's
-model judges the *true* merge set (:func:`~hybridslam.estimators.loop_closure.score_merges`): its log
+model judges the *true* merge set (:func:`~hybridslam.estimators.loops.closure.score_merges`): its log
 posterior odds against no merge, whether its re-solved cost passes verification, and the score of the
 pass's own first choice, so that a search that missed the truth can be told from data that do not
 favour it.
@@ -32,8 +32,8 @@ import numpy as np
 from hybridslam.analysis import consistency
 from hybridslam.analysis.map_error import map_error, object_landmarks
 from hybridslam.analysis.trajectory import error_summary
-from hybridslam.estimators.loop_closure import close_loops, score_merges
-from hybridslam.estimators.loop_settings import MISS_MODELS, LoopClosureSettings
+from hybridslam.estimators.loops.closure import close_loops, score_merges
+from hybridslam.estimators.loops.settings import MISS_MODELS, LoopClosureSettings
 from hybridslam.io.result import load_result
 from hybridslam.io.scenario import load_scenario
 from hybridslam.config import setup

@@ -280,7 +280,7 @@ def test_a_long_file_under_the_full_smoother_gets_a_note_naming_the_bounded_opti
     import dataclasses
 
     from hybridslam.cli.run import LONG_RUN_STEPS, long_run_note
-    from hybridslam.estimators.smoothing import Filter, Incremental, Lag
+    from hybridslam.estimators.smoothers import Filter, Incremental, Lag
 
     one = hs.simulate(0, steps=1)  # the note reads the step count only
     long, short = (dataclasses.replace(one, steps=one.steps * n) for n in (LONG_RUN_STEPS + 1, LONG_RUN_STEPS))

@@ -1,4 +1,4 @@
-"""The smoother's data log (``estimators.smoothing_graph.DataLog``): one measurement factor per detection.
+"""The smoother's data log (``estimators.smoothers.factors.DataLog``): one measurement factor per detection.
 
 The full smoother's graph lists the detections received, not the padded ``(steps, slots)`` grid:
 the same graph with fewer rows. Checked here against the padded layout at the level that matters,
@@ -18,7 +18,7 @@ import pytest
 import hybridslam as hs
 from hybridslam.driver import inputs_from_scenario
 from hybridslam.estimators.base import StepInfo, _totals, messages
-from hybridslam.estimators.smoothing_graph import (Factors, WindowPrior, data_log, factor_budget, graph,
+from hybridslam.estimators.smoothers.factors import (Factors, WindowPrior, data_log, factor_budget, graph,
                                                    history_factors, new_overflow, scenario_log, window_factor_budget,
                                                    window_graph)
 from hybridslam.inference import smoother as sm

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from hybridslam.estimators import loop_misses, loop_settings
+from hybridslam.estimators.loops import misses as loop_misses, settings as loop_settings
 from hybridslam.io.scenario import ScenarioError, parse_scenario, scenario_to_json
 from hybridslam.sim.hallway import hallway
 

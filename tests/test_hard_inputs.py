@@ -30,7 +30,7 @@ from hybridslam.io.scenario import Classifier, Detection, Discovery, Scenario, S
 STEPS, SLOTS, OBJECTS = 6, 12, 4
 ESTIMATORS = ("hybrid", "ml", "gpda", "max-mixture", "multimodal")
 # The mixtures filter here: their smoother compiles for minutes at 12 detection slots, and the smoother's
-# non-finite fallback (estimators/smoothing.py) is shared with ml and max-mixture, which smooth: one per
+# non-finite fallback (estimators/smoothers/kinds.py) is shared with ml and max-mixture, which smooth: one per
 # reading of a detection's candidates (``factor_mode``: ml's sum, max-mixture's max). gpda reads them as
 # ml does (the sum), so it filters too: its own code is the association step.
 SMALL = {"hybrid": ["--capacity", "4", "--max-children", "32", "--smoother", "filter"],

@@ -85,7 +85,7 @@ def test_given_associations_give_the_batch_solution_an_incremental_run_ends_at(b
     estimator's final graph. ``ml`` under ``incremental:3`` on a 20-step hallway (unknown map: the
     objects the run created are created here where the associations first name them) ends at that
     solution; under ``lag:3`` its old poses stay where they left the window, tenths of a metre away."""
-    from hybridslam.estimators.smoothing import Incremental, Lag
+    from hybridslam.estimators.smoothers import Incremental, Lag
 
     scenario = hallway.hallway(0, 0.05, steps=20)
     src = tmp_path / "scenario.json"

@@ -16,8 +16,8 @@ import pytest
 import hybridslam as hs
 from hybridslam import cli
 from hybridslam.estimators.smoothers import parse_smoother
-from hybridslam.estimators.smoothing import FINAL_ATOL, Full, Lag, step_tolerance
-from hybridslam.estimators.smoothing_graph import data_log
+from hybridslam.estimators.smoothers.kinds import FINAL_ATOL, Full, Lag, step_tolerance
+from hybridslam.estimators.smoothers.factors import data_log
 
 STEPS = 6
 

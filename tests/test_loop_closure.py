@@ -1,4 +1,4 @@
-"""The loop-closure pass (hybridslam.estimators.loop_closure): its Bayes factor against closed-form
+"""The loop-closure pass (hybridslam.estimators.loops.closure): its Bayes factor against closed-form
 Gaussian integrals, its search against brute force, and a small hallway whose loop it closes."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from hybridslam.analysis import consistency
-from hybridslam.estimators import loop_closure as lc
-from hybridslam.estimators import loop_merge, loop_search, loop_settings
+from hybridslam.estimators.loops import closure as lc
+from hybridslam.estimators.loops import merge as loop_merge, search as loop_search, settings as loop_settings
 from hybridslam.io.result import Result, load_result, save_result
 from hybridslam.sim.hallway import HallwaySetup, hallway
 

@@ -1,4 +1,4 @@
-"""Negative information of the loop-closure search (hybridslam.estimators.loop_misses): the
+"""Negative information of the loop-closure search (hybridslam.estimators.loops.misses): the
 probability that an object was in view under the solved graph's covariance, against a numpy
 reimplementation from the dense ``H⁻¹`` and against the point test in the limit of no uncertainty;
 the log-likelihood of the undetected pairs, by hand and as properties."""
@@ -17,8 +17,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from hybridslam.estimators import loop_misses, loop_verify
-from hybridslam.estimators.loop_settings import LoopClosureSettings
+from hybridslam.estimators.loops import misses as loop_misses, verify as loop_verify
+from hybridslam.estimators.loops.settings import LoopClosureSettings
 from hybridslam.inference import smoother as sm
 from hybridslam.sim.hallway import hallway
 

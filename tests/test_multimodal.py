@@ -317,7 +317,7 @@ def test_sequential_beam_screening_equals_the_exhaustive_joint_screening(fov):
 
     from hybridslam.driver import inputs_from_scenario
     from hybridslam.estimators.multimodal import Multimodal, association_log_probabilities
-    from hybridslam.estimators.smoothing import Filter
+    from hybridslam.estimators.smoothers import Filter
 
     scenario = _crowded(fov=fov)
     detections = jax.tree.map(lambda a: a[0], inputs_from_scenario(scenario, 3).detections)
@@ -345,7 +345,7 @@ def test_the_screen_weighs_each_named_object_by_its_in_view_probability():
 
     from hybridslam.driver import inputs_from_scenario
     from hybridslam.estimators import multimodal as mm
-    from hybridslam.estimators.smoothing import Filter
+    from hybridslam.estimators.smoothers import Filter
     from hybridslam.models.geometry import range_bearing
     from hybridslam.models.measurement import log_visibility_probability
 
@@ -409,7 +409,7 @@ def test_screening_over_the_candidates_rows_equals_screening_over_the_whole_map(
 
     from hybridslam.driver import inputs_from_scenario
     from hybridslam.estimators import multimodal as mm
-    from hybridslam.estimators.smoothing import Filter
+    from hybridslam.estimators.smoothers import Filter
     from hybridslam.inference import gating, sequential
 
     rng = np.random.default_rng(5)
@@ -543,7 +543,7 @@ def test_a_known_map_step_with_more_detections_than_objects_skips_the_fewest():
 
     from hybridslam.driver import inputs_from_scenario
     from hybridslam.estimators.multimodal import Multimodal, association_log_probabilities
-    from hybridslam.estimators.smoothing import Filter
+    from hybridslam.estimators.smoothers import Filter
 
     two = _two_objects_three_detections()
     run = run_estimator(two, "multimodal", **KNOWN)  # the beam (max_assignments 64), the pose-belief test's program
@@ -576,7 +576,7 @@ def test_a_known_maps_clutter_hypothesis_scores_the_null_choice_the_same_in_the_
 
     from hybridslam.driver import inputs_from_scenario
     from hybridslam.estimators.multimodal import Multimodal, association_log_probabilities
-    from hybridslam.estimators.smoothing import Filter
+    from hybridslam.estimators.smoothers import Filter
 
     two = _two_objects_three_detections()
     detections = jax.tree.map(lambda a: a[0], inputs_from_scenario(two, 3).detections)

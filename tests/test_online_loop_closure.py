@@ -1,4 +1,4 @@
-"""Loop closure during the run (hybridslam.estimators.loop_online): the slot renumbering against a
+"""Loop closure during the run (hybridslam.estimators.loops.online): the slot renumbering against a
 hand-worked case, a small hallway loop that the hybrid belief misses on its own and closes with
 the merge hypotheses added between steps, and the same search for ``multimodal``
 (hybridslam.estimators.multimodal.loops): a loop it misses on its own, closed; merged class posteriors."""
@@ -13,9 +13,9 @@ import pytest
 import hybridslam as hs
 from hybridslam import compilation
 from hybridslam.analysis.trajectory import error_summary
-from hybridslam.estimators import loop_settings
+from hybridslam.estimators.loops import settings as loop_settings
 from hybridslam.analysis.recall import closure_recall
-from hybridslam.estimators.loop_online import OnlineLoopClosure, _renumbered
+from hybridslam.estimators.loops.online import OnlineLoopClosure, _renumbered
 from hybridslam.estimators.multimodal.loops import merged_class_posteriors
 from hybridslam.sim.hallway import HallwaySetup, hallway
 

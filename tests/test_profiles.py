@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 import hybridslam as hs
 from hybridslam import cli
 from hybridslam.estimators import profiles
-from hybridslam.estimators.loop_online import OnlineLoopClosure
+from hybridslam.estimators.loops.online import OnlineLoopClosure
 from hybridslam.datasets.mrclam import import_mrclam
 from hybridslam.io.scenario import Classifier, Detection, Discovery, Step
 from hybridslam.sim.hallway import hallway

@@ -426,7 +426,7 @@ def test_a_steady_linear_rate_stops_once_the_gain_to_come_is_below_cost_atol():
 def test_a_nonfinite_solve_keeps_the_given_estimate():
     """``smooth`` keeps the ``mean`` and ``cov`` it was given (and says ``nonfinite``) where the graph
     yields no finite solution or marginal, and returns the graph's own where it does."""
-    from hybridslam.estimators.smoothing import Full, smooth
+    from hybridslam.estimators.smoothers.kinds import Full, smooth
 
     rng = np.random.default_rng(5)
     good = _graph(rng)

@@ -21,7 +21,7 @@ import pytest
 from scipy.optimize import least_squares
 
 import hybridslam as hs
-from hybridslam.estimators.smoothing import FINAL_ATOL, Incremental, Lag
+from hybridslam.estimators.smoothers.kinds import FINAL_ATOL, Incremental, Lag
 from hybridslam.io.scenario import Classifier
 from hybridslam.sim.hallway import hallway
 

@@ -11,8 +11,8 @@ import pytest
 
 import hybridslam as hs
 from hybridslam.estimators.smoothers import SMOOTHERS, parse_smoother
-from hybridslam.estimators.smoothing import AbstractSmoother, Closing, Filter, Full, Incremental, Lag
-from hybridslam.estimators.smoothing_graph import data_log
+from hybridslam.estimators.smoothers import AbstractSmoother, Closing, Filter, Full, Incremental, Lag
+from hybridslam.estimators.smoothers.factors import data_log
 from hybridslam.inference import smoother as sm
 from tests.test_smoother import N, P, _graph
 

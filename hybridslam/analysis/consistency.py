@@ -30,7 +30,7 @@ import jax
 import numpy as np
 import optimistix as optx
 
-from ..estimators import smoothing_graph
+from ..estimators.smoothers import factors as smoother_factors
 from ..inference import smoother as sm
 from ..io.result import ComponentRecord, Result, StepRecord
 from ..io.scenario import Scenario
@@ -222,14 +222,14 @@ def true_association_smoother(scenario: Scenario, max_steps: int = 50) -> Oracle
             history[j, i] = slot
         created[j + 1] = scenario.num_objects if known else len(slot_of)
     n = scenario.num_objects if known else max(len(slot_of), 1)
-    log = smoothing_graph.scenario_log(scenario, n)
+    log = smoother_factors.scenario_log(scenario, n)
     odometry = np.asarray(log.odometry)
-    factors = smoothing_graph.history_factors(jax.numpy.asarray(history))
+    factors = smoother_factors.history_factors(jax.numpy.asarray(history))
     model = model_from_scenario(scenario.replace(discovery=None) if not known else scenario)
 
     @jax.jit
     def solve(k, poses, objects, num_created):
-        g = smoothing_graph.graph(log, factors, k, num_created, model.sensor, model.motion_cov, semantic=False)
+        g = smoother_factors.graph(log, factors, k, num_created, model.sensor, model.motion_cov, semantic=False)
         sol = sm.solve(g, poses, objects, max_steps=max_steps)
         mean, cov = sm.marginal(sol, k)
         return sol.poses, sol.objects, mean[:3], cov[:3, :3], sol.result != optx.RESULTS.successful

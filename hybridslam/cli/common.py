@@ -16,7 +16,7 @@ from ..estimators import ESTIMATORS, make_estimator
 from ..estimators.base import AbstractEstimator
 from ..estimators.options import Option, option_help
 from ..estimators.options import clutter_density as _clutter_density
-from ..estimators.loop_settings import MISS_MODELS, LoopClosureSettings
+from ..estimators.loops.settings import MISS_MODELS, LoopClosureSettings
 from ..estimators.registry import DEFAULT, estimator_options
 
 PROG = "hybridslam"

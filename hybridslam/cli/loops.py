@@ -7,8 +7,8 @@ import math
 
 from ..analysis.map_error import map_error
 from ..analysis.trajectory import error_summary
-from ..estimators.loop_closure import close_loops
-from ..estimators.loop_settings import LoopClosureSettings
+from ..estimators.loops.closure import close_loops
+from ..estimators.loops.settings import LoopClosureSettings
 from ..io.result import load_result, save_result
 from ..io.scenario import load_scenario
 from .common import CLIError, add_misses_option, add_result_format_option, check_writable, warn

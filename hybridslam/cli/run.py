@@ -11,7 +11,7 @@ from ..analysis.map_error import map_error
 from ..analysis.trajectory import error_summary
 from ..driver import run
 from ..estimators.base import AbstractEstimator, StepInfo
-from ..estimators.loop_settings import LoopClosureSettings
+from ..estimators.loops.settings import LoopClosureSettings
 from ..estimators.profiles import LONG_RUN_STEPS, PROFILES, Profile, file_summary, recommended
 from ..io.result import ResultWriter, StepRecord
 from ..io.scenario import Scenario, ScenarioError, load_scenario
@@ -70,7 +70,7 @@ class WarningThrottle:
 
 def closure_summary(hook) -> str:
     """The line ``hybridslam run --close-loops`` prints after the run: each added hypothesis's
-    changes against its parent (:class:`~hybridslam.estimators.loop_online.ClosureHypothesis`)."""
+    changes against its parent (:class:`~hybridslam.estimators.loops.online.ClosureHypothesis`)."""
     added = "; ".join(str(c) for c in hook.closures)
     return (f"loop closure during the run: {len(hook.closures)} hypotheses added"
             f"{': ' + added if added else ''}"
@@ -139,7 +139,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         loops = None if hook is None else loops
     print(settings_note(scenario, profile, chosen, loops))
     if args.close_loops is not None:
-        from ..estimators.loop_online import OnlineLoopClosure
+        from ..estimators.loops.online import OnlineLoopClosure
 
         try:
             hook = OnlineLoopClosure(estimator, scenario,
@@ -211,7 +211,7 @@ def add_parser(sub) -> None:
     p.add_argument("--close-loops", type=int, nargs="?", const=20, default=None, metavar="GAP",
                    help="hybrid or multimodal, full smoother, unknown map: after each step search the best component's map for "
                         "loop closures (an object first seen more than GAP steps, default 20, after another's last "
-                        "detection) and add what is found as a hypothesis (hybridslam.estimators.loop_online); "
+                        "detection) and add what is found as a hypothesis (hybridslam.estimators.loops.online); "
                         "--profile auto adds it on larger unknown-map files with classes")
     add_misses_option(p, "--loop-misses", "a loop closure")
     p.add_argument("--no-close-loops", action="store_true",

@@ -26,7 +26,7 @@ import abc
 import dataclasses
 import math
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -38,9 +38,6 @@ from ..config import require_x64
 from ..io.scenario import Scenario
 from ..models.measurement import Detections
 from .options import shown, value_text
-
-if TYPE_CHECKING:  # loop_online imports this module
-    from .loop_access import LoopClosureAccess
 
 LOW_ESS = 0.01  # below this a weight estimate rests on ~1% of its draws
 
@@ -345,7 +342,7 @@ class AbstractEstimator(eqx.Module):
 
     def closing(self) -> AbstractEstimator:
         """This estimator as the last step of a run sees it: its smoother's
-        :meth:`~.smoothing.AbstractSmoother.closing` in place of the smoother (``incremental:L``:
+        :meth:`~.smoothers.kinds.AbstractSmoother.closing` in place of the smoother (``incremental:L``:
         the whole graph re-solved once); itself where that is the same."""
         smoother = getattr(self, "smoother", None)
         if smoother is None or smoother.closing() is smoother:
@@ -377,7 +374,7 @@ class AbstractEstimator(eqx.Module):
         return None
 
     def loop_closure_access(self) -> LoopClosureAccess | None:
-        """What loop closure during the run (:class:`~.loop_online.OnlineLoopClosure`) reads and
+        """What loop closure during the run (:class:`~.loops.online.OnlineLoopClosure`) reads and
         writes of this estimator's state; ``None``: the estimator has none."""
         return None
 
@@ -409,3 +406,42 @@ class AbstractEstimator(eqx.Module):
         """This estimator under an enclosing ``jax.vmap`` named ``axis_name`` (studies batch tracks
         that way); estimators that skip dead slots use the name to skip them in every track at once."""
         return self
+
+
+class MergedComponent(NamedTuple):
+    """A component loop closure during the run (:class:`~.loops.online.OnlineLoopClosure`) adds, in its own object numbering: its association
+    history ``(T, Dmax)``, class realizations ``(Nmax,)`` (-1 open), objects in use, trajectory
+    ``(T+1, 3)``, marginal mean ``(D,)`` and covariance ``(D, D)`` of ``[x_k, objects]``, and per
+    object in use the parent component's objects it joins (one: kept or split off; more: merged)."""
+
+    history: np.ndarray
+    classes: np.ndarray
+    num: int
+    poses: np.ndarray
+    mean: np.ndarray
+    cov: np.ndarray
+    sources: tuple[tuple[int, ...], ...]
+
+
+class LoopClosureAccess(abc.ABC):
+    """What loop closure during the run (:class:`~.loops.online.OnlineLoopClosure`) needs of one
+    estimator's state beyond the fields every mixture state here has; an estimator gives it through
+    :meth:`AbstractEstimator.loop_closure_access`."""
+
+    max_steps: int  # Gauss-Newton / Levenberg-Marquardt iterations of each re-solve
+
+    @abc.abstractmethod
+    def classes(self, state: Any, i: int) -> np.ndarray:
+        """Component ``i``'s class realization per object slot ``(Nmax,)``, ``-1`` where open: the
+        search pairs only objects whose realizations are equal or open."""
+
+    @abc.abstractmethod
+    def factors(self, state: Any) -> tuple[bool, bool]:
+        """``(semantic, realize)``: whether the re-solved graph has the estimator's semantic factors,
+        and whether they take each object's class realization (the graph the estimator smooths)."""
+
+    @abc.abstractmethod
+    def write(self, state: Any, slot: int, log_weights: np.ndarray, component: MergedComponent,
+              parent: int) -> Any:
+        """``state`` with ``component`` in ``slot`` (its other fields derived from component
+        ``parent``'s) and the normalized ``log_weights (K,)``."""

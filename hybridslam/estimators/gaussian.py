@@ -73,8 +73,8 @@ from . import novelty
 from .base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, detection_slots,
                    history_length, lacks_object_slots, object_slots, resolve_clutter)
 from .options import GATE, MAX_CHILDREN, Option, setting
-from .smoothing import Full, Smoother, SmootherState, check_smoother
-from .smoothing_graph import Factors, active_history, new_overflow
+from .smoothers.kinds import Full, Smoother, SmootherState, check_smoother
+from .smoothers.factors import Factors, active_history, new_overflow
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -175,10 +175,10 @@ class SingleGaussian(AbstractEstimator):
     enumerates all ``(G+1)^D``, exponential in the detections ``D``), ``gn_max_steps`` (Gauss-Newton
     budget of the update), ``classifier`` (a model name or object replacing the scenario's),
     ``max_detections`` (detection slots per step; ``None``: the scenario's largest step), ``max_steps``
-    (the history length; ``None``: the scenario's steps), ``smoother`` (:class:`~.smoothing.Full`,
+    (the history length; ``None``: the scenario's steps), ``smoother`` (:class:`~.smoothers.kinds.Full`,
     the default: the whole trajectory relinearized at every step, associations decided online;
-    :class:`~.smoothing.Lag`: the last ``L`` steps, older poses marginalized;
-    :class:`~.smoothing.Filter`: the joint Gaussian over ``[x_k, objects]`` only), ``clutter``
+    :class:`~.smoothers.kinds.Lag`: the last ``L`` steps, older poses marginalized;
+    :class:`~.smoothers.kinds.Filter`: the joint Gaussian over ``[x_k, objects]`` only), ``clutter``
     (a known map's clutter log density over ``[range, bearing]``; ``"file"``, the default: the
     scenario's ``sensor.clutter_log_density``, none without it; ``None`` or ``"none"``: none), ``new_landmark``
     (an unknown map's rule for a new object: ``"density"``, the default, or ``"mahalanobis:TAU"``,
@@ -529,7 +529,7 @@ def commit(est: SingleGaussian, state: GaussianState, mean, cov, class_log_post,
     result file (SCENARIO_FORMAT: "-1 marks a detection that the component left unassociated"),
     not a guess at its object. ``factors``: the step's measurement
     factors for the smoother, per detection slot its candidate objects, their log weights (``-inf``:
-    none) and the null component's (:class:`~.smoothing_graph.Factors`).
+    none) and the null component's (:class:`~.smoothers.factors.Factors`).
     """
     assigned = jnp.where(detections.mask & used, assigned, -1).astype(jnp.int32)
     hit = (assigned[:, None] == jnp.arange(state.max_objects)[None, :]) & (used & detections.mask)[:, None]
@@ -538,7 +538,7 @@ def commit(est: SingleGaussian, state: GaussianState, mean, cov, class_log_post,
     result = info["solver_result"]
     kept = state.smoothing
     if est.smoother.smooths:
-        # The whole trajectory and map relinearized with every factor so far (smoothing.py); the
+        # The whole trajectory and map relinearized with every factor so far (smoothers/kinds.py); the
         # associations stay as decided online, except a max-mixture's under Full (below).
         before = kept.factors
         kept = kept.record(state.k, odometry, detections)

@@ -26,7 +26,7 @@ from it) and gets no factor. Class estimates: Eq. 4.17, from the association pro
 "component weights of the max-mixture factors"). The history records the component active at the
 solution (``-1`` where the null component is: an outlier, left unassociated): with the filter, at the
 step's update; with ``smoother=Full()``, every detection's at the latest smoothed trajectory (each
-step rewrites the whole history, :func:`.smoothing_graph.active_history`), so the graph rebuilt from a
+step rewrites the whole history, :func:`.smoothers.factors.active_history`), so the graph rebuilt from a
 result file's associations has the file's trajectory as a stationary point. (With ``Lag(L)`` the
 history stays as chosen online: the window's solve does not see the older factors.) Settings:
 :class:`.gaussian.SingleGaussian`.

@@ -23,7 +23,7 @@ file from a new source (KITTI, another simulator) gets the settings of the files
   defaults;
 * on an unknown map whose detections carry class scores (two classes or more and a classifier
   that is not ``none``), the hybrid belief with the full smoother also closes loops during the
-  run (:class:`~.loop_online.OnlineLoopClosure`, gap 20): the merge search only pairs objects of
+  run (:class:`~.loops.online.OnlineLoopClosure`, gap 20): the merge search only pairs objects of
   one class, and the class pattern is what tells two places apart (README, The hallway). Where
   every landmark looks the same (MRCLAM's barcodes hidden) the merges it finds join landmarks of
   one cluster, it does not help and it doubles the run's time (README, Real data), so it is off;
@@ -111,12 +111,12 @@ class Profile:
 
     def between_steps(self, estimator, scenario: Scenario, gap: int | None = None, **settings: Any):
         """Loop closure during the run for :func:`hybridslam.run`'s ``between_steps`` (an
-        :class:`~.loop_online.OnlineLoopClosure`, gap ``gap`` or the chosen one, and ``settings`` the
-        other :class:`~.loop_settings.LoopClosureSettings` fields), or ``None`` where none was chosen
+        :class:`~.loops.online.OnlineLoopClosure`, gap ``gap`` or the chosen one, and ``settings`` the
+        other :class:`~.loops.settings.LoopClosureSettings` fields), or ``None`` where none was chosen
         and ``gap`` is ``None`` or the estimator cannot close loops (not the hybrid belief or
         ``multimodal`` with the full smoother)."""
-        from .loop_online import OnlineLoopClosure
-        from .loop_settings import LoopClosureSettings
+        from .loops.online import OnlineLoopClosure
+        from .loops.settings import LoopClosureSettings
 
         gap = self.close_loops if gap is None else gap
         smoother = getattr(estimator, "smoother", None)

@@ -37,7 +37,7 @@ from ..driver import Inputs, scan
 from ..estimators.hybrid.belief import Belief
 from ..estimators.hybrid.estimator import Hybrid
 from ..estimators.hybrid.weighers import AbstractWeigher, LaplaceIS, make_weigher
-from ..estimators.smoothing import Filter
+from ..estimators.smoothers import Filter
 from ..inference.ties import best_slot
 from ..models import geometry, se2
 from ..models.measurement import Detections

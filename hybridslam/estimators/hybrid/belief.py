@@ -28,7 +28,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ...io.scenario import Scenario
 from ...models.model import Model
-from ..smoothing import SmootherState
+from ..smoothers.kinds import SmootherState
 
 
 class Priors(eqx.Module):

@@ -17,7 +17,7 @@ from ...models.measurement import Detections
 from ...models.model import NewObjects, model_from_scenario
 from .. import novelty
 from ..options import GATE, MAX_CHILDREN, MERGE_THRESHOLD, SAMPLES, Option, setting
-from ..smoothing import Full, Smoother, check_smoother
+from ..smoothers.kinds import Full, Smoother, check_smoother
 from ..base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, detection_slots,
                     history_length, object_slots, resolve_clutter)
 from ...inference.ties import best_slot
@@ -94,8 +94,8 @@ class Hybrid(AbstractEstimator):
       Gauss-Newton converge only linearly (the default study at alpha 0.5 has 4 of 263 mode
       searches that need more than 20 iterations; all converge within 60); a search that converged
       stops early, so the budget costs nothing elsewhere;
-    * ``smoother`` — :class:`~..smoothing.Full` (default): every component keeps its trajectory
-      and re-solves it, relinearized, at every step (:mod:`..smoothing`); :class:`~..smoothing.Filter`:
+    * ``smoother`` — :class:`~..smoothers.kinds.Full` (default): every component keeps its trajectory
+      and re-solves it, relinearized, at every step (:mod:`..smoothers.kinds`); :class:`~..smoothers.kinds.Filter`:
       the joint Gaussian over ``[x_k, objects]`` only (past poses marginalized, never relinearized);
     * ``classifier`` — a classifier model name or object replacing the scenario's (``None``: the file's);
     * ``max_detections`` — detection slots per step (``None``: the scenario's largest step);

@@ -1,9 +1,9 @@
-"""Loop closure during the run for the hybrid belief: its :class:`~..loop_online.LoopClosureAccess`.
+"""Loop closure during the run for the hybrid belief: its :class:`~..base.LoopClosureAccess`.
 
-The search (:class:`~..loop_online.OnlineLoopClosure`) is shared with ``multimodal``. The hybrid
+The search (:class:`~..loops.online.OnlineLoopClosure`) is shared with ``multimodal``. The hybrid
 belief holds each object's class realization (``classes``, -1 open: Sec. IV-D), so the merge search
 pairs objects of equal or open realizations, and a merged object takes the old one's realization
-(the late one's where it is open, :func:`~..loop_merge.compact`). The re-solved graph is the
+(the late one's where it is open, :func:`~..loops.merge.compact`). The re-solved graph is the
 belief's own: its semantic factors, with the realizations where the classifier sees scores.
 """
 
@@ -13,16 +13,16 @@ import dataclasses
 
 import numpy as np
 
-from ..loop_access import LoopClosureAccess, MergedComponent
-from ..loop_online import ClosureHypothesis as ClosureHypothesis  # the names' former home, still importable
-from ..loop_online import OnlineLoopClosure as OnlineLoopClosure
-from ..loop_online import whole, write_fields
+from ..base import LoopClosureAccess, MergedComponent
+from ..loops.online import ClosureHypothesis as ClosureHypothesis  # the names' former home, still importable
+from ..loops.online import OnlineLoopClosure as OnlineLoopClosure
+from ..loops.online import whole, write_fields
 from .belief import Belief
 
 
 @dataclasses.dataclass(frozen=True)
 class HybridLoopAccess(LoopClosureAccess):
-    """The hybrid belief's fields for :class:`~..loop_online.OnlineLoopClosure`."""
+    """The hybrid belief's fields for :class:`~..loops.online.OnlineLoopClosure`."""
 
     max_steps: int
 

@@ -39,8 +39,8 @@ from ...models.measurement import Detections
 from ...models.motion import propagate
 from .. import novelty
 from ..base import StepInfo, lacks_object_slots, relevant_children
-from ..smoothing import Smoother, SmootherState
-from ..smoothing_graph import history_factors, new_overflow
+from ..smoothers.kinds import Smoother, SmootherState
+from ..smoothers.factors import history_factors, new_overflow
 from .belief import Belief
 from .branching import Beam, Branching, beam_children
 from .hypotheses import Children, children, hypothesis_table
@@ -314,7 +314,7 @@ def hybrid_step(
         if kept.log is None:
             raise ValueError(f"Hybrid(smoother={settings.smoother!r}): this belief carries no data log (built by "
                              "init_belief, not Hybrid.init); build it with Hybrid.init(scenario) or use smoother=Filter()")
-        # Relinearize each kept component's whole trajectory and map (smoothing.py), warm-started
+        # Relinearize each kept component's whole trajectory and map (smoothers/kinds.py), warm-started
         # from its parent's trajectory and its prediction; its marginal over [x_k, objects]
         # becomes the component's Gaussian.
         kept = kept.record(k, odometry, detections)

@@ -70,7 +70,7 @@ the detections already assigned (:mod:`hybridslam.inference.sequential`: the sam
 a 2×2 term per detection); ``max_assignments=None`` enumerates every tuple and scores each at once
 (the reference).
 
-Smoothing (``smoother=Full()``, the default, or ``Lag(L)``; :mod:`.smoothing`): the children are
+Smoothing (``smoother=Full()``, the default, or ``Lag(L)``; :mod:`..smoothers`): the children are
 clustered on their filter estimates (above), then each merged component's centre has its whole
 trajectory and map (or its window) relinearized with every geometric factor of its association
 history, and the component is its cluster moment-matched about the centre's smoothed estimate:

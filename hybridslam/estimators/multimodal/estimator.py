@@ -20,7 +20,7 @@ from .. import novelty
 from ..base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, detection_slots,
                     history_length, object_slots, resolve_clutter)
 from ..options import GATE, MAX_CHILDREN, MERGE_THRESHOLD, Option, setting
-from ..smoothing import Full, Smoother, check_smoother
+from ..smoothers.kinds import Full, Smoother, check_smoother
 from .state import (ASSOCIATION_PRIORS, DEFAULT_CANDIDATES, DEFAULT_MERGE_THRESHOLD, DEFAULT_SAMPLES,
                     PROPOSALS, Params, State, Structure)
 from .step import _step
@@ -43,9 +43,9 @@ class Multimodal(AbstractEstimator):
     Eq. 5.11; ``"uniform"``), ``proposal`` (``"posterior"`` or ``"prior"``), ``clutter`` (a known
     map's clutter log density; module docstring), ``new_landmark`` (``"density"`` or
     ``"mahalanobis:TAU"``, thesis Sec. 3.2.1: :mod:`.novelty`), ``gn_max_steps``,
-    ``classifier``, ``max_detections``, ``max_steps`` and ``smoother`` (:class:`~.smoothing.Full` by
+    ``classifier``, ``max_detections``, ``max_steps`` and ``smoother`` (:class:`~..smoothers.kinds.Full` by
     default: each component's trajectory relinearized at every step, the thesis's mm-iSAM in spirit;
-    :class:`~.smoothing.Filter`) as in every estimator.
+    :class:`~..smoothers.kinds.Filter`) as in every estimator.
     """
 
     capacity: int = eqx.field(default=64, static=True)

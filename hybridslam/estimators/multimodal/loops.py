@@ -1,6 +1,6 @@
-"""Loop closure during the run for ``multimodal``: its :class:`~..loop_online.LoopClosureAccess`.
+"""Loop closure during the run for ``multimodal``: its :class:`~..base.LoopClosureAccess`.
 
-The search (:class:`~..loop_online.OnlineLoopClosure`) is the hybrid belief's: merges of late
+The search (:class:`~..loops.online.OnlineLoopClosure`) is the hybrid belief's: merges of late
 objects into old ones, scored by their log Bayes factor against new objects (Doherty thesis Eq.
 4.13's new-object density) and negative information, verified by re-solving the whole graph. What
 differs is the state:
@@ -23,14 +23,14 @@ import math
 
 import numpy as np
 
-from ..loop_access import LoopClosureAccess, MergedComponent
-from ..loop_online import whole, write_fields
+from ..base import LoopClosureAccess, MergedComponent
+from ..loops.online import whole, write_fields
 from .state import State
 
 
 @dataclasses.dataclass(frozen=True)
 class MultimodalLoopAccess(LoopClosureAccess):
-    """``multimodal``'s fields for :class:`~..loop_online.OnlineLoopClosure` (module docstring)."""
+    """``multimodal``'s fields for :class:`~..loops.online.OnlineLoopClosure` (module docstring)."""
 
     max_steps: int
 

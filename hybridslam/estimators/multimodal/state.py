@@ -10,7 +10,7 @@ import jax
 from jaxtyping import Array, Bool, Float, Int
 
 from ...models.model import Model
-from ..smoothing import SmootherState
+from ..smoothers.kinds import SmootherState
 
 NAME = "multimodal"
 

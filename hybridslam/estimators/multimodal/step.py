@@ -16,8 +16,8 @@ from ...inference.update import downdate, wrap_angles
 from ...models import motion
 from ...models.measurement import Detections
 from ..base import StepInfo, lacks_object_slots, relevant_children
-from ..smoothing import Smoother, SmootherState
-from ..smoothing_graph import history_factors, new_overflow
+from ..smoothers.kinds import Smoother, SmootherState
+from ..smoothers.factors import history_factors, new_overflow
 from .children import finish_child, hypotheses
 from .clustering import clustered, spread
 from .likelihood import draws
@@ -72,7 +72,7 @@ def _step(state: State, odometry: Float[Array, "3"], detections: Detections, key
         m_cov = jnp.einsum("kc,cde->kde", wn, c_cov) + scatter
     else:
         # Each merged component's centre has its whole trajectory and map relinearized with every
-        # factor of its history (smoothing.py): K smoothings per step rather than one per child.
+        # factor of its history (smoothers/kinds.py): K smoothings per step rather than one per child.
         kept = kept.record(state.k, odometry, detections)
         log = kept.log
         assert log is not None  # record writes one

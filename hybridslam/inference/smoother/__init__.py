@@ -74,7 +74,7 @@ give, so the step is kept if it lowered the cost and nothing more is tried), or 
 ``max_steps`` iterations. The decrement test is what ends a warm-started solve: from the previous
 step's trajectory a hallway solve reached gains ``0.47, 2e-4, 4e-7, 1e-8, 1e-10`` nats and used to
 take one more iterate to see the relative test pass. (The estimators' smoother steps pass a looser
-``cost_atol`` before a scenario's last step, :class:`~hybridslam.estimators.smoothing.Full`'s
+``cost_atol`` before a scenario's last step, :class:`~hybridslam.estimators.smoothers.kinds.Full`'s
 ``step_atol``: the second of those iterates ends such a solve.)
 
 **Linear convergence.** Gauss-Newton converges quadratically only on zero-residual problems. The

@@ -127,12 +127,12 @@ class FactorGraph(eqx.Module):
     * ``prior_info (D₀, D₀)``, optional: ``Λ = RᵀR`` of ``prior_sqrt_info``, if the caller has it
       (required without ``prior_sqrt_info``).
       A run's prior is constant, so its smoothers form this ``O(N³)`` product once
-      (:class:`~hybridslam.estimators.smoothing_graph.DataLog`) instead of once per step.
+      (:class:`~hybridslam.estimators.smoothers.factors.DataLog`) instead of once per step.
     * ``independent_objects`` (static): the caller promises that the prior couples no two objects
       (``Λ`` restricted to the objects is block-diagonal in 3×3 blocks; ``x_0`` may be coupled to
       them). A measurement factor touches one object, so the object part ``C`` of ``H`` is then
       block-diagonal too and the objects-first elimination inverts it block by block
-      (:func:`solve_normal`, :func:`marginal`). :func:`~hybridslam.estimators.smoothing_graph.graph`
+      (:func:`solve_normal`, :func:`marginal`). :func:`~hybridslam.estimators.smoothers.factors.graph`
       sets it: a run's prior is the scenario's, block-diagonal. A fixed-lag window's
       marginalized prior couples the map, so its graphs do not.
     """

@@ -1,4 +1,4 @@
-"""The object bookkeeping of the loop-closure pass (:mod:`.loop_closure`): merges applied to a
+"""The object bookkeeping of the loop-closure pass (:mod:`.closure`): merges applied to a
 slot history and the objects renumbered (:func:`compact`), and the run's own loop closures re-opened
 (:func:`reopen`): where an object's detections stop for more than ``gap`` steps and then resume,
 the later stretch becomes an object of its own, so that the pass decides it again jointly with the

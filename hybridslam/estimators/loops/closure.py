@@ -26,7 +26,7 @@ candidates, class realization equal, or new; injective), exact when the beam hol
 combination. The best ``tries`` sets are each applied, the graph re-solved (Levenberg-Marquardt,
 warm-started) and verified: its cost may rise by at most the chi-square ``verify_probability``
 quantile of the merged constraints, or the set is dropped and counted. The verified sets are
-re-scored with negative information (:mod:`.loop_misses`): each (step, object) pair with no
+re-scored with negative information (:mod:`.misses`): each (step, object) pair with no
 detection associated to it has likelihood ``1 − detection_probability · P(in view)``, ``P(in view)``
 under the solved graph's covariance, and the set gains or loses the change of their sum's log
 against the graph before the merge. The best set scoring above ``threshold``
@@ -43,9 +43,9 @@ What it does not do: it runs once, after the run, so the online estimates (``pos
 estimator's associations; only the final step's top component (its associations, classes,
 ``trajectory`` and ``objects``) is rewritten.
 
-The pass is split by idea: settings and report in :mod:`.loop_settings`, the candidate search and
-its Bayes factor in :mod:`.loop_search`, the re-solve and verification in :mod:`.loop_verify`, the
-object bookkeeping (merges, re-opening) in :mod:`.loop_merge`; this module runs them.
+The pass is split by idea: settings and report in :mod:`.settings`, the candidate search and
+its Bayes factor in :mod:`.search`, the re-solve and verification in :mod:`.verify`, the
+object bookkeeping (merges, re-opening) in :mod:`.merge`; this module runs them.
 """
 
 from __future__ import annotations
@@ -55,19 +55,19 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..io.result import ComponentRecord, Result
-from ..io.scenario import Scenario
-from . import smoothing_graph
-from .loop_merge import compact, pauses, reopen, used_slots
-from .loop_search import candidates, creating_ranges, log_bayes_factor, object_spans, search
-from .loop_settings import Closure
-from .loop_misses import uses_marginal
-from .loop_verify import Solver, judge, misses
+from ...io.result import ComponentRecord, Result
+from ...io.scenario import Scenario
+from ..smoothers import factors as smoother_factors
+from .merge import compact, pauses, reopen, used_slots
+from .search import candidates, creating_ranges, log_bayes_factor, object_spans, search
+from .settings import Closure
+from .misses import uses_marginal
+from .verify import Solver, judge, misses
 
 # The pass's settings and outcomes, documented (docs/api.md) as importable from here:
-from .loop_settings import LoopClosureReport as LoopClosureReport
-from .loop_settings import LoopClosureSettings as LoopClosureSettings
-from .loop_settings import MergeScore as MergeScore
+from .settings import LoopClosureReport as LoopClosureReport
+from .settings import LoopClosureSettings as LoopClosureSettings
+from .settings import MergeScore as MergeScore
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,7 +75,7 @@ class _Problem:
     """The data of a run as arrays, and the slot history of its final top component."""
 
     scenario: Scenario
-    log: smoothing_graph.DataLog
+    log: smoother_factors.DataLog
     history: np.ndarray  # (T, Dmax) object per detection, -1 none / padding
     classes: np.ndarray  # (N,) class realization, -1 open
     geo: np.ndarray  # (T, Dmax, 2)
@@ -83,7 +83,7 @@ class _Problem:
 
 def _problem(scenario: Scenario, component: ComponentRecord) -> _Problem:
     classes = np.asarray(component.classes, dtype=np.int64)
-    log = smoothing_graph.scenario_log(scenario, len(classes))
+    log = smoother_factors.scenario_log(scenario, len(classes))
     history = np.full(log.mask.shape, -1, dtype=np.int32)
     for j, step in enumerate(scenario.steps):
         assoc = np.asarray(component.associations[j], dtype=np.int64)
@@ -123,7 +123,7 @@ class _Solved:
     cost: float
     mean: np.ndarray
     cov: np.ndarray
-    in_view: np.ndarray | None  # (P, N): each pair's probability of being in view (loop_misses), if needed
+    in_view: np.ndarray | None  # (P, N): each pair's probability of being in view (misses.py), if needed
 
 
 def _start(scenario: Scenario, result: Result, settings: LoopClosureSettings, reopen_closures: bool):

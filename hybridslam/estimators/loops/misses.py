@@ -2,7 +2,7 @@
 that were in the sensor's footprint yet not detected.
 
 The papers' sensor model detects every object (Tchuiev et al. Eq. 10 has no miss); the loop-closure
-search (:mod:`.loop_closure`, :mod:`.loop_online`) adds the detection model of multi-target tracking
+search (:mod:`.closure`, :mod:`.online`) adds the detection model of multi-target tracking
 (Bar-Shalom's ``P_D``, the validation literature's negative information): an object inside the
 footprint at step ``t`` is detected with probability ``p_d``, so a pair with no detection
 associated to it has likelihood ``1 − p_d · P(in view)``. A merge that moves an object into the
@@ -31,10 +31,10 @@ import numpy as np
 from jax.scipy.special import ndtr
 from jaxtyping import Array, Float
 
-from ..inference import smoother as sm
-from ..io.scenario import Scenario
-from ..models.geometry import range_bearing, range_bearing_jacobians
-from .loop_settings import LoopClosureSettings
+from ...inference import smoother as sm
+from ...io.scenario import Scenario
+from ...models.geometry import range_bearing, range_bearing_jacobians
+from .settings import LoopClosureSettings
 
 
 def in_view_probability(solution: sm.Solution, max_range: Float[Array, ""] | float,

@@ -1,6 +1,6 @@
 """Loop closure during the run: hypotheses added to a mixture estimator's belief between steps.
 
-The back-end pass (:mod:`.loop_closure`) searches a finished run's map for late objects that are
+The back-end pass (:mod:`.closure`) searches a finished run's map for late objects that are
 old ones. :class:`OnlineLoopClosure` runs the same search after a step, on the highest-weight
 component, and adds what it finds to the belief as a hypothesis of its own, so that the next steps
 associate against the closed map:
@@ -11,7 +11,7 @@ associate against the closed map:
 2. the pass's beam search over merges (late object ``a`` declared to be old object ``b``), each set
    scored by its log Bayes factor against the reference (Laplace, Doherty thesis Eq. 4.13's
    new-object density) plus the negative information of its re-solved graph, and verified by the
-   re-solved cost's rise (:mod:`.loop_search`, :mod:`.loop_verify`);
+   re-solved cost's rise (:mod:`.search`, :mod:`.verify`);
 3. the best set that differs from the component itself (which is the reference with every
    stretch merged back), if its log odds against the component exceed ``settings.threshold``,
    becomes a component: its associations with the objects renumbered in
@@ -25,9 +25,9 @@ one (else it is counted in :attr:`OnlineLoopClosure.declined`). A set whose asso
 alive component already has is not added again. The search runs on the host between two compiled
 steps (``hybridslam.run(..., between_steps=...)``); its solves compile once per run.
 
-Which estimators: those whose :meth:`~.base.AbstractEstimator.loop_closure_access` gives a
-:class:`LoopClosureAccess` (the hybrid belief, :mod:`.hybrid.loops`; ``multimodal``,
-:mod:`.multimodal.loops`), with a smoother that keeps the whole trajectory (the new component needs
+Which estimators: those whose :meth:`~..base.AbstractEstimator.loop_closure_access` gives a
+:class:`LoopClosureAccess` (the hybrid belief, :mod:`..hybrid.loops`; ``multimodal``,
+:mod:`..multimodal.loops`), with a smoother that keeps the whole trajectory (the new component needs
 it re-solved), on an unknown map (only an unknown map has late objects). The search reads the
 fields both states share (``log_weights (K,)``, ``mean (K, D)``, ``history (K, T, Dmax)``,
 ``num_created (K,)``, ``k``, ``model``, ``smoothing``: the data log and each component's
@@ -47,18 +47,18 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from ..inference import smoother as sm
-from ..io.scenario import Scenario
-from .base import AbstractEstimator
-from .loop_access import LoopClosureAccess as LoopClosureAccess
-from .loop_access import MergedComponent as MergedComponent
-from .loop_merge import compact, reopen
-from .loop_search import candidates, creating_ranges, log_bayes_factor, search
-from .loop_settings import LoopClosureSettings
-from .loop_misses import in_view_probability, uses_marginal
-from .loop_verify import judge, misses
-from .smoothing import FINAL_ATOL
-from .smoothing_graph import DataLog, graph, history_factors
+from ...inference import smoother as sm
+from ...io.scenario import Scenario
+from ..base import AbstractEstimator
+from ..base import LoopClosureAccess as LoopClosureAccess
+from ..base import MergedComponent as MergedComponent
+from .merge import compact, reopen
+from .search import candidates, creating_ranges, log_bayes_factor, search
+from .settings import LoopClosureSettings
+from .misses import in_view_probability, uses_marginal
+from .verify import judge, misses
+from ..smoothers.kinds import FINAL_ATOL
+from ..smoothers.factors import DataLog, graph, history_factors
 
 
 @eqx.filter_jit
@@ -67,7 +67,7 @@ def _solve(log: DataLog, model, history, classes, num_created, poses, objects, k
     """A component's whole graph after ``k`` steps (the estimator's own: its semantic factors, class
     realizations where it has them), solved to the final tolerance: the trajectory, the marginal of
     ``[x_k, objects]``, the cost, whether it converged and, where ``marginal``, each (pose, object)
-    pair's :func:`~.loop_misses.in_view_probability` (else ``None``; one compile per run)."""
+    pair's :func:`~.misses.in_view_probability` (else ``None``; one compile per run)."""
     factors = history_factors(history, classes if realize else None)
     g = graph(log, factors, k, num_created, model.sensor, model.motion_cov, semantic, "sum")
     sol = sm.solve(g, poses, objects, max_steps=max_steps, cost_atol=FINAL_ATOL)
@@ -78,7 +78,7 @@ def _solve(log: DataLog, model, history, classes, num_created, poses, objects, k
 
 def _renumber(history: np.ndarray, classes: np.ndarray, objects: np.ndarray, num: int, merges: dict[int, int]
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, np.ndarray]:
-    """:func:`_renumbered`, and the old index of each object in use (:func:`~.loop_merge.compact`)."""
+    """:func:`_renumbered`, and the old index of each object in use (:func:`~.merge.compact`)."""
     h, cls, used = compact(history, classes, merges, num)
     out = np.zeros((len(classes), 3))
     out[: len(used)] = objects[used]
@@ -88,7 +88,7 @@ def _renumber(history: np.ndarray, classes: np.ndarray, objects: np.ndarray, num
 def _renumbered(history: np.ndarray, classes: np.ndarray, objects: np.ndarray, num: int,
                 merges: dict[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """``merges`` (late -> old) applied to a component's first ``num`` object slots by
-    :func:`~.loop_merge.compact` (creation order, as the step keeps them: a prior map's undetected
+    :func:`~.merge.compact` (creation order, as the step keeps them: a prior map's undetected
     objects first, then by first detection): the history, classes, object poses ``(N, 3)`` (freed
     slots: placeholders at 0) and how many objects remain."""
     return _renumber(history, classes, objects, num, merges)[:4]

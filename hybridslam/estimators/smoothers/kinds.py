@@ -15,17 +15,17 @@ its per-component filter update and starts from the prediction: the solve is the
 replaces the component's Gaussian over ``[x_k, objects]`` by the smoother's Laplace marginal at
 the new solution, so the next step's association and weights (Eq. 16-17) are computed from the smoothed
 state. The graph (prior, odometry and measurement factors) is rebuilt from what the state already
-holds: :mod:`.smoothing_graph`.
+holds: :mod:`.factors`.
 
 This module holds the smoother objects (:class:`Filter`, :class:`Full`, :class:`Lag`,
 :class:`Incremental`), what they keep between steps (:class:`SmootherState`) and their step
-(:func:`smooth`, :func:`smooth_lag`); :mod:`.smoothers` lists those ``--smoother`` offers.
+(:func:`smooth`, :func:`smooth_lag`); :mod:`hybridslam.estimators.smoothers` lists those ``--smoother`` offers.
 
 ``Lag(L)`` (``--smoother lag:L``) is the bounded-cost online option: a fixed-lag smoother whose
 window holds the last ``L`` steps (poses ``x_{k-L}..x_k``) and the map. When the window slides, its
 oldest pose is marginalized (:func:`~hybridslam.inference.smoother.marginalize_first`: the factors
 touching it, linearized at the current estimate, become a dense Gaussian prior on the next oldest
-pose and the map, :class:`~.smoothing_graph.WindowPrior`, kept per component). Exact for linear-Gaussian factors, the
+pose and the map, :class:`~.factors.WindowPrior`, kept per component). Exact for linear-Gaussian factors, the
 standard fixed-lag approximation otherwise; ``Lag(L)`` with ``L`` at least the run's steps is
 ``Full()``. Poses that left the window keep their last smoothed value in the trajectory.
 
@@ -46,10 +46,10 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from ..inference import smoother as sm
-from ..io.scenario import Scenario
-from ..models.measurement import Detections, SensorModel
-from .smoothing_graph import (AnyFactors, DataLog, Factors, WindowPrior, data_log, factor_budget, graph,
+from ...inference import smoother as sm
+from ...io.scenario import Scenario
+from ...models.measurement import Detections, SensorModel
+from .factors import (AnyFactors, DataLog, Factors, WindowPrior, data_log, factor_budget, graph,
                               initial_trajectory, initial_window, window_factor_budget, window_graph)
 
 
@@ -70,11 +70,11 @@ class AbstractSmoother(eqx.Module):
     trajectory and a data log), :attr:`whole_trajectory` (whether every solve covers ``x_0..x_k``),
     :meth:`init_window` (a window prior per component, or none) and :meth:`smooth` (one component's
     smoothing after ``k`` steps). ``str()`` of a smoother is its ``--smoother`` text
-    (:func:`~.smoothers.parse_smoother` reads it back).
+    (:func:`hybridslam.estimators.smoothers.parse_smoother` reads it back).
 
     ``spelling`` is how ``--smoother`` names the class (``"full"``, or ``"lag:L"`` where the text
     carries a positive number of steps, the class's one argument) and ``summary`` what the option's
-    help says of it; a smoother is offered once it is listed in :data:`~.smoothers.SMOOTHERS`.
+    help says of it; a smoother is offered once it is listed in :data:`hybridslam.estimators.smoothers.SMOOTHERS`.
     """
 
     smooths: ClassVar[bool] = True
@@ -145,7 +145,7 @@ class AbstractSmoother(eqx.Module):
         component's :class:`SmootherState`, its ``poses`` ``(T1, 3)``, the shared data log and, with
         :class:`Lag`, its ``window``), its measurement ``factors`` and the filter's ``mean`` and
         ``cov`` over ``[x_k, objects]``: the whole graph (:class:`Full`,
-        :func:`~.smoothing_graph.graph` and :func:`smooth`) or a fixed-lag window (:class:`Lag`,
+        :func:`~.factors.graph` and :func:`smooth`) or a fixed-lag window (:class:`Lag`,
         :func:`smooth_lag`)."""
         raise ValueError(f"smoother={self.name}: this smoother does not smooth")
 
@@ -206,7 +206,7 @@ class Full(AbstractSmoother):
         sensor: SensorModel, motion_cov: Float[Array, "3 3"], semantic: bool, mode: sm.Mode,
         mean: Float[Array, " D0"], cov: Float[Array, "D0 D0"],
     ) -> Smoothed:
-        """The whole graph (:func:`~.smoothing_graph.graph`) re-solved (:func:`smooth`)."""
+        """The whole graph (:func:`~.factors.graph`) re-solved (:func:`smooth`)."""
         log, poses = state.require(self)
         g = graph(log, factors, k, num_created, sensor, motion_cov, semantic, mode)
         return smooth(self, g, poses, mean, cov, k, step_tolerance(self, log, k))
@@ -322,7 +322,7 @@ class SmootherState(eqx.Module):
     none for a single Gaussian); ``log``: the data so far, shared by the components; ``window``:
     with :class:`Lag`, each component's window prior on ``[x_s, objects]``; ``factors``: the
     single-Gaussian estimators' measurement factors as decided online (a mixture's estimators
-    rebuild theirs from each component's association history, :func:`~.smoothing_graph.history_factors`)."""
+    rebuild theirs from each component's association history, :func:`~.factors.history_factors`)."""
 
     poses: Float[Array, "*K T1 3"] | None = None
     log: DataLog | None = None

@@ -1,9 +1,9 @@
-"""How the loop-closure pass (:mod:`.loop_closure`) verifies a merge set: the run's whole graph
+"""How the loop-closure pass (:mod:`.closure`) verifies a merge set: the run's whole graph
 (geometric only: prior, odometry and range-bearing factors of every associated detection) re-solved
 with the merges applied (:class:`Solver`, Levenberg-Marquardt, warm-started), its cost allowed to
 rise by at most the chi-square ``verify_probability`` quantile of the merged constraints
 (:func:`judge`), and the set re-scored with negative information (:func:`misses`, the
-log-likelihood of the (step, object) pairs in view yet undetected, :mod:`.loop_misses`): the
+log-likelihood of the (step, object) pairs in view yet undetected, :mod:`.misses`): the
 merged graph's against the reference's.
 """
 
@@ -18,23 +18,23 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from ..inference import smoother as sm
-from ..io.scenario import Scenario
-from ..models.model import model_from_scenario
-from . import smoothing_graph
-from .gaussian import chi2_gate
-from .loop_misses import in_view_probability, miss_log_likelihood, point_in_view, uses_marginal
-from .loop_settings import LoopClosureSettings, MergeScore
+from ...inference import smoother as sm
+from ...io.scenario import Scenario
+from ...models.model import model_from_scenario
+from ..smoothers import factors as smoother_factors
+from ..gaussian import chi2_gate
+from .misses import in_view_probability, miss_log_likelihood, point_in_view, uses_marginal
+from .settings import LoopClosureSettings, MergeScore
 
 
 @eqx.filter_jit
-def solve_graph(log: smoothing_graph.DataLog, model, history, poses, objects, num_created, max_steps: int,
+def solve_graph(log: smoother_factors.DataLog, model, history, poses, objects, num_created, max_steps: int,
                 max_range, fov, marginal: bool):
     """Solve the whole graph of ``history``: the solution, the marginal of ``[x_T, objects]`` and,
-    where ``marginal``, each (pose, object) pair's :func:`~.loop_misses.in_view_probability`, else
+    where ``marginal``, each (pose, object) pair's :func:`~.misses.in_view_probability`, else
     ``None`` (one compile per shape)."""
     t = log.mask.shape[0]
-    g = smoothing_graph.graph(log, smoothing_graph.history_factors(history), jnp.asarray(t), num_created, model.sensor,
+    g = smoother_factors.graph(log, smoother_factors.history_factors(history), jnp.asarray(t), num_created, model.sensor,
                               model.motion_cov, semantic=False)
     sol = sm.solve(g, poses, objects, max_steps=max_steps)
     mean, cov = sm.marginal(sol, t)
@@ -45,9 +45,9 @@ def solve_graph(log: smoothing_graph.DataLog, model, history, poses, objects, nu
 class Solver:
     """:func:`solve_graph` for one run of ``scenario`` (its data ``log``; the history is an argument:
     merges do not recompile). A call returns ``poses, objects, cost, mean, cov, converged, in_view``
-    (``in_view`` ``None`` unless ``marginal``: :func:`~.loop_misses.uses_marginal`)."""
+    (``in_view`` ``None`` unless ``marginal``: :func:`~.misses.uses_marginal`)."""
 
-    def __init__(self, scenario: Scenario, log: smoothing_graph.DataLog, max_steps: int, marginal: bool):
+    def __init__(self, scenario: Scenario, log: smoother_factors.DataLog, max_steps: int, marginal: bool):
         self._model = model_from_scenario(scenario.replace(discovery=None))
         self._log, self._max_steps, self._marginal = log, max_steps, marginal
         self._footprint = (jnp.asarray(scenario.max_range, float), jnp.asarray(scenario.fov, float))
@@ -81,9 +81,9 @@ def chi2_quantile(dof: int, probability: float) -> float:
 def misses(scenario: Scenario, poses: np.ndarray, objects: np.ndarray, in_view: np.ndarray | None,
            history: np.ndarray, num: int, settings: LoopClosureSettings) -> float:
     """The log-likelihood of the (step, object) pairs of a solved graph that were in view yet
-    undetected (:func:`~.loop_misses.miss_log_likelihood`), ``P(in view)`` as ``settings.misses``
-    says: ``in_view`` (the solve's :func:`~.loop_misses.in_view_probability`; ``None`` where
-    :func:`~.loop_misses.uses_marginal` is false) for ``"marginal"``,
+    undetected (:func:`~.misses.miss_log_likelihood`), ``P(in view)`` as ``settings.misses``
+    says: ``in_view`` (the solve's :func:`~.misses.in_view_probability`; ``None`` where
+    :func:`~.misses.uses_marginal` is false) for ``"marginal"``,
     the solved ``poses (≥ T+1, 3)`` and ``objects (N, 3)`` with ``fov_margin`` for ``"point"`` (and
     for the pairs whose marginal probability is not finite)."""
     settings = settings.for_scenario(scenario)  # the file's detection probability where none is set

@@ -1,4 +1,4 @@
-"""The factor graphs the smoothers (:mod:`.smoothing`) solve, rebuilt at every step from what an
+"""The factor graphs the smoothers (:mod:`.kinds`) solve, rebuilt at every step from what an
 estimator state already holds: the data received so far (:class:`DataLog`, shared by the
 components) and each component's measurement factors (:class:`Factors`: its association history,
 and for Gaussian PDA and max-mixtures its per-detection candidates and weights).
@@ -27,9 +27,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ..inference import smoother as sm
-from ..io.scenario import Scenario, stack_steps
-from ..models.measurement import Detections, SensorModel
+from ...inference import smoother as sm
+from ...io.scenario import Scenario, stack_steps
+from ...models.measurement import Detections, SensorModel
 
 class DataLog(eqx.Module):
     """The odometry and detections received so far (steps ``0..k-1``; the rest zeros), and the
@@ -52,7 +52,7 @@ class DataLog(eqx.Module):
     prior_mean: Float[Array, " D0"]  # [x_0, o_0..o_{N-1}]
     prior_sqrt_info: Float[Array, "D0 D0"]
     prior_info: Float[Array, "D0 D0"]  # RᵀR, formed once here rather than once per step
-    last_step: Int[Array, ""]  # the scenario's steps: the step solved to smoothing.FINAL_ATOL (a padded log has more rows)
+    last_step: Int[Array, ""]  # the scenario's steps: the step solved to kinds.FINAL_ATOL (a padded log has more rows)
     # Detections that arrived beyond the factor slots of the fixed-lag window ending at their step.
     window_excess: Int[Array, ""]
     # A fixed-lag window graph's measurement factor slots (window_factor_budget) and poses (L + 1);

@@ -1,4 +1,4 @@
-"""What the loop-closure pass (:mod:`.loop_closure`) may do and what it reports: its settings
+"""What the loop-closure pass (:mod:`.closure`) may do and what it reports: its settings
 (:class:`LoopClosureSettings`), the score of one merge set (:class:`MergeScore`), one accepted round
 (:class:`Closure`) and the pass's report (:class:`LoopClosureReport`)."""
 
@@ -7,8 +7,8 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from ..io.scenario import Scenario
-from .gaussian import chi2_gate
+from ...io.scenario import Scenario
+from ..gaussian import chi2_gate
 
 
 @dataclasses.dataclass(frozen=True)
@@ -19,13 +19,13 @@ class LoopClosureSettings:
     (default 8); ``beam``: partial joint assignments kept (default 256); ``threshold``: the least log
     posterior odds to accept (default 0: more likely closed than not; during the run, against the
     component searched, and a negative value adds less likely closures as hypotheses of their own:
-    :class:`~.loop_online.OnlineLoopClosure`); ``revisit_log_odds``: the
+    :class:`~.online.OnlineLoopClosure`); ``revisit_log_odds``: the
     prior log odds, per merge, that a late object is an old one rather than new (default 0: the
     estimators' own model, in which a detection is a new object or a known one with no prior
     preference; a positive value says the robot expects to revisit, e.g. once the map is complete);
     ``verify_probability`` (default 0.999) and ``tries`` (default 8): the sets re-solved and
     verified per round; ``reopen`` (default True): first undo the run's own loop closures, so that
-    the search decides them jointly with the rest (:mod:`.loop_merge`); ``detection_probability``
+    the search decides them jointly with the rest (:mod:`.merge`); ``detection_probability``
     (``None``, the default: the scenario's ``sensor.detection_probability``, 0.9 where the file has
     none; 0 leaves negative information out), ``min_miss_probability`` (default 0.1: the least
     probability a miss is given, so a miss costs at most ``log 0.1``. The footprint test is on the
@@ -34,7 +34,7 @@ class LoopClosureSettings:
     otherwise rule out every merge that adds one miss), ``misses`` (default ``"marginal"``: how sure
     it is that an object was in view, under the solved graph's covariance; ``"point"``: in view when
     the solved object lies inside the solved pose's footprint by ``fov_margin``, default 0.5 m,
-    0.2 rad; :mod:`.loop_misses`) of the negative-information term; ``max_rounds`` (default 5; 0: only re-solve the graph); ``max_steps``: Levenberg-Marquardt
+    0.2 rad; :mod:`.misses`) of the negative-information term; ``max_rounds`` (default 5; 0: only re-solve the graph); ``max_steps``: Levenberg-Marquardt
     iterations per solve (default 100)."""
 
     gap: int = 20
@@ -88,7 +88,7 @@ class LoopClosureSettings:
 
 
 DEFAULT_DETECTION_PROBABILITY = 0.9  # a file without sensor.detection_probability
-MISS_MODELS = ("marginal", "point")  # LoopClosureSettings.misses (loop_misses)
+MISS_MODELS = ("marginal", "point")  # LoopClosureSettings.misses (misses.py)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -105,7 +105,7 @@ class Closure:
 
 @dataclasses.dataclass(frozen=True)
 class LoopClosureReport:
-    """What :func:`~.loop_closure.close_loops` did: the accepted rounds; ``considered``: late objects with at least one
+    """What :func:`~.closure.close_loops` did: the accepted rounds; ``considered``: late objects with at least one
     gated candidate, summed over rounds; ``beam_dropped``: partial assignments the beam dropped
     (0: the search was exhaustive); ``rejected``: merge sets whose re-solved graph failed verification (each undone);
     ``failed``: whether a solve did not converge (the last good solution is kept); ``reopened``: the
@@ -139,10 +139,10 @@ class LoopClosureReport:
 
 @dataclasses.dataclass(frozen=True)
 class MergeScore:
-    """How the pass judges one merge set (:func:`~.loop_closure.score_merges`): ``log_bayes_factor`` against no
+    """How the pass judges one merge set (:func:`~.closure.score_merges`): ``log_bayes_factor`` against no
     merge (Laplace, from the unmerged graph; ``revisit_log_odds`` per merge included), the
     ``negative_information`` term of the re-solved graph (log-likelihood change of the misses),
-    ``log_odds``, their sum (what :func:`~.loop_closure.close_loops` compares with ``threshold``), ``cost_rise``
+    ``log_odds``, their sum (what :func:`~.closure.close_loops` compares with ``threshold``), ``cost_rise``
     (smoother cost after the merge minus before, re-solved) and whether it passes verification
     (``verified``: converged, and ``2 · cost_rise`` within the chi-square ``verify_probability``
     quantile)."""

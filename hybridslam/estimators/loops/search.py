@@ -1,4 +1,4 @@
-"""The candidate search of the loop-closure pass (:mod:`.loop_closure`): which old objects a late
+"""The candidate search of the loop-closure pass (:mod:`.closure`): which old objects a late
 object may be (:func:`candidates`), the score of a joint set of merges (:func:`log_bayes_factor`) and
 the beam over the late objects that finds the best sets (:func:`search`).
 
@@ -23,7 +23,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .loop_settings import LoopClosureSettings
+from .settings import LoopClosureSettings
 
 
 def object_spans(history: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
