@@ -62,7 +62,7 @@ from .io.result import Result as Result
 from .io.result import ResultWriter as ResultWriter
 from .io.result import load_result as load_result
 from .io.result import save_result as save_result
-from .io.scenario import Scenario as Scenario
+from .models.scenario import Scenario as Scenario
 from .io.scenario import ScenarioError as ScenarioError
 from .io.scenario import load_scenario as load_scenario
 from .io.scenario import save_scenario as save_scenario

@@ -38,7 +38,8 @@ from .compilation import xla_defaults_from_environment as xla_defaults_from_envi
 from .inference.ties import rank_key_np
 from .estimators.base import AbstractEstimator, Mixture, StepInfo
 from .io.result import ComponentRecord, HistoryLinker, Result, StepRecord
-from .io.scenario import Scenario, stack_steps
+from .models.scenario import Scenario
+from .io.scenario import stack_steps
 from .models.measurement import Detections
 
 

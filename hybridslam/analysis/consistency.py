@@ -33,7 +33,7 @@ import optimistix as optx
 from ..estimators.smoothers import factors as smoother_factors
 from ..inference import smoother as sm
 from ..io.result import ComponentRecord, Result, StepRecord
-from ..io.scenario import Scenario
+from ..models.scenario import Scenario
 from ..models import geometry, se2
 from ..models.model import model_from_scenario
 from ..models.motion import odometry_residual

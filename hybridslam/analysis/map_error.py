@@ -14,7 +14,7 @@ from collections import Counter
 import numpy as np
 
 from ..io.result import Result
-from ..io.scenario import Scenario
+from ..models.scenario import Scenario
 
 
 def true_positions(scenario: Scenario) -> np.ndarray | None:

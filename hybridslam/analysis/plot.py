@@ -17,7 +17,7 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
 from ..io.result import Result, StepRecord
-from ..io.scenario import Scenario
+from ..models.scenario import Scenario
 
 # (column of metrics.csv, panel title, log-scale y axis)
 METRIC_PANELS: tuple[tuple[str, str, bool], ...] = (

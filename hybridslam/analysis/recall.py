@@ -16,7 +16,7 @@ import dataclasses
 import numpy as np
 
 from ..io.result import ComponentRecord, Result
-from ..io.scenario import Scenario
+from ..models.scenario import Scenario
 from .consistency import Audit, association_audit
 
 

@@ -30,7 +30,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from ..io.result import Result
-from ..io.scenario import Scenario
+from ..models.scenario import Scenario
 
 STATISTICS = ("max", "mean", "median", "min", "rmse", "sse", "std")
 _PLANAR_TOL = 1e-9  # a TUM pose further than this from the plane is not an SE(2) pose

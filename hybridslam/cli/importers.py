@@ -25,7 +25,8 @@ import numpy as np
 from ..datasets.kitti import ODOMETRY_SOURCES, KITTIError, import_kitti
 from ..datasets.mrclam import MOTION_NOISE_SOURCES, NOISE_SOURCES, import_mrclam
 from ..datasets.mrclam_files import MRCLAMError
-from ..io.scenario import Scenario, save_scenario
+from ..models.scenario import Scenario
+from ..io.scenario import save_scenario
 from .common import CLIError, check_writable, clutter_density
 
 _GAP_NOTE_S = 0.5  # a longer stretch without odometry or ground truth is worth a line

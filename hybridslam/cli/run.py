@@ -14,7 +14,8 @@ from ..estimators.base import AbstractEstimator, StepInfo
 from ..estimators.loops.settings import LoopClosureSettings
 from ..estimators.profiles import LONG_RUN_STEPS, PROFILES, Profile, file_summary, recommended
 from ..io.result import ResultWriter, StepRecord
-from ..io.scenario import Scenario, ScenarioError, load_scenario
+from ..models.scenario import Scenario
+from ..io.scenario import ScenarioError, load_scenario
 from .common import (
     CLASSIFIERS,
     CLIError,

@@ -68,7 +68,7 @@ from typing import Any
 
 import numpy as np
 
-from ..io.scenario import Classifier, Detection, Discovery, Scenario, Step
+from ..models.scenario import Classifier, Detection, Discovery, Scenario, Step
 from .clutter import declared_clutter
 from .kitti_files import (
     CLASSES,

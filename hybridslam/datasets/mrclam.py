@@ -118,7 +118,7 @@ from typing import Any
 
 import numpy as np
 
-from ..io.scenario import Classifier, Discovery, Scenario
+from ..models.scenario import Classifier, Discovery, Scenario
 from .mrclam_calibration import MIN_BLOCKS, _drift, _drift_block, _stats, compose, measurement_residuals, wrap
 from .mrclam_detections import Window, default_sensor, make_window, merge_repeats_of
 from .clutter import declared_clutter

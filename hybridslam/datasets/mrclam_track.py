@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..io.scenario import Detection, Step
+from ..models.scenario import Detection, Step
 from .mrclam_calibration import (DRIFT_BLOCK_S, MIN_BLOCKS, between, drift_over_horizons,
                                  integrate_odometry, interpolate_groundtruth, measurement_residuals,
                                  odometry_residuals, robust_variance)

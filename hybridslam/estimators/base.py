@@ -35,7 +35,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 
 from ..version import __version__
 from ..config import require_x64
-from ..io.scenario import Scenario
+from ..models.scenario import Scenario
 from ..models.measurement import Detections
 from .options import shown, value_text
 

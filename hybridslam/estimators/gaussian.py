@@ -63,7 +63,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ..inference import discovery, gating, sequential
 from ..inference.beam import beam_search
 from ..inference.update import prior_gauss_newton, support_of, wrap_angles
-from ..io.scenario import Scenario
+from ..models.scenario import Scenario
 from ..models import geometry
 from ..models.measurement import Detections
 from ..models.model import Model, model_from_scenario

@@ -44,7 +44,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from ..io.scenario import Scenario
+from ..models.scenario import Scenario
 from .smoothers import parse_smoother
 
 PROFILES = ("auto", "paper")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from ..io.scenario import Scenario
+from ..models.scenario import Scenario
 from .base import AbstractEstimator
 from .gpda import GPDA
 from .hybrid.estimator import Hybrid

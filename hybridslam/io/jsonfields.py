@@ -7,16 +7,18 @@ standard library.
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import json
 import math
 import numbers
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import Any, NoReturn
 
 import numpy as np
+
+from ..models.scenario import dataclass_eq as dataclass_eq  # the file types' equality, with the domain types'
+from ..models.scenario import equal as equal
 
 SYM_TOL = 1e-9  # relative to the largest absolute entry
 PROB_TOL = 1e-6
@@ -32,31 +34,6 @@ class ScenarioError(ValueError):
 
     def __str__(self) -> str:
         return f"{self.path}: {self.message}"
-
-
-def equal(a: Any, b: Any) -> bool:
-    if dataclasses.is_dataclass(a) and not isinstance(a, type):
-        return type(a) is type(b) and all(
-            equal(getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a) if f.compare
-        )
-    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
-        return np.shape(a) == np.shape(b) and bool(np.array_equal(a, b))
-    if isinstance(a, Sequence) and not isinstance(a, str):  # lists, tuples, a result's lazy histories
-        if not (isinstance(b, Sequence) and not isinstance(b, str) and len(a) == len(b)):
-            return False
-        try:
-            if a == b:  # lists of numbers (a result's T² association lists) at C speed
-                return True
-        except (TypeError, ValueError):  # arrays inside: compared one by one below
-            pass
-        return all(map(equal, a, b))
-    if isinstance(a, dict):
-        return isinstance(b, dict) and a.keys() == b.keys() and all(equal(a[k], b[k]) for k in a)
-    return bool(a == b)
-
-
-def dataclass_eq(self: Any, other: Any) -> bool:
-    return equal(self, other) if type(other) is type(self) else NotImplemented
 
 
 def fail(path: str, message: str) -> NoReturn:

@@ -1,7 +1,8 @@
 """Scenario files (`hybridslam-scenario/1`): load, validate, save, and stack for JAX.
 
-The file layout is the contract in SCENARIO_FORMAT.md; this module keeps to it
-exactly. Every malformed input raises `ScenarioError` whose message is one line,
+The file layout is the contract in docs/file_format.md; this module keeps to it
+exactly. The types it reads into (:class:`Scenario`, :class:`Step`, :class:`Detection`, ...) are the
+model layer's (:mod:`hybridslam.models.scenario`), importable from here too. Every malformed input raises `ScenarioError` whose message is one line,
 `<field path>: <what is wrong>`, e.g. ``steps[3].detections[1].scores: expected 2
 numbers, got 3``. Paths use the JSON layout (0-based list indices), so
 ``steps[0]`` is step k = 1.
@@ -16,16 +17,21 @@ import copy
 import dataclasses
 import functools
 import os
-from dataclasses import dataclass, field
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
 from . import jsonfields as jf
 from .jsonfields import ScenarioError as ScenarioError
+from ..models.scenario import MODELS as MODELS  # the domain types, read and written here
+from ..models.scenario import Classifier as Classifier
+from ..models.scenario import Detection as Detection
+from ..models.scenario import Discovery as Discovery
+from ..models.scenario import Scenario as Scenario
+from ..models.scenario import StackedSteps as StackedSteps
+from ..models.scenario import Step as Step
 
 SCENARIO_FORMAT = "hybridslam-scenario/1"
-MODELS = ("confusion", "independent", "learned", "mirror", "none")
 _TOP_KEYS = frozenset(
     "format num_classes objects class_prior robot motion_cov geometric_cov "
     "classifier sensor steps discovery true_objects".split()
@@ -35,105 +41,6 @@ _TOP_KEYS = frozenset(
 # --------------------------------------------------------------------------- #
 # Equality for dataclasses holding arrays (the generated __eq__ would raise).
 # --------------------------------------------------------------------------- #
-
-
-# --------------------------------------------------------------------------- #
-# Data types
-# --------------------------------------------------------------------------- #
-
-
-@dataclass(frozen=True, eq=False)
-class Detection:
-    """One detection: geometric part [range, bearing] and classifier scores (M,)."""
-
-    range: float
-    bearing: float
-    scores: np.ndarray
-    true_object: int | None = None
-    __eq__ = jf.dataclass_eq
-
-
-@dataclass(frozen=True, eq=False)
-class Step:
-    """Odometry u_k (3,) and the detections Z_k taken at x_k."""
-
-    odometry: np.ndarray
-    detections: tuple[Detection, ...]
-    __eq__ = jf.dataclass_eq
-
-
-@dataclass(frozen=True, eq=False)
-class Classifier:
-    """Semantic likelihood model; see "Classifier models" in SCENARIO_FORMAT.md."""
-
-    model: str  # one of MODELS
-    alpha: float | None = None  # mirror, independent
-    K: float | None = None  # mirror, independent
-    matrix: np.ndarray | None = None  # confusion: (M, M), matrix[label, class]
-    path: str | None = None  # learned: model file; load_scenario makes it absolute
-    __eq__ = jf.dataclass_eq
-
-
-@dataclass(frozen=True, eq=False)
-class Discovery:
-    """The optional "discovery" section (unknown maps)."""
-
-    max_objects: int
-    new_object_log_density: float
-    new_object_orientation_var: float
-    __eq__ = jf.dataclass_eq
-
-
-@dataclass(frozen=True, eq=False)
-class Scenario:
-    """A parsed scenario file. N objects, M classes, T steps."""
-
-    num_classes: int
-    object_prior_means: np.ndarray  # (N, 3)
-    object_prior_covs: np.ndarray  # (N, 3, 3)
-    class_prior: np.ndarray  # (N, M)
-    robot_prior_mean: np.ndarray  # (3,)
-    robot_prior_cov: np.ndarray  # (3, 3)
-    motion_cov: np.ndarray  # (3, 3)
-    geometric_cov: np.ndarray  # (2, 2)
-    classifier: Classifier
-    max_range: float
-    fov: float
-    steps: tuple[Step, ...]
-    true_object_poses: np.ndarray | None = None  # (N, 3) if every object has true_pose
-    true_classes: np.ndarray | None = None  # (N,) int if every object has true_class
-    true_robot_poses: np.ndarray | None = None  # (T + 1, 3)
-    discovery: Discovery | None = None
-    true_objects: tuple[tuple[np.ndarray, int], ...] | None = None  # (pose (3,), class)
-    clutter_log_density: float | None = None  # sensor.clutter_log_density: a detection may be spurious
-    detection_probability: float | None = None  # sensor.detection_probability: P(detected | in view)
-    metadata: dict = field(default_factory=dict)  # unknown top-level keys, verbatim
-    __eq__ = jf.dataclass_eq
-
-    @property
-    def num_objects(self) -> int:
-        return int(np.shape(self.object_prior_means)[0])
-
-    @property
-    def num_steps(self) -> int:
-        return len(self.steps)
-
-    @property
-    def max_detections(self) -> int:
-        return max((len(s.detections) for s in self.steps), default=0)
-
-    def replace(self, **changes: Any) -> Scenario:
-        return dataclasses.replace(self, **changes)
-
-
-class StackedSteps(NamedTuple):
-    """The steps padded to D detections each (T steps, M classes)."""
-
-    odometry: np.ndarray  # (T, 3)
-    geo: np.ndarray  # (T, D, 2) [range, bearing]; padded rows 0
-    scores: np.ndarray  # (T, D, M); padded rows 0
-    mask: np.ndarray  # (T, D) bool
-    true_object: np.ndarray  # (T, D) int, -1 where unknown or padded
 
 
 # --------------------------------------------------------------------------- #

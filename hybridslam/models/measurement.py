@@ -17,7 +17,7 @@ import jax.scipy.linalg as jsl
 from jax.scipy.special import log_ndtr, ndtr
 from jaxtyping import Array, Bool, Float, Int
 
-from ..io.scenario import StackedSteps
+from .scenario import StackedSteps
 from . import geometry
 from .classifier import ClassifierModel
 from .unrolled import sum_last

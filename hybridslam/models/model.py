@@ -12,7 +12,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ..io.scenario import Scenario
+from .scenario import Scenario
 from .classifier import ClassifierModel
 from .registry import make_classifier
 from .measurement import SensorModel

@@ -31,7 +31,7 @@ import math
 import jax
 import numpy as np
 
-from ..io.scenario import Classifier, Detection, Discovery, Scenario, Step
+from ..models.scenario import Classifier, Detection, Discovery, Scenario, Step
 from ..models import geometry, se2
 
 LEVELS: tuple[float, ...] = tuple(float(v) for v in np.linspace(0.005, 0.05, 5))  # tr(Λ_t), Fig. 5-3d

@@ -16,7 +16,7 @@ import dataclasses
 import equinox as eqx
 import numpy as np
 
-from ..io.scenario import Classifier, Detection, Scenario, Step
+from ..models.scenario import Classifier, Detection, Scenario, Step
 from ..models.registry import make_classifier
 
 

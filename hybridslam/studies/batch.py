@@ -42,7 +42,7 @@ from jaxtyping import Array, Float, Key, UInt32
 from ..driver import Inputs, Trace, inputs_from_scenario, trace_record
 from ..estimators.base import AbstractEstimator
 from ..io.result import StepRecord
-from ..io.scenario import Scenario
+from ..models.scenario import Scenario
 from ..models.classifier import AlphaK
 from .exported import compiled_exported
 from .strategies import BATCH_AXIS, BatchStrategy, MapBatches, VmapBatches, default_strategy

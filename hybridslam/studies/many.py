@@ -22,7 +22,7 @@ import numpy as np
 from .. import compilation, driver
 from ..driver import Run, inputs_from_scenario, run, scan
 from ..estimators.base import AbstractEstimator
-from ..io.scenario import Scenario
+from ..models.scenario import Scenario
 from .batch import shared_shapes
 
 

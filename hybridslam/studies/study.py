@@ -31,7 +31,8 @@ from ..driver import object_poses
 from ..estimators.base import AbstractEstimator, summarize_counts
 from ..estimators.hybrid.estimator import Hybrid
 from ..io.result import Result, save_result
-from ..io.scenario import Scenario, load_scenario
+from ..models.scenario import Scenario
+from ..io.scenario import load_scenario
 from ..models.classifier import ClassifierModel
 from ..sim.paper import simulate
 from .batch import BatchRun, batch_inputs, batched, device_mesh, run_batch, step_records

@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from ...io.scenario import Scenario
+from ...models.scenario import Scenario
 from ...models.model import Model
 from ..smoothers.kinds import SmootherState
 

@@ -11,7 +11,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from ...io.scenario import Scenario
+from ...models.scenario import Scenario
 from ...models.classifier import ClassifierModel
 from ...models.measurement import Detections
 from ...models.model import NewObjects, model_from_scenario

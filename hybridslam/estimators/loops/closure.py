@@ -56,7 +56,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from ...io.result import ComponentRecord, Result
-from ...io.scenario import Scenario
+from ...models.scenario import Scenario
 from ..smoothers import factors as smoother_factors
 from .merge import compact, pauses, reopen, used_slots
 from .search import candidates, creating_ranges, log_bayes_factor, object_spans, search

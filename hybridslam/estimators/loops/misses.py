@@ -32,7 +32,7 @@ from jax.scipy.special import ndtr
 from jaxtyping import Array, Float
 
 from ...inference import smoother as sm
-from ...io.scenario import Scenario
+from ...models.scenario import Scenario
 from ...models.geometry import range_bearing, range_bearing_jacobians
 from .settings import LoopClosureSettings
 

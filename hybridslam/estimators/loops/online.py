@@ -48,7 +48,7 @@ import numpy as np
 import optimistix as optx
 
 from ...inference import smoother as sm
-from ...io.scenario import Scenario
+from ...models.scenario import Scenario
 from ..base import AbstractEstimator
 from ..base import LoopClosureAccess as LoopClosureAccess
 from ..base import MergedComponent as MergedComponent

@@ -7,7 +7,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from ...io.scenario import Scenario
+from ...models.scenario import Scenario
 from ..gaussian import chi2_gate
 
 

@@ -19,7 +19,7 @@ import numpy as np
 import optimistix as optx
 
 from ...inference import smoother as sm
-from ...io.scenario import Scenario
+from ...models.scenario import Scenario
 from ...models.model import model_from_scenario
 from ..smoothers import factors as smoother_factors
 from ..gaussian import chi2_gate

@@ -12,7 +12,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ...inference.ties import best_slot
-from ...io.scenario import Scenario
+from ...models.scenario import Scenario
 from ...models.classifier import ClassifierModel
 from ...models.measurement import Detections
 from ...models.model import model_from_scenario

@@ -28,7 +28,8 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ...inference import smoother as sm
-from ...io.scenario import Scenario, stack_steps
+from ...models.scenario import Scenario
+from ...io.scenario import stack_steps
 from ...models.measurement import Detections, SensorModel
 
 class DataLog(eqx.Module):

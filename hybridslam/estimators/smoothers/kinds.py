@@ -47,7 +47,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from ...inference import smoother as sm
-from ...io.scenario import Scenario
+from ...models.scenario import Scenario
 from ...models.measurement import Detections, SensorModel
 from .factors import (AnyFactors, DataLog, Factors, WindowPrior, data_log, factor_budget, graph,
                               initial_trajectory, initial_window, window_factor_budget, window_graph)
