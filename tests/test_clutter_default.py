@@ -10,9 +10,12 @@ import math
 import jax
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import hybridslam as hs
 from hybridslam.driver import run
+from hybridslam.inference.gating import chi2_gate
 from hybridslam.io.scenario import Discovery, ScenarioError, parse_scenario, scenario_to_json
 
 
@@ -105,3 +108,48 @@ def test_an_unknown_maps_file_clutter_density_is_not_a_known_map_setting():
     hs.make_estimator("ml").init(unknown)
     with pytest.raises(ValueError, match="clutter is for a known map"):
         hs.make_estimator("ml", clutter=-5.0).init(unknown)
+
+
+def _read_far(offset: float) -> hs.Scenario:
+    """A paper scenario whose first reading of its first object lies ``offset`` m farther than
+    the simulator put it (no other reading of that object in the step), the robot's prior pose
+    known to 1 cm: the offset is in range sds (0.32 m) alone."""
+    scenario = hs.simulate(2, steps=2, setup=hs.PaperSetup(max_detections=2, max_range=12.0))
+    scenario = scenario.replace(robot_prior_cov=np.diag([1e-4, 1e-4, 1e-6]))
+    first = scenario.steps[0]
+    far = dataclasses.replace(first.detections[0], range=first.detections[0].range + offset)
+    steps = (dataclasses.replace(first, detections=(far,) + first.detections[1:]),)
+    return scenario.replace(steps=steps + scenario.steps[1:])
+
+
+def test_the_hybrid_beliefs_chi_square_gate_leaves_a_reading_beyond_it_to_clutter():
+    """``gate_probability``: a reading 1.5 m off its object (d² ≈ 22, beyond the 0.999 gate) is the object's
+    in the top child without the gate (clutter at log density -30 is far less likely) and clutter
+    in every child with it, counted as rejected; on a file without clutter the setting changes
+    nothing; a probability outside (0, 1) is refused naming the setting."""
+    far = _read_far(1.5)
+    sc = far.replace(clutter_log_density=-30.0)
+    base = dict(gate=3, weights="linearized", smoother="filter")
+    plain = run(hs.make_estimator("hybrid", **base), sc)
+    gated = run(hs.make_estimator("hybrid", gate_probability=0.999, **base), sc)
+
+    def far_reading(r) -> list[int]:
+        return [int(c.associations[0][0]) for c in r.result.steps[0].components]
+
+    assert far_reading(plain)[0] >= 0 and int(plain.infos[0].rejected) == 0
+    assert all(a < 0 for a in far_reading(gated)) and int(gated.infos[0].rejected) == 1
+    assert "gate_probability=0.999" in hs.make_estimator("hybrid", gate_probability=0.999, **base).describe(sc)
+    without = run(hs.make_estimator("hybrid", gate_probability=0.999, **base), far).result.steps
+    assert without == run(hs.make_estimator("hybrid", **base), far).result.steps
+    with pytest.raises(ValueError, match="Hybrid.gate_probability"):
+        hs.Hybrid(gate_probability=1.0)
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.floats(1e-6, 1.0 - 1e-9))
+def test_the_chi_square_gate_is_the_quantile_of_two_degrees_of_freedom(p):
+    """``chi2_gate(p)``: the ``d²`` whose chi-square CDF at 2 degrees of freedom, ``1 − exp(−d²/2)``,
+    is ``p`` (thesis Sec. 3.2.1; 0.999 is the 13.8 of the docs)."""
+    q = chi2_gate(p)
+    assert q > 0 and math.isclose(-math.expm1(-q / 2), p, rel_tol=1e-9)
+    assert math.isclose(chi2_gate(0.999), 13.815510557964274, rel_tol=1e-12)

@@ -71,7 +71,7 @@ COMMON = {"classifier", "gn_max_steps", "max_detections", "max_steps", "smoother
 TAKEN = {
     "hybrid": COMMON | {"capacity", "prune_ratio",
                "gate", "weights", "samples", "visibility_temperature", "max_children", "exhaustive", "clutter",
-               "merge_threshold"},
+               "merge_threshold", "gate_probability"},
     "ml": COMMON | {"gate", "gate_probability",
            "max_children", "clutter"},
     "multimodal": COMMON | {"capacity", "samples",
@@ -89,7 +89,7 @@ def test_the_commands_offer_the_flags_they_always_offered():
     offered = {o.flag for o in all_options(hs.ESTIMATORS).values() if o.command_line}
     assert offered == {"--samples", "--capacity", "--prune-ratio", "--weights", "--gate", "--max-children",
                        "--exhaustive", "--clutter", "--smoother", "--max-detections", "--max-steps",
-                       "--new-landmark", "--merge-threshold"}
+                       "--new-landmark", "--merge-threshold", "--gate-probability"}
 
 
 @pytest.mark.parametrize("options, field, value", [

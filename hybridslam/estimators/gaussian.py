@@ -62,6 +62,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ..inference import discovery, gating, sequential
 from ..inference.beam import beam_search
+from ..inference.gating import chi2_gate as chi2_gate  # the loop-closure pass and multimodal read it here
 from ..inference.update import prior_gauss_newton, support_of, wrap_angles
 from ..models.scenario import Scenario
 from ..models import geometry
@@ -72,7 +73,7 @@ from ..models.classifier import ClassifierModel
 from . import novelty
 from .base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, detection_slots,
                    history_length, lacks_object_slots, object_slots, resolve_clutter)
-from .options import GATE, MAX_CHILDREN, Option, setting
+from .options import GATE, GATE_PROBABILITY, MAX_CHILDREN, setting
 from .smoothers.kinds import Full, Smoother, SmootherState, check_smoother
 from .smoothers.factors import Factors, active_history, new_overflow
 
@@ -155,15 +156,6 @@ class Association(eqx.Module):
 # --------------------------------------------------------------------------- #
 
 
-GATE_PROBABILITY = Option("gate_probability", "probability of the chi-square gate on the innovation's Mahalanobis "
-                                              "distance", parse=float, command_line=False)
-
-
-def chi2_gate(probability: float) -> float:
-    """The chi-square quantile of 2 degrees of freedom: ``−2 log(1 − p)`` (closed form)."""
-    if not 0.0 < probability < 1.0:
-        raise ValueError(f"gate_probability: expected a number in (0, 1), got {probability!r}")
-    return -2.0 * math.log1p(-probability)
 
 
 class SingleGaussian(AbstractEstimator):

@@ -152,10 +152,16 @@ MERGE_THRESHOLD = Option(
                        "same objects (hybrid: and classes; their weights added; multimodal: moment-matched)",
     parse=float, none="none, as in the paper's Algorithm 1")
 
+GATE_PROBABILITY = Option(
+    "gate_probability", "probability of the chi-square gate on a detection's squared Mahalanobis distance to each "
+                        "candidate object (2 degrees of freedom, thesis Sec. 3.2.1: 0.999 is d² ≤ 13.8); a detection "
+                        "beyond it of every object is clutter (hybrid: on a file with clutter only)",
+    parse=float, none="no chi-square gate")
+
 _SHOWN = {"new_landmark": _new_landmark_shown}  # shared options written their own way in the estimator text
 SHARED: dict[str, Option] = {o.name: o for o in (CAPACITY, SAMPLES, GATE, MAX_CHILDREN, CLUTTER, SMOOTHER,
                                                   MAX_DETECTIONS, MAX_STEPS, CLASSIFIER, GN_MAX_STEPS,
-                                                  NEW_LANDMARK, MERGE_THRESHOLD)}
+                                                  NEW_LANDMARK, MERGE_THRESHOLD, GATE_PROBABILITY)}
 
 
 # --------------------------------------------------------------------------- #

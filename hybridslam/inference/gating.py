@@ -129,16 +129,28 @@ def nearest(
     return ids.astype(jnp.int32), -neg
 
 
+def chi2_gate(probability: float) -> float:
+    """The chi-square quantile of 2 degrees of freedom (a range-bearing innovation's ``d²``):
+    ``−2 log(1 − p)`` (closed form); the gate of thesis Sec. 3.2.1 at probability ``p``."""
+    if not 0.0 < probability < 1.0:
+        raise ValueError(f"gate_probability: expected a number in (0, 1), got {probability!r}")
+    return -2.0 * math.log1p(-probability)
+
+
 def gate(
     sensor: SensorModel, mean: Float[Array, " D"], cov: Float[Array, "D D"], detections: Detections,
-    num_created: Int[Array, ""] | None, num_candidates: int,
+    num_created: Int[Array, ""] | None, num_candidates: int, max_d2: float = math.inf,
 ) -> Int[Array, "Dmax G"]:
-    """The hybrid belief's gate: the ``G`` nearest existing objects per detection (:func:`nearest`).
+    """The hybrid belief's gate: the ``G`` nearest existing objects per detection (:func:`nearest`),
+    those beyond the squared Mahalanobis distance ``max_d2`` (a chi-square gate, :func:`chi2_gate`;
+    ``inf``: none) replaced by the index ``N``, which names no object.
 
-    With fewer than ``G`` existing objects the tail names uncreated ones, which
-    :func:`hybridslam.hypotheses.resolve` rules out.
+    With fewer than ``G`` existing objects the tail names uncreated ones; :func:`hybridslam.hypotheses.resolve`
+    and the beam rule out both (an object index at or beyond the created ones).
     """
-    return nearest(mahalanobis(sensor, mean, cov, detections), num_created, num_candidates)[0]
+    d2 = mahalanobis(sensor, mean, cov, detections)
+    ids, near = nearest(d2, num_created, num_candidates)
+    return jnp.where(near <= max_d2, ids, d2.shape[1])
 
 
 @functools.cache

@@ -16,7 +16,8 @@ from ...models.classifier import ClassifierModel
 from ...models.measurement import Detections
 from ...models.model import NewObjects, model_from_scenario
 from .. import novelty
-from ..options import GATE, MAX_CHILDREN, MERGE_THRESHOLD, SAMPLES, Option, setting
+from ...inference.gating import chi2_gate
+from ..options import GATE, GATE_PROBABILITY, MAX_CHILDREN, MERGE_THRESHOLD, SAMPLES, Option, setting
 from ..smoothers.kinds import Full, Smoother, check_smoother
 from ..base import (CLUTTER_FROM_FILE, AbstractEstimator, Mixture, StepInfo, check_clutter, detection_slots,
                     history_length, object_slots, resolve_clutter)
@@ -75,6 +76,11 @@ class Hybrid(AbstractEstimator):
     * ``gate`` — association gating (thesis Sec. 3.2.1): a detection may only be associated with the
       ``gate`` objects of lowest Mahalanobis distance per component (or a new object); ``None``
       enumerates every object exactly;
+    * ``gate_probability`` — with clutter (the file's or the ``clutter`` setting), only the
+      candidates inside the chi-square gate at this probability (thesis Sec. 3.2.1, as ``ml``,
+      ``gpda`` and ``max-mixture`` gate: 0.999 is d² ≤ 13.8); a detection beyond it of every object
+      is clutter in every child (counted in ``StepInfo.rejected``). ``None`` (the default, the
+      paper's Algorithm 1): no chi-square gate. Without clutter it changes nothing;
     * ``clutter`` — with a :class:`~.branching.Beam`, each detection may also be clutter (a false
       detection of no object): the log density of its ``[range, bearing]`` under that hypothesis
       (prior probability of clutter included; e.g. ``log(0.01 / (max_range · fov))``), its scores
@@ -129,6 +135,8 @@ class Hybrid(AbstractEstimator):
     max_steps: int | None = eqx.field(default=None, static=True)
     visibility_temperature: float | tuple[float, float] | None = eqx.field(
         default=None, static=True, metadata=setting(VISIBILITY_TEMPERATURE))
+    gate_probability: float | None = eqx.field(default=None, static=True, metadata=setting(
+        GATE_PROBABILITY, show=lambda e: "" if e.gate_probability is None else f"gate_probability={e.gate_probability:g}"))
     merge_threshold: float | None = eqx.field(default=None, static=True, metadata=setting(
         MERGE_THRESHOLD, show=lambda e: "" if e.merge_threshold is None else f"merge_threshold={e.merge_threshold:g}"))
     batch_axis: str | None = eqx.field(default=None, static=True)
@@ -137,7 +145,7 @@ class Hybrid(AbstractEstimator):
     title: ClassVar[str] = "hybrid belief"
     reference: ClassVar[str] = "Tchuiev et al. 2019, Alg. 1"
     init_settings = ("prune_ratio", "clutter", "new_landmark", "classifier", "visibility_temperature")
-    described = ("weights", "capacity", "prune_ratio", "gate", "branching", "clutter", "new_landmark", "merge_threshold",
+    described = ("weights", "capacity", "prune_ratio", "gate", "gate_probability", "branching", "clutter", "new_landmark", "merge_threshold",
                  "smoother")
 
     def __check_init__(self):
@@ -153,6 +161,12 @@ class Hybrid(AbstractEstimator):
                              f"got {self.weights!r}")
         _positive_int("capacity", self.capacity)
         _positive_int("gate", self.gate, allow_none=True)
+        if self.gate_probability is not None:
+            try:
+                chi2_gate(self.gate_probability)
+            except (TypeError, ValueError):
+                raise ValueError(f"Hybrid.gate_probability: expected a number in (0, 1) or None, "
+                                 f"got {self.gate_probability!r}") from None
         _positive_int("gn_max_steps", self.gn_max_steps)
         _positive_int("max_detections", self.max_detections, allow_none=True)
         _positive_int("max_steps", self.max_steps, allow_none=True)

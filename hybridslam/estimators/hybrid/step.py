@@ -18,6 +18,7 @@ loss of information: the weight integrates them over the unknown viewpoint inste
 from __future__ import annotations
 
 import dataclasses
+import math
 from functools import partial
 from typing import NamedTuple, Protocol, runtime_checkable
 
@@ -31,7 +32,7 @@ from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 from ...config import x64_enabled
 from ...inference.batching import map_distinct, map_live, smoothing_chunk
 from ...inference.discovery import create_objects
-from ...inference.gating import contradicted, gate, mahalanobis
+from ...inference.gating import chi2_gate, contradicted, gate, mahalanobis
 from ...inference.merging import merge_equivalent
 from ...inference.update import gauss_newton_update
 from ...inference.ties import best_slot
@@ -68,6 +69,8 @@ class HybridSettings(Protocol):
     def batch_axis(self) -> str | None: ...
     @property
     def merge_threshold(self) -> float | None: ...
+    @property
+    def gate_probability(self) -> float | None: ...
 
 
 class HybridDetails(eqx.Module):
@@ -250,12 +253,15 @@ def hybrid_step(
     mean, cov = jax.vmap(propagate, (0, 0, None, None))(belief.mean, belief.cov, odometry, model.motion_cov)
 
     # Line 2 of PROPWEIGHTS: split each parent into (β_k, new class realizations), and line 5:
-    # PropWeights, Eq. 16 (gating, thesis Sec. 3.2.1: the G nearest objects per detection).
+    # PropWeights, Eq. 16 (gating, thesis Sec. 3.2.1: the G nearest objects per detection, and
+    # with clutter to explain what it leaves, only those inside the chi-square gate).
     candidates = None
-    if settings.gate is not None:
-        candidates = jax.vmap(gate, (None, 0, 0, None, 0, None))(
-            model.sensor, mean, cov, detections, belief.num_created, min(settings.gate, belief.num_objects)
-        )
+    chi2 = settings.gate_probability is not None and model.clutter is not None
+    if settings.gate is not None or chi2:
+        size = belief.num_objects if settings.gate is None else min(settings.gate, belief.num_objects)
+        max_d2 = chi2_gate(settings.gate_probability) if chi2 else math.inf
+        candidates = jax.vmap(partial(gate, num_candidates=size, max_d2=max_d2), (None, 0, 0, None, 0))(
+            model.sensor, mean, cov, detections, belief.num_created)
     branch = _beam if isinstance(settings.branching, Beam) else _exhaustive
     sc = branch(settings, belief, mean, cov, detections, candidates, realize, discovery, key)
     # No hypothesis puts every detected object in view: the 0/1 visibility model cannot explain
