@@ -409,10 +409,11 @@ class AbstractEstimator(eqx.Module):
 
 
 class MergedComponent(NamedTuple):
-    """A component loop closure during the run (:class:`~.loops.online.OnlineLoopClosure`) adds, in its own object numbering: its association
-    history ``(T, Dmax)``, class realizations ``(Nmax,)`` (-1 open), objects in use, trajectory
-    ``(T+1, 3)``, marginal mean ``(D,)`` and covariance ``(D, D)`` of ``[x_k, objects]``, and per
-    object in use the parent component's objects it joins (one: kept or split off; more: merged)."""
+    """A component that loop closure during the run (:class:`~.loops.online.OnlineLoopClosure`) adds,
+    in its own object numbering: its association history ``(T, Dmax)``, class realizations
+    ``(Nmax,)`` (-1 open), objects in use, trajectory ``(T+1, 3)``, marginal mean ``(D,)`` and
+    covariance ``(D, D)`` of ``[x_k, objects]``, and per object in use the parent component's
+    objects it joins (one: kept or split off; more: merged)."""
 
     history: np.ndarray
     classes: np.ndarray

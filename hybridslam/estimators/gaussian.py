@@ -62,7 +62,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ..inference import discovery, gating, sequential
 from ..inference.beam import beam_search
-from ..inference.gating import chi2_gate as chi2_gate  # the loop-closure pass and multimodal read it here
+from ..inference.gating import chi2_gate
 from ..inference.update import prior_gauss_newton, support_of, wrap_angles
 from ..models.scenario import Scenario
 from ..models import geometry
@@ -154,8 +154,6 @@ class Association(eqx.Module):
 # --------------------------------------------------------------------------- #
 # Init and view
 # --------------------------------------------------------------------------- #
-
-
 
 
 class SingleGaussian(AbstractEstimator):

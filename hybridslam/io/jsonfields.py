@@ -17,9 +17,6 @@ from typing import Any, NoReturn
 
 import numpy as np
 
-from ..models.scenario import dataclass_eq as dataclass_eq  # the file types' equality, with the domain types'
-from ..models.scenario import equal as equal
-
 SYM_TOL = 1e-9  # relative to the largest absolute entry
 PROB_TOL = 1e-6
 

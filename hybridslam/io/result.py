@@ -26,6 +26,7 @@ from typing import Any, overload
 
 import numpy as np
 
+from ..models.scenario import dataclass_eq
 from . import jsonfields as jf
 
 RESULT_FORMATS = {1: "hybridslam-result/1", 2: "hybridslam-result/2"}
@@ -112,7 +113,7 @@ class ComponentRecord:
     # index in the previous step's components of the one whose history this one extends (format 2
     # files; None: unknown or none). Layout, not content: records that differ only here are equal.
     parent: int | None = dataclasses.field(default=None, compare=False)
-    __eq__ = jf.dataclass_eq
+    __eq__ = dataclass_eq
 
 
 @dataclass(eq=False)
@@ -122,7 +123,7 @@ class StepRecord:
     k: int
     components: list[ComponentRecord]
     metrics: dict[str, float]  # entropy, det_cov, num_components; optional err_wmax, err_wavg
-    __eq__ = jf.dataclass_eq
+    __eq__ = dataclass_eq
 
 
 @dataclass(eq=False)
@@ -134,7 +135,7 @@ class Result:
     timing: dict | None = None  # {"compile_s": float, "step_s": [float] * T}
     trajectory: np.ndarray | None = None  # (T+1, 3) smoothed x_0..x_T of the final best component (smoothers)
     objects: np.ndarray | None = None  # (N, 3) final object estimates of that component, indexed like classes
-    __eq__ = jf.dataclass_eq
+    __eq__ = dataclass_eq
 
 
 # --------------------------------------------------------------------------- #

@@ -145,8 +145,8 @@ class Hybrid(AbstractEstimator):
     title: ClassVar[str] = "hybrid belief"
     reference: ClassVar[str] = "Tchuiev et al. 2019, Alg. 1"
     init_settings = ("prune_ratio", "clutter", "new_landmark", "classifier", "visibility_temperature")
-    described = ("weights", "capacity", "prune_ratio", "gate", "gate_probability", "branching", "clutter", "new_landmark", "merge_threshold",
-                 "smoother")
+    described = ("weights", "capacity", "prune_ratio", "gate", "gate_probability", "branching", "clutter",
+                 "new_landmark", "merge_threshold", "smoother")
 
     def __check_init__(self):
         if not isinstance(self.branching, (Exhaustive, Beam)):

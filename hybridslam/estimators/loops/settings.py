@@ -8,7 +8,7 @@ import dataclasses
 import math
 
 from ...models.scenario import Scenario
-from ..gaussian import chi2_gate
+from ...inference.gating import chi2_gate
 
 
 @dataclasses.dataclass(frozen=True)

@@ -22,7 +22,7 @@ from ...inference import smoother as sm
 from ...models.scenario import Scenario
 from ...models.model import model_from_scenario
 from ..smoothers import factors as smoother_factors
-from ..gaussian import chi2_gate
+from ...inference.gating import chi2_gate
 from .misses import in_view_probability, miss_log_likelihood, point_in_view, uses_marginal
 from .settings import LoopClosureSettings, MergeScore
 

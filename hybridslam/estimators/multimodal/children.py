@@ -20,7 +20,7 @@ from ...inference.update import downdate, prior_gauss_newton_gain, support_of
 from ...models import geometry
 from ...models.measurement import Detections
 from .. import novelty
-from ..gaussian import chi2_gate
+from ...inference.gating import chi2_gate
 from .likelihood import (_new_object, _placeholders, _sub_indices, assignment_objects, class_log_likelihoods,
                          condition, draws, gate, localized_terms, sampled_log_likelihood,
                          screen_log_likelihood, skipped_detections, slot_log_likelihood, slot_terms,
